@@ -1,0 +1,161 @@
+"""Background grid: a box of ``cells`` uniform cells in 1, 2 or 3 dimensions.
+
+Nodes are numbered in C order over ``cells + 1`` nodes per axis; nodal fields are flat
+arrays of shape ``(num_nodes, D)``.  All grid data are static: they fix array shapes.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import equinox as eqx
+import numpy as np
+
+from ._errors import check
+
+_AXES = "xyz"
+
+
+def _as_tuple(value, name: str) -> tuple:
+    if isinstance(value, (int, float, np.integer, np.floating)):
+        return (value,)
+    try:
+        return tuple(value)
+    except TypeError:
+        raise TypeError(f"Grid: {name} must be a number or a sequence of numbers, got {value!r}") from None
+
+
+class Grid(eqx.Module):
+    """Uniform background grid.
+
+    ``Grid(lower=(0.0,), upper=(25.0,), cells=(16,))``: ``lower``/``upper`` are the corner
+    coordinates, ``cells`` the number of cells per axis (1, 2 or 3 axes).
+    """
+
+    lower: tuple = eqx.field(static=True)
+    upper: tuple = eqx.field(static=True)
+    cells: tuple = eqx.field(static=True)
+
+    def __init__(self, lower: Sequence[float], upper: Sequence[float], cells: Sequence[int]):
+        lower = tuple(float(v) for v in _as_tuple(lower, "lower"))
+        upper = tuple(float(v) for v in _as_tuple(upper, "upper"))
+        cells_in = _as_tuple(cells, "cells")
+        check(1 <= len(lower) <= 3, f"Grid: lower has {len(lower)} axes; use 1, 2 or 3 axes")
+        check(
+            len(lower) == len(upper) == len(cells_in),
+            f"Grid: lower, upper and cells must have the same number of axes "
+            f"(got {len(lower)}, {len(upper)}, {len(cells_in)})",
+        )
+        for a, c in enumerate(cells_in):
+            check(
+                float(c) == int(c) and int(c) > 0,
+                f"Grid: cells[{a}] = {c!r} must be a positive integer (number of cells along axis {_AXES[a]})",
+            )
+        for a, (lo, hi) in enumerate(zip(lower, upper)):
+            check(all(map(math.isfinite, (lo, hi))), f"Grid: lower/upper along axis {_AXES[a]} must be finite")
+            check(
+                hi > lo,
+                f"Grid: upper[{a}] = {hi} must be greater than lower[{a}] = {lo}; swap them or widen the box",
+            )
+        self.lower = lower
+        self.upper = upper
+        self.cells = tuple(int(c) for c in cells_in)
+
+    # ----------------------------------------------------------------- geometry
+    @property
+    def dim(self) -> int:
+        return len(self.cells)
+
+    @property
+    def spacing(self) -> tuple:
+        """Cell size h per axis."""
+        return tuple((hi - lo) / c for lo, hi, c in zip(self.lower, self.upper, self.cells))
+
+    @property
+    def h(self) -> float:
+        """Smallest cell size (the one that sets the CFL time step)."""
+        return min(self.spacing)
+
+    @property
+    def node_shape(self) -> tuple:
+        return tuple(c + 1 for c in self.cells)
+
+    @property
+    def num_nodes(self) -> int:
+        return int(np.prod(self.node_shape))
+
+    @property
+    def strides(self) -> tuple:
+        """Flat-index stride of each axis (C order)."""
+        shape = self.node_shape
+        return tuple(int(np.prod(shape[a + 1 :])) for a in range(self.dim))
+
+    def node_coordinates(self) -> np.ndarray:
+        """Node positions, shape ``(num_nodes, D)``, flat C order (a NumPy constant)."""
+        axes = [lo + h * np.arange(n) for lo, h, n in zip(self.lower, self.spacing, self.node_shape)]
+        mesh = np.meshgrid(*axes, indexing="ij")
+        return np.stack([m.reshape(-1) for m in mesh], axis=-1)
+
+    def node_index_grid(self) -> np.ndarray:
+        """Integer node indices per axis, shape ``(num_nodes, D)``."""
+        mesh = np.meshgrid(*[np.arange(n) for n in self.node_shape], indexing="ij")
+        return np.stack([m.reshape(-1) for m in mesh], axis=-1)
+
+    def face_mask(self, face: str, layers: int = 1) -> np.ndarray:
+        """Boolean mask ``(num_nodes,)`` of the nodes on a face (``"x-"``, ``"y+"``, ...).
+
+        ``layers`` > 1 takes that many node layers inward from the face.
+        """
+        axis, side = parse_face(face, self.dim)
+        idx = self.node_index_grid()[:, axis]
+        n = self.node_shape[axis]
+        return idx < layers if side < 0 else idx >= n - layers
+
+    # --------------------------------------------------------------- builders
+    @classmethod
+    def covering(
+        cls,
+        lower: Sequence[float],
+        upper: Sequence[float],
+        spacing: float | Sequence[float],
+        shape=None,
+        pad: float | Sequence[float] = 0.0,
+    ) -> "Grid":
+        """Smallest grid with cell size ``spacing`` that covers the box [lower, upper].
+
+        The box is widened by ``pad`` (room for motion) and by the shape function's reach, so
+        every particle inside the box has its whole stencil on the grid.  Nodes are aligned with
+        ``lower`` (so a boundary plane at ``lower`` falls on a node).
+        """
+        lower = _as_tuple(lower, "lower")
+        upper = _as_tuple(upper, "upper")
+        d = len(lower)
+        hs = _as_tuple(spacing, "spacing")
+        hs = hs * d if len(hs) == 1 else hs
+        pads = _as_tuple(pad, "pad")
+        pads = pads * d if len(pads) == 1 else pads
+        for a, h in enumerate(hs):
+            check(float(h) > 0, f"Grid.covering: spacing[{a}] = {h} must be positive")
+        margin = 0.0 if shape is None else float(shape.margin)
+        lo_out, hi_out, cells = [], [], []
+        for lo, hi, h, p in zip(lower, upper, hs, pads):
+            lo_cells = math.ceil(margin + p / h - 1e-9)
+            lo_g = lo - lo_cells * h
+            n = math.ceil((hi + p - lo_g) / h + margin - 1e-9)
+            n = max(n, 1)
+            lo_out.append(lo_g)
+            hi_out.append(lo_g + n * h)
+            cells.append(n)
+        return cls(tuple(lo_out), tuple(hi_out), tuple(cells))
+
+
+def parse_face(face: str, dim: int) -> tuple[int, int]:
+    """``"x-"`` -> (0, -1); ``"y+"`` -> (1, +1)."""
+    ok = isinstance(face, str) and len(face) == 2 and face[0] in _AXES[:dim] and face[1] in "+-"
+    check(
+        ok,
+        f"face {face!r} is not a face of a {dim}D grid; use one of "
+        + ", ".join(a + s for a in _AXES[:dim] for s in "-+"),
+    )
+    return _AXES.index(face[0]), (-1 if face[1] == "-" else 1)

@@ -1,0 +1,136 @@
+"""Constitutive models.  Each returns the Kirchhoff stress tau = J sigma from the deformation
+gradient F, so the internal force is f_i = -sum_p V0_p tau_p . G_pi (001 eq. 20, 003 eq. 2.10),
+and a stored-energy density W(F) per reference volume for the strain-energy diagnostic.
+
+Dimensions: 1D is uniaxial stress for :class:`LinearElastic`, 2D is plane strain, 3D is full.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._errors import check
+
+
+def concrete(x):
+    """``x`` as a NumPy array, or None while it is being traced (jit/grad/vmap)."""
+    try:
+        return np.asarray(x)
+    except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError):
+        return None
+
+
+def _leaf(value, name: str, owner: str):
+    arr = jnp.asarray(value, dtype=jnp.result_type(float))
+    c = concrete(arr)
+    if c is not None:
+        check(np.all(np.isfinite(c)), f"{owner}: {name} = {value!r} must be finite")
+    return arr
+
+
+def _positive(value, name: str, owner: str):
+    arr = _leaf(value, name, owner)
+    c = concrete(arr)
+    if c is not None:
+        check(np.all(c > 0), f"{owner}: {name} = {value!r} must be positive")
+    return arr
+
+
+def _poisson(value, owner: str):
+    arr = _leaf(value, "nu", owner)
+    c = concrete(arr)
+    if c is not None:
+        check(np.all((c > -1.0) & (c < 0.5)),
+              f"{owner}: nu = {value!r} must lie in (-1, 0.5); 0.5 is incompressible and not supported")
+    return arr
+
+
+def _identity(F):
+    return jnp.broadcast_to(jnp.eye(F.shape[-1], dtype=F.dtype), F.shape)
+
+
+def _trace(A):
+    return jnp.trace(A, axis1=-2, axis2=-1)
+
+
+class Material(eqx.Module):
+    """Base class: ``density`` (reference), ``kirchhoff_stress(F)``, ``energy_density(F)``."""
+
+    density: jnp.ndarray
+
+    def lame(self):
+        mu = self.E / (2.0 * (1.0 + self.nu))
+        lam = self.E * self.nu / ((1.0 + self.nu) * (1.0 - 2.0 * self.nu))
+        return lam, mu
+
+    def wave_speed(self, dim: int):
+        """Dilatational wave speed: sqrt(E/rho) in 1D, sqrt((lambda + 2 mu)/rho) otherwise."""
+        if dim == 1 and isinstance(self, LinearElastic):
+            return jnp.sqrt(self.E / self.density)
+        lam, mu = self.lame()
+        return jnp.sqrt((lam + 2.0 * mu) / self.density)
+
+
+class LinearElastic(Material):
+    """Small-strain linear elasticity, eps = sym(F) - I.
+
+    tau = lambda tr(eps) I + 2 mu eps (2D plane strain, 3D); tau = E eps in 1D (uniaxial stress).
+    """
+
+    E: jnp.ndarray
+    nu: jnp.ndarray
+
+    def __init__(self, E, nu=0.0, density=1.0):
+        self.E = _positive(E, "E", "LinearElastic")
+        self.nu = _poisson(nu, "LinearElastic")
+        self.density = _positive(density, "density", "LinearElastic")
+
+    def strain(self, F):
+        return 0.5 * (F + jnp.swapaxes(F, -1, -2)) - _identity(F)
+
+    def kirchhoff_stress(self, F):
+        eps = self.strain(F)
+        if F.shape[-1] == 1:
+            return self.E * eps
+        lam, mu = self.lame()
+        return lam * _trace(eps)[..., None, None] * _identity(F) + 2.0 * mu * eps
+
+    def energy_density(self, F):
+        eps = self.strain(F)
+        return 0.5 * jnp.sum(self.kirchhoff_stress(F) * eps, axis=(-1, -2))
+
+
+class NeoHookean(Material):
+    """Compressible neo-Hookean: tau = mu (F F^T - I) + lambda ln(J) I,
+    W = mu/2 (tr(F^T F) - D) - mu ln J + lambda/2 (ln J)^2.
+    In 2D this is plane strain (F_zz = 1); in 1D, uniaxial strain."""
+
+    E: jnp.ndarray
+    nu: jnp.ndarray
+
+    def __init__(self, E, nu=0.3, density=1.0):
+        self.E = _positive(E, "E", "NeoHookean")
+        self.nu = _poisson(nu, "NeoHookean")
+        self.density = _positive(density, "density", "NeoHookean")
+
+    @staticmethod
+    def _log_j(F):
+        J = jnp.linalg.det(F)
+        # NaN-safe: J <= 0 is reported as an instability by the run; keep the log finite here
+        return jnp.log(jnp.where(J > 0, J, 1.0))
+
+    def kirchhoff_stress(self, F):
+        lam, mu = self.lame()
+        b = F @ jnp.swapaxes(F, -1, -2)
+        return mu * (b - _identity(F)) + lam * self._log_j(F)[..., None, None] * _identity(F)
+
+    def energy_density(self, F):
+        lam, mu = self.lame()
+        lj = self._log_j(F)
+        return 0.5 * mu * (jnp.sum(F * F, axis=(-1, -2)) - F.shape[-1]) - mu * lj + 0.5 * lam * lj**2
+
+
+MATERIALS = {"linear": LinearElastic, "neohookean": NeoHookean}

@@ -1,0 +1,281 @@
+"""Particle updates.  Every scheme is the generic update of 000 §2.3 / 003 §2.3:
+
+    V^{n+1} = V^n + A dt,      X^{n+1} = X^n + VV dt + 1/2 A dt^2
+
+* :class:`XPIC` (with :class:`FLIP` and :class:`PIC` as its order-1 members) -- 000 eqs. (3.28)-(3.29)
+* :class:`FMPM` -- 003 eqs. (2.13), (2.17), (2.26)
+
+Both use one series, :func:`mass_matrix_series`, sum_{r=1}^{m} (-1)^{r+1} C(m,r) (S+S)^{r-1} u.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._boundary import Constraint
+from ._diagnostics import angular_momentum
+from ._errors import check
+from ._materials import _leaf, concrete
+from ._transfer import Transfer
+
+BOUNDARY_MODES = ("iterates", "result", "lumped")
+POSITION_UPDATES = ("Sv", "PV", "first_order")
+MAX_SAFE_ORDER = 40
+
+
+class Damping(eqx.Module):
+    """Grid and particle damping alpha_g, alpha_p in 1/time (001 §5.1.2):
+    A_damp = alpha_g S v + alpha_p V^n (000 eq. 2.77)."""
+
+    grid: jnp.ndarray
+    particle: jnp.ndarray
+
+    def __init__(self, grid=0.0, particle=0.0):
+        self.grid = _leaf(grid, "grid (alpha_g)", "Damping")
+        self.particle = _leaf(particle, "particle (alpha_p)", "Damping")
+        for name, val in (("grid", self.grid), ("particle", self.particle)):
+            c = concrete(val)
+            if c is not None:
+                check(np.all(c >= 0), f"Damping: {name} = {c} must be >= 0 (units 1/time); 0 switches it off")
+
+    def acceleration(self, Sv, V):
+        return self.grid * Sv + self.particle * V  # 000 eq. (2.77)
+
+
+class GridSolution(eqx.Module):
+    """Lumped-mass grid results of one step: v = p/m, a = f/m, v_tilde = v + a dt (all with BCs)."""
+
+    v: jnp.ndarray
+    a: jnp.ndarray
+    v_tilde: jnp.ndarray
+
+
+class ParticleUpdate(eqx.Module):
+    velocity: jnp.ndarray  # V^{n+1}
+    position: jnp.ndarray  # X^{n+1}
+    strain_velocity: jnp.ndarray  # grid velocity for a USL- strain update
+    dissipated: jnp.ndarray  # energy dissipated by the update this step (scalar)
+
+
+def _check_order(order, name: str) -> int:
+    check(
+        isinstance(order, (int, np.integer)) and not isinstance(order, bool) and order >= 1,
+        f"{name}: order = {order!r} must be a positive integer (it is a static loop length)",
+    )
+    if order > MAX_SAFE_ORDER:
+        warnings.warn(
+            f"{name}: order {order} > {MAX_SAFE_ORDER}; XPIC is known to turn unstable at very high "
+            "orders (OSParticulas documentation). Orders of 2-10 capture nearly all of the benefit.",
+            stacklevel=3,
+        )
+    return int(order)
+
+
+def _check_beta(beta, owner: str):
+    arr = _leaf(beta, "beta", owner)
+    c = concrete(arr)
+    if c is not None:
+        check(np.all((c >= 0) & (c <= 1)), f"{owner}: beta = {c} must lie in [0, 1] (the FLIP fraction)")
+    return arr
+
+
+def mass_matrix_series(u, order: int, transfer: Transfer, constraint: Constraint, boundary: str = "iterates"):
+    """sum_{r=1}^{m} (-1)^{r+1} C(m, r) (S+S)^{r-1} u  by the recursion of 000 eqs. (3.23)-(3.25):
+
+        u_1 = m u,   u_r = ((m - r + 1)/r) S+S u_{r-1},   result = sum_r (-1)^{r+1} u_r
+
+    Applied to the lumped velocity v this is XPIC's v(m) (000 eq. 3.25); applied to the updated
+    lumped velocity it is FMPM's v+ = m~_k^{-1} p+ (003 eqs. 1.23, 2.3-2.5).
+
+    Velocity boundary conditions (003 §1.5, eqs. 1.49-1.50), ``boundary``:
+      * ``"iterates"`` (default): the series runs on the deviation from the prescribed field and
+        every iterate has its constrained components zeroed -- the constrained system.
+      * ``"result"``: conditions imposed only on the result (003 eq. 2.53 read literally);
+        known to gain energy for orders >= 3 (DESIGN.md).
+      * ``"lumped"``: the lumped method (003 eq. 2.52): conditions only on the input momenta.
+    """
+    if order == 1:
+        return u
+    if boundary == "iterates":
+        g = constraint.prescribed(u)
+        start = constraint.zero(u - g)
+        project = constraint.zero
+    else:
+        g = None
+        start = u
+        project = lambda w: w  # noqa: E731
+
+    def body(r, carry):
+        term, total = carry
+        coeff = (order - r + 1) / r
+        term = project(coeff * transfer.s_plus_s(term))  # 000 eq. (3.23)
+        sign = jnp.where(r % 2 == 1, 1.0, -1.0)
+        return term, total + sign * term
+
+    first = order * start  # 000 eq. (3.24)
+    _, total = jax.lax.fori_loop(2, order + 1, body, (first, first))
+    if boundary == "iterates":
+        return total + g
+    if boundary == "result":
+        return constraint.apply(total)
+    return total
+
+
+def dissipated_energy(mass, Sa, Sv, dV, dX, dt):
+    """Energy removed by a particle update relative to the non-dissipative FLIP update.
+
+    From the generic form (000 eq. 2.41), Delta E_p = M_p (A dt) . (VV + A dt / 2) with
+    A dt = Delta V and VV dt = Delta X - Delta V dt / 2, so Delta E_p = M_p Delta V . Delta X / dt.
+    The FLIP reference is M_p (S a dt) . (S v + S a dt / 2) (000 eq. 2.42); their difference is
+    000 eq. (2.43), which reduces to 000 eq. (2.44) when VV = S v.  Valid for every position update,
+    including FMPM's VV = V^n (003 eq. 2.26).
+    """
+    safe_dt = jnp.where(dt > 0, dt, 1.0)
+    flip = jnp.sum((Sa * dt) * (Sv + 0.5 * Sa * dt), axis=-1)
+    actual = jnp.sum(dV * dX, axis=-1) / safe_dt
+    return jnp.sum(mass * (flip - actual))
+
+
+class Scheme(eqx.Module):
+    """Base class of particle updates."""
+
+    def strain_grid_velocity(self, v, transfer: Transfer, constraint: Constraint):
+        """Grid velocity used for the strain update, from lumped velocities (USF, MUSL)."""
+        return v
+
+    def momentum(self, transfer: Transfer, state):
+        """Nodal momentum p_i = sum_p S_pi M_p V_p (003 eq. 2.1); APIC/TPIC add affine terms."""
+        return transfer.momentum(state.v)
+
+    def angular_momentum(self, state):
+        """sum_p X_p x M_p V_p (000 ch. 5); APIC adds its particle term (002 def. 5.1)."""
+        return angular_momentum(state)
+
+    def initial_affine(self, particles):
+        """Extra per-particle field this scheme carries (APIC's B_p, TPIC's grad v_p); None here."""
+        return None
+
+    def particle_state(self, state, update, transfer: Transfer, grid):
+        """New value of the scheme's extra per-particle field."""
+        return state.affine
+
+
+class XPIC(Scheme):
+    """XPIC(m) with FLIP fraction beta, 000 eqs. (3.25)-(3.29):
+
+        V^{n+1} = beta V^n + (1 - beta) S v(m) + (S a - A_damp) dt
+        X^{n+1} = X^n + [S v + (V^{n+1} - V^n)/2] dt                       (position="Sv")
+                  X^n + [beta S v + (1-beta) S v(m) + (V^{n+1} - V^n)/2] dt  (position="PV")
+                  X^n + S v_tilde dt                                         (position="first_order")
+
+    m = 1 is the FLIP/PIC blend of 000 eqs. (2.84)-(2.86); beta = 1 FLIP, beta = 0 PIC.
+    """
+
+    beta: jnp.ndarray
+    order: int = eqx.field(static=True)
+    position: str = eqx.field(static=True)
+    boundary: str = eqx.field(static=True)
+
+    def __init__(self, order: int = 2, beta=0.0, position: str = "Sv", boundary: str = "iterates"):
+        self.order = _check_order(order, type(self).__name__)
+        self.beta = _check_beta(beta, type(self).__name__)
+        check(position in POSITION_UPDATES,
+              f"{type(self).__name__}: position = {position!r}; choose one of {', '.join(POSITION_UPDATES)}")
+        check(boundary in BOUNDARY_MODES,
+              f"{type(self).__name__}: boundary = {boundary!r}; choose one of {', '.join(BOUNDARY_MODES)}")
+        self.position = position
+        self.boundary = boundary
+
+    def update(self, V, X, transfer: Transfer, constraint: Constraint, grid: GridSolution, damping: Damping, dt):
+        Sv = transfer.gather(grid.v)
+        Sa = transfer.gather(grid.a)
+        if self.order == 1:
+            Svm = Sv  # v(1) = v
+        else:
+            Svm = transfer.gather(mass_matrix_series(grid.v, self.order, transfer, constraint, self.boundary))
+        beta = self.beta
+        V_new = beta * V + (1.0 - beta) * Svm + (Sa - damping.acceleration(Sv, V)) * dt  # 000 eq. (3.28)
+        if self.position == "Sv":
+            X_new = X + (Sv + 0.5 * (V_new - V)) * dt  # 000 eq. (3.29), VV = S v
+        elif self.position == "PV":
+            X_new = X + (beta * Sv + (1.0 - beta) * Svm + 0.5 * (V_new - V)) * dt  # 000 eq. (3.29), VV = P V
+        else:
+            X_new = X + transfer.gather(grid.v_tilde) * dt  # 000 "Modified FLIP #1"
+        diss = dissipated_energy(transfer.particle_mass, Sa, Sv, V_new - V, X_new - X, dt)
+        return ParticleUpdate(V_new, X_new, grid.v_tilde, diss)
+
+
+class FLIP(XPIC):
+    """FLIP/PIC blend (000 eqs. 2.84-2.86): ``FLIP()`` is pure FLIP, ``FLIP(beta=0.99)`` the classic blend."""
+
+    def __init__(self, beta=1.0, position: str = "Sv"):
+        super().__init__(order=1, beta=beta, position=position)
+
+
+class PIC(XPIC):
+    """PIC: the blend with beta = 0 (000 eq. 2.85 with beta = 0)."""
+
+    def __init__(self, position: str = "Sv"):
+        super().__init__(order=1, beta=0.0, position=position)
+
+
+class FMPM(Scheme):
+    """FMPM(k), full-mass-matrix MPM (003 §2.2-2.3.1, Table 2.1):
+
+        v+ = m~_k^{-1} p+ = sum_{l=1}^{k} (-1)^{l+1} C(k,l) (S+S)^{l-1} v_tilde   (003 eqs. 1.23, 2.13)
+        V^{n+1} = S v+ - A_damp dt,    X^{n+1} = X^n + (V^{n+1} + V^n) dt / 2     (003 eq. 2.17)
+
+    ``beta`` (default 0) is jaxmpm's generalisation, not the seeds': a FLIP fraction
+    V^{n+1} = beta (V^n + S a dt) + (1 - beta) S v+ - A_damp dt.  FMPM(1) is the "new PIC" of
+    003 eq. (2.40).  The strain update uses the full-mass velocities.
+    """
+
+    beta: jnp.ndarray
+    order: int = eqx.field(static=True)
+    boundary: str = eqx.field(static=True)
+
+    def __init__(self, order: int = 2, beta=0.0, boundary: str = "iterates"):
+        self.order = _check_order(order, "FMPM")
+        self.beta = _check_beta(beta, "FMPM")
+        check(boundary in BOUNDARY_MODES, f"FMPM: boundary = {boundary!r}; choose one of {', '.join(BOUNDARY_MODES)}")
+        self.boundary = boundary
+
+    def strain_grid_velocity(self, v, transfer, constraint):
+        return mass_matrix_series(v, self.order, transfer, constraint, self.boundary)  # 003 eq. (2.3)
+
+    def update(self, V, X, transfer, constraint, grid, damping, dt):
+        Sv = transfer.gather(grid.v)
+        Sa = transfer.gather(grid.a)
+        v_plus = mass_matrix_series(grid.v_tilde, self.order, transfer, constraint, self.boundary)  # 003 eq. (2.13)
+        beta = self.beta
+        V_new = beta * (V + Sa * dt) + (1.0 - beta) * transfer.gather(v_plus) - damping.acceleration(Sv, V) * dt
+        X_new = X + 0.5 * (V_new + V) * dt  # 003 eq. (2.17)
+        diss = dissipated_energy(transfer.particle_mass, Sa, Sv, V_new - V, X_new - X, dt)
+        return ParticleUpdate(V_new, X_new, v_plus, diss)
+
+
+def scheme_from_name(spec: str, beta: float | None = None) -> Scheme:
+    """Parse the CLI form: flip | pic | blend:B | xpic:M | fmpm:K."""
+    name, _, arg = spec.partition(":")
+    name = name.lower()
+    try:
+        if name == "flip":
+            return FLIP(beta=1.0 if beta is None else beta)
+        if name == "pic":
+            return PIC()
+        if name == "blend":
+            return FLIP(beta=float(arg) if arg else (0.99 if beta is None else beta))
+        if name == "xpic":
+            return XPIC(order=int(arg or 2), beta=0.0 if beta is None else beta)
+        if name == "fmpm":
+            return FMPM(order=int(arg or 2), beta=0.0 if beta is None else beta)
+    except ValueError as err:
+        if "invalid literal" in str(err):
+            check(False, f"scheme {spec!r}: the part after ':' must be a number")
+        raise
+    check(False, f"unknown scheme {spec!r}; choose flip, pic, blend:B, xpic:M or fmpm:K")

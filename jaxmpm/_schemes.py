@@ -24,6 +24,7 @@ from ._materials import _leaf, concrete
 from ._transfer import Transfer
 
 BOUNDARY_MODES = ("iterates", "result", "lumped")
+SERIES_FORMS = ("binomial", "neumann")
 POSITION_UPDATES = ("Sv", "PV", "first_order")
 MAX_SAFE_ORDER = 40
 
@@ -70,7 +71,8 @@ def _check_order(order, name: str) -> int:
     if order > MAX_SAFE_ORDER:
         warnings.warn(
             f"{name}: order {order} > {MAX_SAFE_ORDER}; XPIC is known to turn unstable at very high "
-            "orders (OSParticulas documentation). Orders of 2-10 capture nearly all of the benefit.",
+            "orders (OSParticulas documentation): the binomial series cancels terms of size C(m, m/2) and "
+            "loses that many digits. Use series='neumann' (same result, stable) or an order of 2-10.",
             stacklevel=3,
         )
     return int(order)
@@ -84,13 +86,24 @@ def _check_beta(beta, owner: str):
     return arr
 
 
-def mass_matrix_series(u, order: int, transfer: Transfer, constraint: Constraint, boundary: str = "iterates"):
-    """sum_{r=1}^{m} (-1)^{r+1} C(m, r) (S+S)^{r-1} u  by the recursion of 000 eqs. (3.23)-(3.25):
-
-        u_1 = m u,   u_r = ((m - r + 1)/r) S+S u_{r-1},   result = sum_r (-1)^{r+1} u_r
+def mass_matrix_series(
+    u, order: int, transfer: Transfer, constraint: Constraint, boundary: str = "iterates", form: str = "binomial"
+):
+    """sum_{r=1}^{m} (-1)^{r+1} C(m, r) (S+S)^{r-1} u.
 
     Applied to the lumped velocity v this is XPIC's v(m) (000 eq. 3.25); applied to the updated
     lumped velocity it is FMPM's v+ = m~_k^{-1} p+ (003 eqs. 1.23, 2.3-2.5).
+
+    ``form="binomial"`` (default) is the recursion of 000 eqs. (3.23)-(3.25):
+
+        u_1 = m u,   u_r = ((m - r + 1)/r) S+S u_{r-1},   result = sum_r (-1)^{r+1} u_r
+
+    ``form="neumann"`` evaluates the same polynomial as the truncated Neumann series of the full
+    mass matrix inverse, sum_{j=0}^{m-1} (I - S+S)^j u (the identity
+    sum_r (-1)^{r+1} C(m,r) A^{r-1} = sum_{j<m} (I - A)^j; 003 eq. 1.23 with m^{-1} m~ = S+S).
+    Same cost (one S+S per order) but no alternating binomial coefficients: at high order the
+    binomial form cancels terms as large as C(m, m/2) |u| (1.3e14 |u| at m = 50) and loses that
+    many digits to round-off; the Neumann form does not.
 
     Velocity boundary conditions (003 §1.5, eqs. 1.49-1.50), ``boundary``:
       * ``"iterates"`` (default): the series runs on the deviation from the prescribed field and
@@ -110,15 +123,24 @@ def mass_matrix_series(u, order: int, transfer: Transfer, constraint: Constraint
         start = u
         project = lambda w: w  # noqa: E731
 
-    def body(r, carry):
-        term, total = carry
-        coeff = (order - r + 1) / r
-        term = project(coeff * transfer.s_plus_s(term))  # 000 eq. (3.23)
-        sign = jnp.where(r % 2 == 1, 1.0, -1.0)
-        return term, total + sign * term
+    if form == "binomial":
 
-    first = order * start  # 000 eq. (3.24)
-    _, total = jax.lax.fori_loop(2, order + 1, body, (first, first))
+        def body(r, carry):
+            term, total = carry
+            term = project((order - r + 1) / r * transfer.s_plus_s(term))  # 000 eq. (3.23)
+            sign = jnp.where(r % 2 == 1, 1.0, -1.0)
+            return term, total + sign * term  # 000 eq. (3.22)
+
+        first = order * start  # 000 eq. (3.24)
+        _, total = jax.lax.fori_loop(2, order + 1, body, (first, first))
+    else:
+
+        def body(j, carry):
+            term, total = carry
+            term = term - project(transfer.s_plus_s(term))  # (I - S+S)^j u
+            return term, total + term
+
+        _, total = jax.lax.fori_loop(1, order, body, (start, start))
     if boundary == "iterates":
         return total + g
     if boundary == "result":
@@ -180,16 +202,21 @@ class XPIC(Scheme):
     order: int = eqx.field(static=True)
     position: str = eqx.field(static=True)
     boundary: str = eqx.field(static=True)
+    series: str = eqx.field(static=True)
 
-    def __init__(self, order: int = 2, beta=0.0, position: str = "Sv", boundary: str = "iterates"):
+    def __init__(self, order: int = 2, beta=0.0, position: str = "Sv", boundary: str = "iterates",
+                 series: str = "binomial"):
         self.order = _check_order(order, type(self).__name__)
         self.beta = _check_beta(beta, type(self).__name__)
         check(position in POSITION_UPDATES,
               f"{type(self).__name__}: position = {position!r}; choose one of {', '.join(POSITION_UPDATES)}")
         check(boundary in BOUNDARY_MODES,
               f"{type(self).__name__}: boundary = {boundary!r}; choose one of {', '.join(BOUNDARY_MODES)}")
+        check(series in SERIES_FORMS,
+              f"{type(self).__name__}: series = {series!r}; choose one of {', '.join(SERIES_FORMS)}")
         self.position = position
         self.boundary = boundary
+        self.series = series
 
     def update(self, V, X, transfer: Transfer, constraint: Constraint, grid: GridSolution, damping: Damping, dt):
         Sv = transfer.gather(grid.v)
@@ -197,7 +224,7 @@ class XPIC(Scheme):
         if self.order == 1:
             Svm = Sv  # v(1) = v
         else:
-            Svm = transfer.gather(mass_matrix_series(grid.v, self.order, transfer, constraint, self.boundary))
+            Svm = transfer.gather(mass_matrix_series(grid.v, self.order, transfer, constraint, self.boundary, self.series))
         beta = self.beta
         V_new = beta * V + (1.0 - beta) * Svm + (Sa - damping.acceleration(Sv, V)) * dt  # 000 eq. (3.28)
         if self.position == "Sv":
@@ -238,20 +265,23 @@ class FMPM(Scheme):
     beta: jnp.ndarray
     order: int = eqx.field(static=True)
     boundary: str = eqx.field(static=True)
+    series: str = eqx.field(static=True)
 
-    def __init__(self, order: int = 2, beta=0.0, boundary: str = "iterates"):
+    def __init__(self, order: int = 2, beta=0.0, boundary: str = "iterates", series: str = "binomial"):
         self.order = _check_order(order, "FMPM")
         self.beta = _check_beta(beta, "FMPM")
         check(boundary in BOUNDARY_MODES, f"FMPM: boundary = {boundary!r}; choose one of {', '.join(BOUNDARY_MODES)}")
+        check(series in SERIES_FORMS, f"FMPM: series = {series!r}; choose one of {', '.join(SERIES_FORMS)}")
         self.boundary = boundary
+        self.series = series
 
     def strain_grid_velocity(self, v, transfer, constraint):
-        return mass_matrix_series(v, self.order, transfer, constraint, self.boundary)  # 003 eq. (2.3)
+        return mass_matrix_series(v, self.order, transfer, constraint, self.boundary, self.series)  # 003 eq. (2.3)
 
     def update(self, V, X, transfer, constraint, grid, damping, dt):
         Sv = transfer.gather(grid.v)
         Sa = transfer.gather(grid.a)
-        v_plus = mass_matrix_series(grid.v_tilde, self.order, transfer, constraint, self.boundary)  # 003 eq. (2.13)
+        v_plus = mass_matrix_series(grid.v_tilde, self.order, transfer, constraint, self.boundary, self.series)  # 003 eq. (2.13)
         beta = self.beta
         V_new = beta * (V + Sa * dt) + (1.0 - beta) * transfer.gather(v_plus) - damping.acceleration(Sv, V) * dt
         X_new = X + 0.5 * (V_new + V) * dt  # 003 eq. (2.17)

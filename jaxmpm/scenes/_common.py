@@ -26,6 +26,11 @@ class Setup:
     params: dict
     reference: Callable | None = None
 
+    def __post_init__(self):
+        # The simulation's float parameters (E, beta, damping, gravity) follow the state's dtype, so a
+        # dtype="f32" scene stays float32 in a 64-bit process instead of promoting inside lax.scan.
+        self.sim = cast_state(self.sim, self.state.x.dtype)
+
     @property
     def t_end(self) -> float:
         return self.dt * self.steps

@@ -3,12 +3,16 @@
 FLIP, PIC and their blend, XPIC(m) and FMPM(k) as pure, jit-able, differentiable steps.
 """
 
-from ._boundary import Constraint, Fixed, Prescribed, Slip
+from ._calibrate import CalibrationResult, calibrate
+from ._ensemble import ensemble
+from ._params import PARAMETERS, get_params, set_params
+from ._affine import APIC, TPIC, with_velocity_gradient
+from ._boundary import Constraint, Fixed, Prescribed, Slip, Wall
 from ._diagnostics import angular_momentum, kinetic_energy, linear_momentum, stable_dt, strain_energy
 from ._errors import InputError, InstabilityError
 from ._grid import Grid
 from ._io import H5Writer, load_h5, save_h5
-from ._materials import LinearElastic, Material, NeoHookean
+from ._materials import LinearElastic, Material, NeoHookean, NoStress, VolumetricFluid
 from ._particles import Ball, Box, Disk, Particles, Region, Ring, fill
 from ._schemes import FLIP, FMPM, PIC, XPIC, Damping, Scheme, mass_matrix_series
 from ._shapes import CubicBSpline, Linear, QuadraticBSpline, ShapeFunction, Stencil, UGIMP
@@ -20,6 +24,7 @@ from .scenes import SCENES, scene
 __version__ = "0.1.0"
 
 __all__ = [
+    "CalibrationResult", "PARAMETERS", "calibrate", "ensemble", "get_params", "set_params",
     "Ball", "Box", "Constraint", "CubicBSpline", "Damping", "Disk", "FLIP", "FMPM", "Fixed", "Grid",
     "H5Writer", "History", "InputError", "InstabilityError", "Linear", "LinearElastic", "Material",
     "NeoHookean", "PIC", "Particles", "Prescribed", "QuadraticBSpline", "Region", "Ring", "SCENES",
@@ -27,4 +32,5 @@ __all__ = [
     "Transfer", "UGIMP", "XPIC", "angular_momentum", "fill", "g2p", "gather", "grid_solve",
     "kinetic_energy", "linear_momentum", "load_h5", "mass_matrix_series", "p2g", "save_h5", "scatter",
     "scene", "stable_dt", "strain_energy",
+    "APIC", "TPIC", "with_velocity_gradient", "Wall", "NoStress", "VolumetricFluid",
 ]

@@ -6,6 +6,9 @@ node coordinates (n, D) -- and constrains some velocity components there:
 * ``Fixed(face)``: every component is zero (no-slip wall).
 * ``Slip(face)``: the normal component is zero, the tangential ones are free.
 * ``Prescribed(where, velocity)``: the given components take the given velocity.
+* ``Wall(face, layers)``: one-sided (unilateral) wall: the normal component is zeroed only where
+  it points into the wall (Taichi's mpm88 "sticky" walls); it acts on velocities, not on
+  accelerations, and on the updated velocity v_tilde = p/m + a dt (see :meth:`Constraint.contact`).
 
 All conditions are compiled into one :class:`Constraint` (mask and values, shape (n, D)),
 applied to nodal velocities (000 ch. 1; 003 §2.4).
@@ -35,14 +38,41 @@ def _select(grid: Grid, where: Selector, layers: int) -> np.ndarray:
 
 
 class Constraint(eqx.Module):
-    """Constrained components ``mask`` (n, D) and their prescribed ``value`` (n, D)."""
+    """Constrained components ``mask`` (n, D) and their prescribed ``value`` (n, D); ``wall``
+    (n, D) holds the outward normal sign (-1, 0, +1) of one-sided walls, or None without walls."""
 
     mask: jnp.ndarray
     value: jnp.ndarray
+    wall: jnp.ndarray | None = None
 
     def apply(self, u):
-        """Impose the prescribed velocities: u <- value on constrained components."""
+        """Impose the prescribed velocities: u <- value on constrained components; then, with
+        walls, zero the wall-normal components that point into a wall."""
+        u = jnp.where(self.mask, self.value, u)
+        if self.wall is None:
+            return u
+        return jnp.where(self.into_wall(u), 0.0, u)
+
+    def apply_two_sided(self, u):
+        """Impose only the two-sided conditions (Fixed, Slip, Prescribed), not the walls."""
         return jnp.where(self.mask, self.value, u)
+
+    def into_wall(self, u):
+        """True on wall components (not otherwise constrained) where ``u`` points into the wall."""
+        return (self.wall * u > 0) & ~self.mask
+
+    def contact(self, v, a, dt):
+        """Grid solve with one-sided walls, as in mpm88: the wall acts on the updated velocity,
+        v_tilde = clamp(v + a dt); the lumped ``v`` stays free there and ``a`` becomes the effective
+        acceleration (v_tilde - v)/dt, so that every scheme (FLIP's V + S a dt included) feels the
+        wall.  ``v`` and ``a`` come with the two-sided conditions already imposed.
+        Returns (v, a, v_tilde)."""
+        free = v + a * dt
+        v_tilde = self.apply(free)
+        hit = self.into_wall(free)
+        safe_dt = jnp.where(dt > 0, dt, 1.0)
+        a = jnp.where(hit & (dt > 0), -v / safe_dt, a)  # v_tilde = 0 there: a = (0 - v)/dt
+        return v, a, v_tilde
 
     def zero(self, u):
         """Impose the homogeneous conditions: constrained components set to zero."""
@@ -111,24 +141,60 @@ class Prescribed(eqx.Module):
         return mask, jnp.where(mask, value, 0.0)
 
 
+class Wall(eqx.Module):
+    """One-sided wall on a grid face (``"x-"``, ``"y+"``, ...) ``layers`` nodes thick: the
+    wall-normal velocity component is zeroed only where it points into the wall, i.e. v_n < 0 on
+    a lower face and v_n > 0 on an upper face (Taichi mpm88: ``if i < bound and v.x < 0: v.x = 0``).
+    Tangential components are free.  On a grid of ``n`` cells, ``Wall(face, layers=3)`` is exactly
+    mpm88's ``bound = 3`` (nodes i < 3 and i > n - 3)."""
+
+    where: str = eqx.field(static=True)
+    layers: int = eqx.field(static=True, default=1)
+
+    def __init__(self, where: str, layers: int = 1):
+        check(isinstance(where, str), f"Wall: where = {where!r} must be a grid face like 'x-' or 'y+'")
+        check(isinstance(layers, (int, np.integer)) and layers >= 1,
+              f"Wall: layers = {layers!r} must be a positive integer (node layers from the face)")
+        self.where = where
+        self.layers = int(layers)
+
+    def normal(self, grid: Grid) -> np.ndarray:
+        """(n, D) outward normal sign on the wall's nodes, 0 elsewhere."""
+        axis, side = parse_face(self.where, grid.dim)
+        sel = grid.face_mask(self.where, self.layers)
+        out = np.zeros((grid.num_nodes, grid.dim))
+        out[:, axis] = np.where(sel, float(side), 0.0)
+        return out
+
+
 def build_constraint(grid: Grid, conditions, dtype) -> Constraint:
-    """Fold all conditions into one mask/value pair (later conditions win on overlaps)."""
+    """Fold all conditions into one mask/value pair (later conditions win on overlaps); one-sided
+    walls go to ``Constraint.wall`` (two-sided conditions win over walls)."""
     mask = np.zeros((grid.num_nodes, grid.dim), dtype=bool)
     value = jnp.zeros((grid.num_nodes, grid.dim), dtype)
+    walls = [c for c in conditions if isinstance(c, Wall)]
+    conditions = [c for c in conditions if not isinstance(c, Wall)]
+    if walls:
+        wall = np.zeros((grid.num_nodes, grid.dim))
+        for w in walls:
+            n = w.normal(grid)
+            wall = np.where(n != 0, n, wall)
     for cond in conditions:
         m, v = cond.components(grid)
         mask = mask | m
         value = jnp.where(m, 0.0 if v is None else v.astype(dtype), value)
+    if walls:
+        return Constraint(mask=jnp.asarray(mask), value=value, wall=jnp.asarray(wall, dtype))
     return Constraint(mask=jnp.asarray(mask), value=value)
 
 
 def as_conditions(boundary) -> tuple:
     if boundary is None:
         return ()
-    if isinstance(boundary, (Fixed, Slip, Prescribed)):
+    if isinstance(boundary, (Fixed, Slip, Prescribed, Wall)):
         return (boundary,)
     conditions = tuple(boundary)
     for c in conditions:
-        check(isinstance(c, (Fixed, Slip, Prescribed)),
-              f"boundary: {c!r} is not a boundary condition; use jm.Fixed, jm.Slip or jm.Prescribed")
+        check(isinstance(c, (Fixed, Slip, Prescribed, Wall)),
+              f"boundary: {c!r} is not a boundary condition; use jm.Fixed, jm.Slip, jm.Prescribed or jm.Wall")
     return conditions

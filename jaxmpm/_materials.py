@@ -133,4 +133,46 @@ class NeoHookean(Material):
         return 0.5 * mu * (jnp.sum(F * F, axis=(-1, -2)) - F.shape[-1]) - mu * lj + 0.5 * lam * lj**2
 
 
+class NoStress(Material):
+    """No stress at all: tau = 0, W = 0 (force-free particles, e.g. the ``spin`` scene's freely
+    flying disk).  Only the density is needed; the wave speed is 0, so the stable time step is set
+    by the particle speed alone."""
+
+    def __init__(self, density=1.0):
+        self.density = _positive(density, "density", "NoStress")
+
+    def kirchhoff_stress(self, F):
+        return jnp.zeros_like(F)
+
+    def energy_density(self, F):
+        return jnp.zeros(F.shape[:-2], F.dtype)
+
+    def wave_speed(self, dim: int):
+        return jnp.zeros((), self.density.dtype)
+
+
+class VolumetricFluid(Material):
+    """The weakly compressible fluid of Taichi's mpm88: Kirchhoff stress tau = E (J - 1) I
+    (mpm88: ``stress = -dt * 4 * E * p_vol * (J - 1) / dx**2``, i.e. V0 tau D^-1 with D = dx^2/4),
+    J = det F.  Stored energy W(J) = E (J - 1 - ln J), so that tau = J W'(J) I; bulk modulus E,
+    wave speed sqrt(E / rho)."""
+
+    E: jnp.ndarray
+
+    def __init__(self, E, density=1.0):
+        self.E = _positive(E, "E", "VolumetricFluid")
+        self.density = _positive(density, "density", "VolumetricFluid")
+
+    def kirchhoff_stress(self, F):
+        J = jnp.linalg.det(F)
+        return (self.E * (J - 1.0))[..., None, None] * _identity(F)
+
+    def energy_density(self, F):
+        J = jnp.linalg.det(F)
+        return self.E * (J - 1.0 - NeoHookean._log_j(F))
+
+    def wave_speed(self, dim: int):
+        return jnp.sqrt(self.E / self.density)
+
+
 MATERIALS = {"linear": LinearElastic, "neohookean": NeoHookean}

@@ -290,9 +290,15 @@ class FMPM(Scheme):
 
 
 def scheme_from_name(spec: str, beta: float | None = None) -> Scheme:
-    """Parse the CLI form: flip | pic | blend:B | xpic:M | fmpm:K."""
+    """Parse the CLI form: flip | pic | blend:B | xpic:M | fmpm:K | apic | tpic."""
     name, _, arg = spec.partition(":")
     name = name.lower()
+    if name in ("apic", "tpic"):
+        from ._affine import APIC, TPIC  # _affine builds on this module
+
+        check(not arg, f"scheme {spec!r}: {name} takes no ':' argument")
+        check(beta is None, f"scheme {spec!r}: {name} has no FLIP fraction; drop beta (--beta)")
+        return APIC() if name == "apic" else TPIC()
     try:
         if name == "flip":
             return FLIP(beta=1.0 if beta is None else beta)
@@ -308,4 +314,4 @@ def scheme_from_name(spec: str, beta: float | None = None) -> Scheme:
         if "invalid literal" in str(err):
             check(False, f"scheme {spec!r}: the part after ':' must be a number")
         raise
-    check(False, f"unknown scheme {spec!r}; choose flip, pic, blend:B, xpic:M or fmpm:K")
+    check(False, f"unknown scheme {spec!r}; choose flip, pic, blend:B, xpic:M or fmpm:K, or the affine apic or tpic")

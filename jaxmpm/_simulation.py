@@ -155,7 +155,8 @@ class Simulation(eqx.Module):
         check(x.ndim == 2 and x.shape[1] == d, f"Simulation.init: particles have shape {x.shape}; the grid is {d}D")
         xc = concrete(x)
         if xc is not None:
-            inside = np.asarray(self.shape.inside(self.grid, x))
+            with jax.ensure_compile_time_eval():  # concrete positions: check even inside jit
+                inside = np.asarray(self.shape.inside(self.grid, jnp.asarray(xc)))
             if not inside.all():
                 bad = int(np.argmin(inside))
                 raise_msg = (
@@ -230,13 +231,24 @@ class Simulation(eqx.Module):
         )
 
     # -------------------------------------------------------------------- run
-    def rollout(self, state: State, dt, frames: int, save_every: int = 1, save_particles: bool = True):
+    def rollout(self, state: State, dt, frames: int, save_every: int = 1, save_particles: bool = True,
+                checkpoint=True):
         """Pure ``lax.scan`` rollout of ``frames * save_every`` steps.  Returns
         ``(final_state, history, failure)``; ``history`` holds the initial frame and one frame
-        every ``save_every`` steps (``frames + 1`` in all)."""
+        every ``save_every`` steps (``frames + 1`` in all).
+
+        ``checkpoint`` (reverse mode only; the forward pass is unchanged): ``True`` splits each
+        frame into segments of about sqrt(save_every) steps and rematerialises frames, segments and
+        steps, so the gradient stores O(frames + sqrt(save_every)) states instead of every
+        intermediate of every step; an int sets the segment length (a divisor of save_every);
+        ``False`` stores everything (fastest for short rollouts).
+        """
         dt = jnp.asarray(dt, state.x.dtype)
         none = Failure(jnp.array(-1, jnp.int32), jnp.array(0, jnp.int32), jnp.array(-1, jnp.int32))
+        segment = _segment_length(save_every, checkpoint)
+        remat = (lambda f: f) if segment is None else jax.checkpoint  # noqa: E731
 
+        @remat
         def one_step(carry, _):
             s, fail = carry
             s = self.step(s, dt)
@@ -249,8 +261,16 @@ class Simulation(eqx.Module):
             )
             return (s, fail), None
 
+        seg_len = save_every if segment is None else segment
+
+        @remat
+        def one_segment(carry, _):
+            carry, _ = jax.lax.scan(one_step, carry, None, length=seg_len)
+            return carry, None
+
+        @remat
         def one_frame(carry, _):
-            carry, _ = jax.lax.scan(one_step, carry, None, length=save_every)
+            carry, _ = jax.lax.scan(one_segment, carry, None, length=save_every // seg_len)
             return carry, self._frame(carry[0], save_particles)
 
         (final, failure), frames_hist = jax.lax.scan(one_frame, (state, none), None, length=frames)
@@ -270,6 +290,7 @@ class Simulation(eqx.Module):
         progress: bool = False,
         writer=None,
         frames_per_chunk: int | None = None,
+        checkpoint=True,
     ):
         """Run ``steps`` steps, saving a frame every ``save_every`` steps (plus the initial frame).
 
@@ -278,7 +299,8 @@ class Simulation(eqx.Module):
         raises :class:`InstabilityError` naming the first bad step.  With ``writer`` (a
         :class:`jaxmpm.H5Writer`) or ``progress=True`` it runs in chunks of ``frames_per_chunk``
         frames, writing/reporting each before the next, and returns ``(final_state, None)`` when
-        a writer holds the frames.
+        a writer holds the frames.  ``checkpoint`` controls rematerialisation for reverse-mode
+        gradients (see :meth:`rollout`); it does not change the forward results.
         """
         check(isinstance(steps, (int, np.integer)) and steps >= 0, f"run: steps = {steps!r} must be a non-negative integer")
         check(isinstance(save_every, (int, np.integer)) and save_every >= 1,
@@ -288,6 +310,7 @@ class Simulation(eqx.Module):
               f"use steps = {math.ceil(steps / save_every) * save_every}")
         frames = steps // save_every
         traced = _is_traced((self, state, dt))
+        dt = jnp.asarray(dt, state.x.dtype)  # an array, so a new dt value does not recompile
         if not traced:
             dtc = float(np.asarray(dt))
             check(math.isfinite(dtc) and dtc > 0, f"run: dt = {dtc} must be a positive number")
@@ -300,7 +323,8 @@ class Simulation(eqx.Module):
                     stacklevel=2,
                 )
         if traced or (writer is None and not progress):
-            final, history, failure = _jit_rollout(self, state, dt, frames, save_every, save_particles)
+            final, history, failure = _jit_rollout(self, state, dt, frames, save_every, save_particles,
+                                                   checkpoint)
             if not traced and check_stability:
                 _raise_if_failed(failure, dt, state)
             return final, history
@@ -316,7 +340,7 @@ class Simulation(eqx.Module):
 
             bar = tqdm(total=frames * save_every, unit="step", desc="jaxmpm")
         pieces = []
-        first = jax.tree_util.tree_map(lambda a: a[None], self._frame(state, save_particles))
+        first = jax.tree_util.tree_map(lambda a: a[None], _jit_frame(self, state, save_particles))
         if writer is not None:
             writer.append(first)
         else:
@@ -359,8 +383,25 @@ class Simulation(eqx.Module):
 
 
 @eqx.filter_jit
-def _jit_rollout(sim, state, dt, frames, save_every, save_particles):
-    return sim.rollout(state, dt, frames, save_every, save_particles)
+def _jit_frame(sim, state, save_particles):
+    return sim._frame(state, save_particles)
+
+
+@eqx.filter_jit
+def _jit_rollout(sim, state, dt, frames, save_every, save_particles, checkpoint=True):
+    return sim.rollout(state, dt, frames, save_every, save_particles, checkpoint)
+
+
+def _segment_length(save_every: int, checkpoint):
+    """Steps per rematerialised segment, or None for no checkpointing."""
+    if checkpoint is False or checkpoint is None:
+        return None
+    if checkpoint is True:
+        divisors = [d for d in range(1, save_every + 1) if save_every % d == 0]
+        return min(divisors, key=lambda d: abs(d - math.sqrt(save_every)))
+    check(isinstance(checkpoint, (int, np.integer)) and checkpoint >= 1 and save_every % checkpoint == 0,
+          f"checkpoint = {checkpoint!r} must be True, False or a positive divisor of save_every = {save_every}")
+    return int(checkpoint)
 
 
 def _raise_if_failed(failure: Failure, dt, state0):

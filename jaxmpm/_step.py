@@ -49,6 +49,10 @@ def nodal_force(sim, state, transfer: Transfer):
 def grid_solve(fields: GridFields, force, dt, constraint: Constraint) -> GridSolution:
     """v = p/m, a = f/m (0 where m = 0), v_tilde = v + a dt, with velocity conditions imposed."""
     m = fields.transfer.nodal_mass
+    if constraint.wall is not None:  # one-sided walls act on v_tilde, as contact (jm.Wall)
+        v, a, v_tilde = constraint.contact(constraint.apply_two_sided(safe_divide(fields.momentum, m)),
+                                           constraint.zero(safe_divide(force, m)), dt)
+        return GridSolution(v=v, a=a, v_tilde=v_tilde)
     v = constraint.apply(safe_divide(fields.momentum, m))
     a = constraint.zero(safe_divide(force, m))
     return GridSolution(v=v, a=a, v_tilde=constraint.apply(v + a * dt))

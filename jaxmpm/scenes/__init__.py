@@ -9,10 +9,16 @@ from __future__ import annotations
 from ._common import Setup, resolve_dtype
 from .bar import bar
 from .disks import disks
+from .mpm88 import mpm88
+from .rings import rings
+from .spin import spin
 
 SCENES = {
     "bar": (bar, "1D fixed-free elastic bar in its first mode (v_cm vs v0/(beta1 L) cos(omega t))"),
     "disks": (disks, "Sulsky 1994: two elastic disks collide and separate (energy, momentum)"),
+    "spin": (spin, "force-free (or elastic) spinning disk: angular momentum and kinetic energy"),
+    "rings": (rings, "two neo-Hookean rings collide at +-30: total energy per scheme"),
+    "mpm88": (mpm88, "Taichi's mpm88 fluid (APIC, 8192 particles, 128^2 grid): throughput"),
 }
 
 

@@ -25,6 +25,7 @@ class Setup:
     save_every: int
     params: dict
     reference: Callable | None = None
+    particles: Any = None  # the filled particles: sim.init(particles) inside a loss makes d/d(density) flow
 
     def __post_init__(self):
         # The simulation's float parameters (E, beta, damping, gravity) follow the state's dtype, so a

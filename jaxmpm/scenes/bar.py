@@ -63,7 +63,7 @@ def bar(
 
     params = dict(E=E, density=density, length=length, v0=v0, beta1=beta1, omega=omega, cells_along_bar=cells,
                   ppc=ppc, cfl=cfl, t_end=steps * dt)
-    return Setup("bar", sim, state, dt, steps, save_every, params, reference)
+    return Setup("bar", sim, state, dt, steps, save_every, params, reference, particles)
 
 
 class _at_or_below_zero:

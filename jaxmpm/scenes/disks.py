@@ -51,4 +51,4 @@ def disks(
     steps, save_every = schedule(t_end, dt, frames)
     params = dict(E=E, nu=nu, density=density, spacing=spacing, ppc=ppc, speed=speed, radius=0.2,
                   centres=[[0.2, 0.2], [0.8, 0.8]], n_first=int(a.x.shape[0]), t_end=steps * dt)
-    return Setup("disks", sim, state, dt, steps, save_every, params, None)
+    return Setup("disks", sim, state, dt, steps, save_every, params, None, particles)

@@ -1,0 +1,249 @@
+"""Differentiable rollouts, checkpointing, calibration and ensembles (issue "Differentiable
+rollouts").  Gradients are checked against central finite differences in float64 (DESIGN.md)."""
+
+import os
+import subprocess
+import sys
+import textwrap
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import pytest
+
+import jaxmpm as jm
+
+SCHEMES = {
+    "flip": lambda: jm.FLIP(),
+    "pic": lambda: jm.PIC(),
+    "blend": lambda: jm.FLIP(beta=0.9),
+    "xpic3": lambda: jm.XPIC(order=3, beta=0.2),
+    "fmpm2": lambda: jm.FMPM(order=2, beta=0.1),
+}
+
+
+def richardson_fd(f, x, eps):
+    """Central difference with one Richardson step (truncation error O(eps^4))."""
+    d1 = (f(x + eps) - f(x - eps)) / (2 * eps)
+    d2 = (f(x + eps / 2) - f(x - eps / 2)) / eps
+    return (4 * d2 - d1) / 3
+
+
+def make_loss(setup, steps, names, checkpoint=False, start=None):
+    """Loss of a rollout as a function of named parameters plus the initial velocity amplitude.
+    ``start`` replaces the initial positions/velocities/F (to begin a window mid-run)."""
+    def loss(p):
+        sim = jm.set_params(setup.sim, **{k: v for k, v in p.items() if k != "amplitude"})
+        state = sim.init(setup.particles)  # masses follow the density
+        if start is not None:
+            state = eqx.tree_at(lambda s: (s.x, s.v, s.F), state, (start.x, start.v, start.F))
+        state = eqx.tree_at(lambda s: s.v, state, p["amplitude"] * state.v)
+        final, hist = sim.run(state, setup.dt, steps, steps // 4, checkpoint=checkpoint)
+        return jm.kinetic_energy(final) + jnp.mean(hist.strain) + 1e-3 * jnp.sum(final.x**2) / final.x.shape[0]
+    return loss
+
+
+def step_size(name, value, beta_step=0.05):
+    """Finite-difference step: relative 1e-4, except beta on the bar, whose effect over a short
+    rollout is ~1e-7 of the loss, so round-off needs a wide (Richardson-corrected) step."""
+    return beta_step if name == "beta" else 1e-4 * max(abs(float(value)), 1e-2)
+
+
+def check_gradient(loss, params, rtol, beta_step=0.05):
+    grad = jax.jit(jax.grad(loss))(params)
+    f = jax.jit(loss)
+    for name, value in params.items():
+        def along(x, name=name):
+            return f({**params, name: x})
+        fd = richardson_fd(along, jnp.asarray(value), step_size(name, value, beta_step))
+        g = grad[name]
+        assert np.isfinite(g), name
+        assert abs(g - fd) <= rtol * max(abs(fd), 1e-12), (name, float(g), float(fd))
+
+
+@pytest.mark.parametrize("scheme", list(SCHEMES))
+def test_bar_gradients_all_parameters(scheme):
+    setup = jm.scene("bar", scheme=SCHEMES[scheme](), damping=jm.Damping(0.02, 0.01))
+    names = {"alpha_g": 0.02, "alpha_p": 0.01, "E": 100.0, "density": 1.0, "gravity": 0.01, "amplitude": 1.0}
+    if scheme not in ("flip", "pic"):
+        names["beta"] = float(jm.get_params(setup.sim, "beta")["beta"])
+    params = {k: jnp.asarray(v) for k, v in names.items()}
+    params["gravity"] = jnp.asarray([0.01])  # small: no particle crosses a node (S is only C0 there)
+    loss = make_loss(setup, 100, names)
+    grad = jax.jit(jax.grad(loss))(params)
+    f = jax.jit(loss)
+    for name in params:
+        def along(x, name=name):
+            if name == "gravity":
+                x = jnp.reshape(x, (1,))
+            return f({**params, name: x})
+        x0 = params[name][0] if name == "gravity" else params[name]
+        fd = richardson_fd(along, x0, step_size(name, x0))
+        g = grad[name][0] if name == "gravity" else grad[name]
+        assert np.isfinite(g)
+        assert abs(g - fd) <= 1e-6 * abs(fd), (name, float(g), float(fd))
+
+
+# Linear shape functions make a rollout only piecewise smooth in its parameters: the loss has a
+# kink wherever a particle crosses a node (S is C0 there), and the disks' particles cross nodes
+# densely during contact, so central differences straddle kinks (measured: 10-1000% mismatch).
+# Quadratic B-splines are C1; with them AD and Richardson differences agree to ~1e-9.
+SMOOTH = jm.QuadraticBSpline()
+
+
+@pytest.fixture(scope="module")
+def disks_in_contact():
+    """The disks (approaching at 0.5) after 250 FLIP steps: contact falls in the next 100 steps,
+    so every parameter, beta included, acts on the window."""
+    setup = jm.scene("disks", speed=0.5, shape=SMOOTH)
+    final, _ = setup.sim.run(setup.state, setup.dt, 250, 250)
+    return final
+
+
+@pytest.mark.parametrize("scheme", list(SCHEMES))
+def test_disks_gradients(scheme, disks_in_contact):
+    setup = jm.scene("disks", scheme=SCHEMES[scheme](), damping=jm.Damping(0.01, 0.01), speed=0.5, shape=SMOOTH)
+    names = {"alpha_g": 0.01, "alpha_p": 0.01, "E": 1000.0, "nu": 0.3, "amplitude": 1.0}
+    if scheme not in ("flip", "pic"):
+        names["beta"] = float(jm.get_params(setup.sim, "beta")["beta"])
+    params = {k: jnp.asarray(v) for k, v in names.items()}
+    # in contact beta acts strongly, so a small step keeps the truncation error down
+    check_gradient(make_loss(setup, 100, names, start=disks_in_contact), params, 1e-6, beta_step=1e-3)
+
+
+def test_long_bar_rollout_gradient():
+    """2000 steps (about 3 periods of the bar) under FLIP, d/d alpha_g and d/dE to 1e-4."""
+    setup = jm.scene("bar", scheme=jm.XPIC(order=2), damping=jm.Damping(0.01, 0.0))
+    params = {"alpha_g": jnp.asarray(0.01), "E": jnp.asarray(100.0), "amplitude": jnp.asarray(1.0)}
+    check_gradient(make_loss(setup, 2000, params), params, 1e-4)
+
+
+def test_checkpointed_gradient_equals_plain():
+    setup = jm.scene("bar", scheme=jm.FMPM(order=2))
+    params = {"alpha_g": jnp.asarray(0.05), "E": jnp.asarray(100.0), "amplitude": jnp.asarray(1.0)}
+    plain = jax.jit(jax.grad(make_loss(setup, 400, params)))(params)
+    for checkpoint in (True, 5):
+        remat = jax.jit(jax.grad(make_loss(setup, 400, params, checkpoint=checkpoint)))(params)
+        for k in params:
+            assert abs(remat[k] - plain[k]) <= 1e-10 * abs(plain[k]), (k, checkpoint)
+
+
+def test_checkpoint_validation():
+    setup = jm.scene("bar")
+    with pytest.raises(jm.InputError, match="checkpoint"):
+        setup.sim.run(setup.state, setup.dt, 20, 10, checkpoint=3)
+
+
+# ------------------------------------------------------------------------------ calibration
+def velocity_history(setup, steps, save_every):
+    mass = setup.state.mass
+
+    def observe(params):
+        sim = jm.set_params(setup.sim, **params)
+        _, hist = sim.run(setup.state, setup.dt, steps, save_every)
+        return hist.v[..., 0] @ mass / mass.sum()
+
+    return observe
+
+
+def relative_misfit(observe, target):
+    def loss(params):
+        return jnp.mean((observe(params) - target) ** 2) / jnp.mean(target**2)
+    return loss
+
+
+@pytest.mark.parametrize("scheme, name, truth, guess", [
+    (jm.FLIP(), "alpha_g", 0.05, 0.2),
+    (jm.FMPM(order=2), "alpha_p", 0.05, 0.01),
+])
+def test_calibrate_damping_on_bar(scheme, name, truth, guess):
+    """alpha_g and alpha_p act alike on a smooth field (001 §5.1.2), so each is fitted alone from
+    the centre-of-mass velocity history."""
+    setup = jm.scene("bar", scheme=scheme)
+    observe = velocity_history(setup, 400, 20)
+    target = observe({name: truth})
+    result = jm.calibrate(relative_misfit(observe, target), {name: guess}, optimizer=optax.adam(0.1), steps=200)
+    assert result.iterations <= 200
+    assert abs(result.params[name] / truth - 1) <= 0.01, result.params
+
+
+def particle_velocities(setup, start, steps, save_every):
+    def observe(params):
+        sim = jm.set_params(setup.sim, **params)
+        state = eqx.tree_at(lambda s: (s.x, s.v, s.F), setup.state, (start.x, start.v, start.F))
+        _, hist = sim.run(state, setup.dt, steps, save_every)
+        return hist.v
+    return observe
+
+
+def test_calibrate_beta_on_disks(disks_in_contact):
+    """beta of XPIC(2) from the particle velocities through the impact (null-space noise is
+    what beta keeps or removes), over a 50-step window in contact.  L-BFGS reaches 1% in 6
+    iterations here; Adam(0.1) needs ~100."""
+    setup = jm.scene("disks", scheme=jm.XPIC(order=2, beta=0.3), speed=0.5, shape=SMOOTH)
+    observe = particle_velocities(setup, disks_in_contact, 50, 10)
+    target = observe({"beta": 0.3})
+    result = jm.calibrate(relative_misfit(observe, target), {"beta": 0.7}, optimizer=optax.lbfgs(),
+                          steps=200, tol=1e-9)
+    assert result.iterations <= 200
+    assert abs(result.params["beta"] / 0.3 - 1) <= 0.01, result.params
+
+
+def test_calibrate_modulus_on_disks(disks_in_contact):
+    setup = jm.scene("disks", scheme=jm.FLIP(), speed=0.5, shape=SMOOTH)
+    observe = particle_velocities(setup, disks_in_contact, 50, 10)
+    target = observe({"E": 1000.0})
+    result = jm.calibrate(relative_misfit(observe, target), {"E": 600.0}, optimizer=optax.lbfgs(),
+                          steps=200, tol=1e-9)
+    assert result.iterations <= 200
+    assert abs(result.params["E"] / 1000.0 - 1) <= 0.01, result.params
+
+
+def test_calibrate_rejects_bad_input():
+    with pytest.raises(jm.InputError, match="beta"):
+        jm.calibrate(lambda p: p["beta"] ** 2, {"beta": 1.5})
+    with pytest.raises(jm.InputError, match="unknown parameter"):
+        jm.set_params(jm.scene("bar").sim, gamma=1.0)
+
+
+# -------------------------------------------------------------------------------- ensembles
+def test_ensemble_equals_single_runs():
+    setup = jm.scene("bar", scheme=jm.XPIC(order=2))
+    betas = jnp.linspace(0.0, 0.9, 8)
+    alphas = jnp.linspace(0.0, 0.1, 8)
+    betas, alphas = jnp.concatenate([betas, betas]), jnp.concatenate([alphas, alphas[::-1]])
+    final, hist, failed = jm.ensemble(setup.sim, setup.state, setup.dt, 100, 25,
+                                      params={"beta": betas, "alpha_g": alphas})
+    assert final.x.shape[0] == 16 and np.all(np.asarray(failed) == -1)
+    for b in range(16):
+        sim = jm.set_params(setup.sim, beta=betas[b], alpha_g=alphas[b])
+        f1, h1 = sim.run(setup.state, setup.dt, 100, 25, save_particles=False)
+        np.testing.assert_allclose(final.v[b], f1.v, rtol=1e-12, atol=1e-15)
+        np.testing.assert_allclose(hist.kinetic[b], h1.kinetic, rtol=1e-12, atol=1e-15)
+
+
+SHARDED = textwrap.dedent("""
+    import os, sys
+    os.environ["XLA_FLAGS"] = "--xla_force_host_platform_device_count=2"
+    import jax
+    jax.config.update("jax_enable_x64", True)
+    import jax.numpy as jnp, numpy as np
+    import jaxmpm as jm
+    assert len(jax.devices()) == 2
+    setup = jm.scene("bar", scheme=jm.XPIC(order=2))
+    betas = jnp.linspace(0.0, 0.9, 16)
+    final, hist, failed = jm.ensemble(setup.sim, setup.state, setup.dt, 100, 25, params={"beta": betas})
+    np.save(sys.argv[1], np.asarray(final.v))
+""")
+
+
+def test_ensemble_sharded_over_two_host_devices(tmp_path):
+    out = tmp_path / "sharded.npy"
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    subprocess.run([sys.executable, "-c", SHARDED, str(out)], check=True, env=env, timeout=300)
+    setup = jm.scene("bar", scheme=jm.XPIC(order=2))
+    betas = jnp.linspace(0.0, 0.9, 16)
+    final, _, _ = jm.ensemble(setup.sim, setup.state, setup.dt, 100, 25, params={"beta": betas})
+    np.testing.assert_allclose(np.load(out), np.asarray(final.v), rtol=1e-12, atol=1e-15)

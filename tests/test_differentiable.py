@@ -109,8 +109,9 @@ def test_disks_gradients(scheme, disks_in_contact):
     if scheme not in ("flip", "pic"):
         names["beta"] = float(jm.get_params(setup.sim, "beta")["beta"])
     params = {k: jnp.asarray(v) for k, v in names.items()}
-    # in contact beta acts strongly, so a small step keeps the truncation error down
-    check_gradient(make_loss(setup, 100, names, start=disks_in_contact), params, 1e-6, beta_step=1e-3)
+    # in contact beta acts strongly; with C1 (quadratic) shapes the loss still has curvature
+    # kinks, so the step must stay inside one smooth piece: 1e-3 misses by 3e-6, 1e-4 agrees to 2e-12
+    check_gradient(make_loss(setup, 100, names, start=disks_in_contact), params, 1e-6, beta_step=1e-4)
 
 
 def test_long_bar_rollout_gradient():

@@ -1,0 +1,141 @@
+"""The ``jaxmpm`` command line: ``scenes``, ``run`` (HDF5 + summary), and its errors (status 2).
+
+All runs use the bar scene with ``--t-end 2 --frames 8``: dt = 0.1 h / c = 0.1 (25/16) / 10 =
+0.015625, 128 steps saved every 16 (9 frames), one compiled chunk per scheme.  The bar's initial
+energy is exactly rho v0^2 L / 4 = 0.0625: the particles sit at the midpoints of equal intervals,
+where the midpoint rule integrates sin^2(beta1 x) = (1 - cos(pi x / L)) / 2 over [0, L] exactly.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import jaxmpm as jm
+from jaxmpm.cli import main
+
+E, RHO, L, V0, CELLS = 100.0, 1.0, 25.0, 0.1, 16
+DT = 0.1 * (L / CELLS) / math.sqrt(E / RHO)  # bar default cfl 0.1
+SHORT = ["--t-end", "2", "--frames", "8"]  # 128 steps, a frame every 16 -> 9 frames
+
+
+def run_cli(argv):
+    """``main(argv)`` in-process: (exit status, stdout, stderr) via capsys by the caller."""
+    try:
+        return main(argv)
+    except SystemExit as exc:
+        return exc.code
+
+
+def summary_value(text, key):
+    """The value on the summary line ``key  value`` (key and value are separated by 2+ spaces)."""
+    rows = dict(re.split(r"\s{2,}", line.strip(), maxsplit=1) for line in text.splitlines() if "  " in line)
+    return rows[key]
+
+
+def test_scenes_lists_bar_and_disks(capsys):
+    assert run_cli(["scenes"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    names = [line.split()[0] for line in lines]
+    assert names == list(jm.SCENES) and {"bar", "disks"} <= set(names)
+    for line, (_, description) in zip(lines, jm.SCENES.values()):
+        assert line.endswith(description)
+
+
+def test_python_m_jaxmpm_scenes():
+    out = subprocess.run([sys.executable, "-m", "jaxmpm", "scenes"], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    names = [line.split()[0] for line in out.stdout.splitlines()]
+    assert names == list(jm.SCENES) and {"bar", "disks"} <= set(names)
+
+
+def test_run_bar_writes_hdf5_and_summary(tmp_path, capsys):
+    path = tmp_path / "bar.h5"
+    assert run_cli(["run", "bar", *SHORT, "--out", str(path)]) == 0  # with the progress bar
+    out = capsys.readouterr().out
+    res = jm.load_h5(path)
+    n = CELLS * 2  # 2 particles per cell
+    assert res.attrs["scene"] == "bar" and res.attrs["scheme"] == "FLIP"
+    assert res.attrs["order"] == 1 and res.attrs["beta"] == 1.0
+    assert res.attrs["dtype"] == "float64" and res.attrs["dt"] == DT
+    assert res["time"].shape == (9,) and res["particles/x"].shape == (9, n, 1)
+    assert res["particles/v"].shape == (9, n, 1) and res["particles/mass"].shape == (n,)
+    assert res["energy/kinetic"].shape == (9,) and res["momentum/linear"].shape == (9, 1)
+    np.testing.assert_allclose(res["time"], 16 * DT * np.arange(9), rtol=0, atol=1e-12)
+    total = res["energy/kinetic"] + res["energy/strain"]
+    assert total[0] == pytest.approx(RHO * V0**2 * L / 4, rel=1e-12)  # midpoint quadrature is exact
+
+    assert summary_value(out, "scene") == "bar"
+    assert summary_value(out, "particles") == str(n)
+    assert summary_value(out, "steps").startswith("128 ")
+    assert float(summary_value(out, "dt")) == DT
+    assert summary_value(out, "output") == str(path)
+    energy = re.fullmatch(r"initial (\S+), final (\S+), ratio (\S+)", summary_value(out, "energy K+U"))
+    e0, e1, ratio = map(float, energy.groups())
+    assert e0 == pytest.approx(total[0], rel=1e-5) and e1 == pytest.approx(total[-1], rel=1e-5)
+    assert ratio == pytest.approx(total[-1] / total[0], abs=1e-6)
+    assert float(summary_value(out, "dissipated")) == pytest.approx(res["energy/dissipated"][-1], rel=1e-5, abs=1e-300)
+
+
+@pytest.mark.parametrize(
+    "options, attrs, n",
+    [
+        (["--scheme", "xpic:3", "--dtype", "f32"], dict(scheme="XPIC", order=3, beta=0.0, dtype="float32"), 32),
+        (["--scheme", "fmpm:2", "--shape", "ugimp", "--ppc", "3", "--alpha-g", "0.5", "--alpha-p", "0.25"],
+         dict(scheme="FMPM", order=2, beta=0.0, shape="UGIMP", ppc=3, alpha_g=0.5, alpha_p=0.25), 48),
+        (["--scheme", "blend:0.9"], dict(scheme="FLIP", order=1, beta=0.9, shape="Linear"), 32),
+        (["--scheme", "xpic:2", "--beta", "0.5", "--update", "MUSL"], dict(scheme="XPIC", order=2, beta=0.5,
+                                                                            update="MUSL"), 32),
+    ],
+)
+def test_run_scheme_options_reach_hdf5(tmp_path, capsys, options, attrs, n):
+    path = tmp_path / "run.h5"
+    assert run_cli(["run", "bar", *SHORT, *options, "--out", str(path), "--no-progress"]) == 0
+    res = jm.load_h5(path)
+    for key, value in attrs.items():
+        if isinstance(value, float):
+            assert res.attrs[key] == pytest.approx(value, rel=1e-7), key
+        else:
+            assert res.attrs[key] == value, key
+    assert res["particles/x"].shape == (9, n, 1)
+    assert summary_value(capsys.readouterr().out, "particles") == str(n)
+
+
+def test_unknown_scheme_exits_2_naming_it(tmp_path, capsys):
+    path = tmp_path / "x.h5"
+    assert run_cli(["run", "bar", "--scheme", "foo:3", "--out", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert "unknown scheme 'foo:3'" in err and "xpic:M" in err
+    assert not path.exists()
+
+
+@pytest.mark.parametrize("scene, option, value", [("bar", "--spacing", "0.1"), ("disks", "--cells", "8"),
+                                                  ("disks", "--cfl", "0.5"), ("bar", "--dt", "0.01")])
+def test_option_the_scene_does_not_take_exits_2(tmp_path, capsys, scene, option, value):
+    path = tmp_path / "x.h5"
+    assert run_cli(["run", scene, option, value, "--out", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert f"option {option} does not apply to scene {scene!r}" in err
+    assert not path.exists()
+
+
+def test_unstable_run_exits_2_naming_the_step(tmp_path, capsys):
+    """CFL 3 (dt = 0.46875 > h/c = 0.15625): 5 steps; the error names the first bad step and
+    the file keeps exactly the frames before it (one per step)."""
+    path = tmp_path / "unstable.h5"
+    with pytest.warns(jm.StableTimeStepWarning):
+        status = run_cli(["run", "bar", "--cfl", "3", *SHORT, "--out", str(path), "--no-progress"])
+    assert status == 2
+    err = capsys.readouterr().err
+    match = re.search(r"unstable at step (\d+)", err)
+    assert match and str(path) in err and "kept" in err
+    step = int(match.group(1))
+    assert 1 <= step <= 5
+    dt = 3 * DT / 0.1
+    time = jm.load_h5(path)["time"]
+    np.testing.assert_allclose(time, dt * np.arange(step), rtol=1e-12)  # frames 0 .. step-1

@@ -1,0 +1,222 @@
+"""Properties of the shape functions S_pi and gradients G_pi (DESIGN.md "Shape functions").
+
+For every shape (Linear, uGIMP with ppc = 1, 2, 3, quadratic and cubic B-splines) in 1D, 2D and 3D:
+
+* partition of unity          sum_i S_pi = 1                         (000 ch. 1)
+* linear reproduction         sum_i S_pi x_i = X_p, sum_i x_i (x) G_pi = I  (interior particles)
+* zero gradient sum           sum_i G_pi = 0
+* G = grad S                  central finite differences, eps = 1e-6
+* non-negative weights        S_pi >= 0
+* ``inside``                  true for interior particles, false beyond the grid
+* uGIMP is the particle-domain average of the tent function     (001 eqs. 16-17)
+
+Each hypothesis example draws a seed and evaluates one batch of 64 random particles, so every
+(shape, dimension) pair is compiled once.
+"""
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import jaxmpm as jm
+
+N_PARTICLES = 64
+EXAMPLES = settings(max_examples=25, deadline=None)
+SEEDS = st.integers(min_value=0, max_value=2**32 - 1)
+
+SHAPES = {
+    "linear": jm.Linear(),
+    "ugimp1": jm.UGIMP(ppc=1),
+    "ugimp2": jm.UGIMP(ppc=2),
+    "ugimp3": jm.UGIMP(ppc=3),
+    "quadratic": jm.QuadraticBSpline(),
+    "cubic": jm.CubicBSpline(),
+}
+
+# anisotropic, off-origin grids: a wrong spacing or lower corner anywhere shows up
+GRIDS = {
+    1: jm.Grid(lower=(-1.0,), upper=(3.0,), cells=(8,)),
+    2: jm.Grid(lower=(-1.0, 0.5), upper=(3.0, 2.5), cells=(8, 6)),
+    3: jm.Grid(lower=(-1.0, 0.5, 2.0), upper=(3.0, 2.5, 4.4), cells=(7, 6, 5)),
+}
+
+CASES = [pytest.param(name, dim, id=f"{name}-{dim}d") for name in SHAPES for dim in GRIDS]
+
+
+@eqx.filter_jit
+def stencil_of(shape, grid, x):
+    return shape.stencil(grid, x)
+
+
+@eqx.filter_jit
+def inside_of(shape, grid, x):
+    return shape.inside(grid, x)
+
+
+def kink_fractions(shape):
+    """Fractional cell coordinates where S is not smooth or the stencil's first node changes."""
+    kinks = [0.0, 0.5, 1.0]
+    if isinstance(shape, jm.UGIMP):
+        lp = shape.half_width  # 001 eq. (16): kinks at |r| = l_p, 1 - l_p, 1 + l_p
+        kinks += [lp, 1.0 - lp]
+    return np.array(kinks)
+
+
+def interior_positions(shape, grid, rng, n=N_PARTICLES, keep_off_kinks=True):
+    """Random particles whose whole stencil lies on the grid (``margin`` cells from each edge),
+    at least 1e-3 cells away from the shape's kinks so central differences are clean."""
+    cells = np.array(grid.cells, dtype=float)
+    m = float(shape.margin)
+    xi = m + 0.01 + (cells - 2.0 * m - 0.02) * rng.random((n, grid.dim))
+    if keep_off_kinks:
+        frac = xi - np.floor(xi)
+        near = np.min(np.abs(frac[..., None] - kink_fractions(shape)), axis=-1) < 1e-3
+        xi = np.where(near, xi + 2e-3, xi)
+    h = np.array(grid.spacing)
+    return np.array(grid.lower) + xi * h
+
+
+def dense_weights(stencil, num_nodes):
+    """S as a dense (N, n) matrix, and G as (N, n, D): maps stencil slots to node numbers."""
+    index = np.asarray(stencil.index)
+    n_p, k = index.shape
+    rows = np.repeat(np.arange(n_p), k)
+    S = np.zeros((n_p, num_nodes))
+    np.add.at(S, (rows, index.reshape(-1)), np.asarray(stencil.weight).reshape(-1))
+    grad = np.asarray(stencil.gradient)
+    G = np.zeros((n_p, num_nodes, grad.shape[-1]))
+    np.add.at(G, (rows, index.reshape(-1)), grad.reshape(-1, grad.shape[-1]))
+    return S, G
+
+
+@pytest.mark.parametrize("name, dim", CASES)
+@EXAMPLES
+@given(seed=SEEDS)
+def test_partition_of_unity_and_nonnegative(name, dim, seed):
+    """sum_i S_pi = 1 and S_pi >= 0 for interior particles."""
+    shape, grid = SHAPES[name], GRIDS[dim]
+    x = jnp.asarray(interior_positions(shape, grid, np.random.default_rng(seed), keep_off_kinks=False))
+    st_ = stencil_of(shape, grid, x)
+    w = np.asarray(st_.weight)
+    assert w.shape == (N_PARTICLES, shape.nodes_per_axis**dim)
+    np.testing.assert_allclose(w.sum(axis=1), 1.0, rtol=0, atol=1e-14)
+    assert np.all(w >= 0.0)
+    idx = np.asarray(st_.index)
+    assert idx.min() >= 0 and idx.max() < grid.num_nodes
+
+
+@pytest.mark.parametrize("name, dim", CASES)
+@EXAMPLES
+@given(seed=SEEDS)
+def test_linear_reproduction(name, dim, seed):
+    """sum_i S_pi x_i = X_p, sum_i x_i (x) G_pi = I, and offset = x_i - X_p, for interior particles."""
+    shape, grid = SHAPES[name], GRIDS[dim]
+    xp = interior_positions(shape, grid, np.random.default_rng(seed), keep_off_kinks=False)
+    st_ = stencil_of(shape, grid, jnp.asarray(xp))
+    nodes = grid.node_coordinates()[np.asarray(st_.index)]  # (N, K, D)
+    w, g = np.asarray(st_.weight), np.asarray(st_.gradient)
+    np.testing.assert_allclose(np.einsum("pk,pka->pa", w, nodes), xp, rtol=0, atol=1e-13)
+    identity = np.broadcast_to(np.eye(dim), (N_PARTICLES, dim, dim))
+    np.testing.assert_allclose(np.einsum("pka,pkb->pab", nodes, g), identity, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(st_.offset), nodes - xp[:, None, :], rtol=0, atol=1e-13)
+
+
+@pytest.mark.parametrize("name, dim", CASES)
+@EXAMPLES
+@given(seed=SEEDS)
+def test_gradient_sum_is_zero(name, dim, seed):
+    """sum_i G_pi = 0 (the gradient of the partition of unity)."""
+    shape, grid = SHAPES[name], GRIDS[dim]
+    x = jnp.asarray(interior_positions(shape, grid, np.random.default_rng(seed), keep_off_kinks=False))
+    g = np.asarray(stencil_of(shape, grid, x).gradient)
+    scale = 1.0 / min(grid.spacing)
+    np.testing.assert_allclose(g.sum(axis=1), 0.0, rtol=0, atol=1e-13 * scale)
+
+
+@pytest.mark.parametrize("name, dim", CASES)
+@EXAMPLES
+@given(seed=SEEDS)
+def test_gradient_is_finite_difference_of_weight(name, dim, seed):
+    """G_pi[a] = (S_i(X + eps e_a) - S_i(X - eps e_a)) / (2 eps), node by node (eps = 1e-6)."""
+    shape, grid = SHAPES[name], GRIDS[dim]
+    eps = 1e-6
+    xp = interior_positions(shape, grid, np.random.default_rng(seed))
+    _, G = dense_weights(stencil_of(shape, grid, jnp.asarray(xp)), grid.num_nodes)
+    for a in range(dim):
+        step = np.zeros(dim)
+        step[a] = eps
+        S_plus, _ = dense_weights(stencil_of(shape, grid, jnp.asarray(xp + step)), grid.num_nodes)
+        S_minus, _ = dense_weights(stencil_of(shape, grid, jnp.asarray(xp - step)), grid.num_nodes)
+        fd = (S_plus - S_minus) / (2.0 * eps)
+        scale = 1.0 / grid.spacing[a]  # |G| is O(1/h)
+        np.testing.assert_allclose(G[..., a], fd, rtol=0, atol=1e-6 * scale)
+
+
+@pytest.mark.parametrize("name, dim", CASES)
+@EXAMPLES
+@given(seed=SEEDS)
+def test_inside(name, dim, seed):
+    """``inside`` is true for interior particles and false once one coordinate is beyond
+    the shape's margin (or is not finite)."""
+    shape, grid = SHAPES[name], GRIDS[dim]
+    rng = np.random.default_rng(seed)
+    x = interior_positions(shape, grid, rng, keep_off_kinks=False)
+    assert np.all(np.asarray(inside_of(shape, grid, jnp.asarray(x))))
+
+    cells = np.array(grid.cells, dtype=float)
+    m = float(shape.margin)
+    axis = rng.integers(0, dim, N_PARTICLES)
+    below = rng.random(N_PARTICLES) < 0.5
+    distance = 0.01 + 2.0 * rng.random(N_PARTICLES)  # cells beyond the allowed band
+    xi_out = np.where(below, m - distance, cells[axis] - m + distance)
+    rows = np.arange(N_PARTICLES)
+    x_out = x.copy()
+    x_out[rows, axis] = np.array(grid.lower)[axis] + xi_out * np.array(grid.spacing)[axis]
+    assert not np.any(np.asarray(inside_of(shape, grid, jnp.asarray(x_out))))
+
+    x_nan = x.copy()
+    x_nan[rows, axis] = np.nan
+    assert not np.any(np.asarray(inside_of(shape, grid, jnp.asarray(x_nan))))
+
+
+def tent_average(r, lp, derivative=False):
+    """(1/2l_p) int_{r-l_p}^{r+l_p} N(s) ds with the tent N(s) = max(0, 1 - |s|) (001 eq. 16),
+    or the average of N'(s) (001 eq. 17), by 3-point Gauss-Legendre quadrature on the pieces
+    between the tent's kinks -1, 0, 1 (exact for a piecewise-linear integrand)."""
+    gauss_x, gauss_w = np.polynomial.legendre.leggauss(3)
+    a, b = r - lp, r + lp
+    cuts = np.sort(np.stack([a, b] + [np.clip(k, a, b) for k in (-1.0, 0.0, 1.0)], axis=-1), axis=-1)
+    lo, hi = cuts[..., :-1, None], cuts[..., 1:, None]  # (M, 4 pieces, 1)
+    s = 0.5 * (hi - lo) * gauss_x + 0.5 * (hi + lo)
+    f = np.where(np.abs(s) < 1.0, -np.sign(s), 0.0) if derivative else np.maximum(0.0, 1.0 - np.abs(s))
+    return np.sum(0.5 * (hi - lo) * gauss_w * f, axis=(-1, -2)) / (2.0 * lp)
+
+
+@pytest.mark.parametrize("ppc", [1, 2, 3])
+@EXAMPLES
+@given(seed=SEEDS)
+def test_ugimp_is_domain_average_of_tent(ppc, seed):
+    """uGIMP S_pi and G_pi equal the averages of the tent function and of its derivative over the
+    particle domain [X_p - l_p, X_p + l_p], l_p = h / (2 ppc) (001 eqs. 16-17), in 1D and, as
+    the tensor product of the 1D averages (a box-shaped particle domain), in 2D."""
+    shape = jm.UGIMP(ppc=ppc)
+    lp = shape.half_width
+    rng = np.random.default_rng(seed)
+    for dim in (1, 2):
+        grid = GRIDS[dim]
+        h = np.array(grid.spacing)
+        xp = interior_positions(shape, grid, rng)
+        st_ = stencil_of(shape, grid, jnp.asarray(xp))
+        nodes = grid.node_coordinates()[np.asarray(st_.index)]  # (N, K, D)
+        r = (xp[:, None, :] - nodes) / h  # particle minus node, in cells
+        avg = tent_average(r.reshape(-1), lp).reshape(r.shape)
+        davg = tent_average(r.reshape(-1), lp, derivative=True).reshape(r.shape) / h
+        expected_w = np.prod(avg, axis=-1)
+        expected_g = np.stack(
+            [davg[..., a] * np.prod(np.delete(avg, a, axis=-1), axis=-1) for a in range(dim)], axis=-1
+        )
+        np.testing.assert_allclose(np.asarray(st_.weight), expected_w, rtol=0, atol=1e-14)
+        np.testing.assert_allclose(np.asarray(st_.gradient), expected_g, rtol=0, atol=1e-13 / h.min())

@@ -14,8 +14,9 @@ quadratic and cubic B-splines it equals h^2/4 I and h^2/3 I (``shape.inertia_fac
 round-off; for uGIMP it depends on the position but stays positive definite (>= l_p h^2/2 per
 axis).  For multilinear (``Linear``) shape functions D_p = diag(r_a (1 - r_a) h_a^2), with r_a the
 particle's fractional cell position, is singular when a particle lies on a grid line; there the
-identity S_pi D_p^-1 (x_i - X_p) = G_pi (exact for tensor-product tent functions) is used instead,
-which is the same number away from grid lines and finite on them (Jiang et al. 2015, APIC §5.3).
+identity S_pi D_p^-1 (x_i - X_p) = G_pi (exact for tensor-product tent functions: per axis
+r (1 - r) h^2 N'(r)/h = N(r) (x_i - X_p)) is used instead, which is the same number away from grid
+lines and finite on them (tests/test_affine.py checks the identity).
 
 Grid and particle damping act on V exactly as in the other schemes,
 V_p = S v~ - (alpha_g S v + alpha_p V^n) dt (000 eq. 2.77); B_p / grad v_p are not damped.

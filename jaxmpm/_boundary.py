@@ -44,6 +44,8 @@ class Constraint(eqx.Module):
     mask: jnp.ndarray
     value: jnp.ndarray
     wall: jnp.ndarray | None = None
+    # True when some constrained component may be non-zero (a Prescribed condition)
+    inhomogeneous: bool = eqx.field(static=True, default=False)
 
     def apply(self, u):
         """Impose the prescribed velocities: u <- value on constrained components; then, with
@@ -183,9 +185,9 @@ def build_constraint(grid: Grid, conditions, dtype) -> Constraint:
         m, v = cond.components(grid)
         mask = mask | m
         value = jnp.where(m, 0.0 if v is None else v.astype(dtype), value)
-    if walls:
-        return Constraint(mask=jnp.asarray(mask), value=value, wall=jnp.asarray(wall, dtype))
-    return Constraint(mask=jnp.asarray(mask), value=value)
+    inhomogeneous = any(isinstance(c, Prescribed) for c in conditions)
+    return Constraint(mask=jnp.asarray(mask), value=value,
+                      wall=jnp.asarray(wall, dtype) if walls else None, inhomogeneous=inhomogeneous)
 
 
 def as_conditions(boundary) -> tuple:

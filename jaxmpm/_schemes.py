@@ -106,23 +106,34 @@ def mass_matrix_series(
     many digits to round-off; the Neumann form does not.
 
     Velocity boundary conditions (003 §1.5, eqs. 1.49-1.50), ``boundary``:
-      * ``"iterates"`` (default): the series runs on the deviation from the prescribed field and
-        every iterate has its constrained components zeroed -- the constrained system.
+      * ``"iterates"`` (default): every iterate has its constrained components zeroed -- the
+        constrained system; prescribed non-zero velocities g enter through the coupling term
+        S+S g, so the limit is the constrained full-mass solve (003 eq. 1.49).
       * ``"result"``: conditions imposed only on the result (003 eq. 2.53 read literally);
         known to gain energy for orders >= 3 (DESIGN.md).
       * ``"lumped"``: the lumped method (003 eq. 2.52): conditions only on the input momenta.
     """
     if order == 1:
         return u
-    if boundary == "iterates":
+    if boundary != "iterates":
+        total = _series(u, order, transfer, lambda w: w, form)  # noqa: E731
+        return constraint.apply(total) if boundary == "result" else total
+    # the constrained system (003 eqs. 1.49-1.50): Z zeroes the constrained components,
+    # v = g + sum_{j<m} (I - Z S+S)^j Z u - sum_{j<m-1} (I - Z S+S)^j Z S+S g,
+    # the order-m Richardson iterate of Z (S+S v - u) = 0 from v_0 = g + Z u; for g = 0 (Fixed,
+    # Slip) it is the series of Z u; the g-terms keep a body moving with a moving wall exactly
+    total = _series(constraint.zero(u), order, transfer, constraint.zero, form)
+    if constraint.inhomogeneous:
         g = constraint.prescribed(u)
-        start = constraint.zero(u - g)
-        project = constraint.zero
-    else:
-        g = None
-        start = u
-        project = lambda w: w  # noqa: E731
+        coupling = constraint.zero(transfer.s_plus_s(g))
+        total = total + g - _series(coupling, order - 1, transfer, constraint.zero, form)
+    return total
 
+
+def _series(start, order: int, transfer: Transfer, project, form: str):
+    """sum_{r=1}^{m} (-1)^{r+1} C(m, r) (P S+S)^{r-1} start, P the projection on free components."""
+    if order == 1:
+        return start
     if form == "binomial":
 
         def body(r, carry):
@@ -133,18 +144,14 @@ def mass_matrix_series(
 
         first = order * start  # 000 eq. (3.24)
         _, total = jax.lax.fori_loop(2, order + 1, body, (first, first))
-    else:
+        return total
 
-        def body(j, carry):
-            term, total = carry
-            term = term - project(transfer.s_plus_s(term))  # (I - S+S)^j u
-            return term, total + term
+    def body(j, carry):
+        term, total = carry
+        term = term - project(transfer.s_plus_s(term))  # (I - P S+S)^j start
+        return term, total + term
 
-        _, total = jax.lax.fori_loop(1, order, body, (start, start))
-    if boundary == "iterates":
-        return total + g
-    if boundary == "result":
-        return constraint.apply(total)
+    _, total = jax.lax.fori_loop(1, order, body, (start, start))
     return total
 
 

@@ -58,7 +58,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--alpha-p", type=float, default=None, metavar="A",
                      help="particle damping alpha_p in 1/time (default 0)")
     run.add_argument("--shape", default=None, choices=["linear", "ugimp", "quadratic", "cubic"],
-                     help="shape function (default: the scene's, linear for bar and disks)")
+                     help="shape function (default: the scene's: linear for bar, ugimp for disks)")
     run.add_argument("--update", default=None, choices=["USL", "USF", "MUSL"], help="stress update (default: the scene's, USL for bar and disks)")
     run.add_argument("--cells", type=int, default=None, metavar="N", help="cells along the bar (bar)")
     run.add_argument("--spacing", type=float, default=None, metavar="H", help="grid spacing (disks)")

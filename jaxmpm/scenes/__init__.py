@@ -9,9 +9,11 @@ from __future__ import annotations
 from ._common import Setup, resolve_dtype
 from .bar import bar
 from .disks import disks
+from .mms import mms
 from .mpm88 import mpm88
 from .rings import rings
 from .spin import spin
+from .vortex import vortex
 
 SCENES = {
     "bar": (bar, "1D fixed-free elastic bar in its first mode (v_cm vs v0/(beta1 L) cos(omega t))"),
@@ -19,6 +21,8 @@ SCENES = {
     "spin": (spin, "force-free (or elastic) spinning disk: angular momentum and kinetic energy"),
     "rings": (rings, "two neo-Hookean rings collide at +-30: total energy per scheme"),
     "mpm88": (mpm88, "Taichi's mpm88 fluid (APIC, 8192 particles, 128^2 grid): throughput"),
+    "mms": (mms, "Wallstedt & Guilkey 2008 axis-aligned manufactured solution on [0,1]^D: displacement error"),
+    "vortex": (vortex, "generalized vortex (Kamojjala & Brannon): ring returns to its start at t = T"),
 }
 
 

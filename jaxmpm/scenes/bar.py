@@ -45,10 +45,11 @@ def bar(
     scheme = FLIP() if scheme is None else scheme
     shape = Linear() if shape is None else shape
     h = length / cells
-    grid = Grid.covering((0.0,), (length + h,), h, shape=shape)  # room for the free end to stretch
     beta1 = math.pi / (2.0 * length)
     c = math.sqrt(E / density)
     omega = beta1 * c
+    # room for the free end: its amplitude v0/omega (0.159 by default) plus one cell
+    grid = Grid.covering((0.0,), (length + h + 2.0 * v0 / omega,), h, shape=shape)
     particles = fill(grid, Box((0.0,), (length,)), ppc=ppc, velocity=lambda x: v0 * np.sin(beta1 * x))
     fixed = Fixed(where=_at_or_below_zero(length))
     sim = Simulation(grid=grid, shape=shape, material=LinearElastic(E=E, nu=0.0, density=density),

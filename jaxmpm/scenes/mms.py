@@ -1,0 +1,330 @@
+"""``mms``: the axis-aligned manufactured solution of Wallstedt & Guilkey (2008) on [0, 1]^D.
+
+Motion (reference position X in [0, 1]^D, D = 1, 2, 3), one independent wave per axis:
+
+    u_i(X, t) = A sin(pi X_i) sin(c pi t + phi_i),      c = sqrt(E / rho0)
+
+so x = X + u is axis-aligned, F = diag(1 + A pi cos(pi X_i) sin(c pi t + phi_i)) and J = prod F_ii.
+Material: compressible neo-Hookean (:class:`jaxmpm.NeoHookean`; plane strain in 2D, uniaxial
+strain in 1D), P = tau F^-T = mu (F - F^-T) + lambda ln(J) F^-T.  The exact solution needs the
+body force (per unit mass, reference configuration)
+
+    b = d^2u/dt^2 - (1/rho0) Div_0 P.
+
+Closed form (derived by hand; the test checks it against the autodiff force): P is diagonal,
+P_ii = mu (F_ii - 1/F_ii) + lambda ln(J) / F_ii, and only F_ii depends on X_i, so with
+dF_ii/dX_i = -pi^2 u_i and d(ln J)/dX_i = (dF_ii/dX_i) / F_ii,
+
+    dP_ii/dX_i = -pi^2 u_i [mu + (mu + lambda (1 - ln J)) / F_ii^2]
+    b_i = pi^2 u_i [mu/rho0 - c^2 - (lambda (ln J - 1) - mu) / (rho0 F_ii^2)]
+
+(the formula of the Uintah implementation of this problem, ``MMS.cc``, "AxisAligned").  jaxmpm
+evaluates b by automatic differentiation of the exact displacement field (``jax.jacfwd`` for F,
+Div_0 P and d^2u/dt^2), with P from the library's own ``NeoHookean.kirchhoff_stress``:
+:class:`ManufacturedForce`.  The same machinery drives the ``vortex`` scene.
+
+Parameters (as in the Uintah "AxisAligned" problem, Kamojjala's implementation of the paper):
+E = 1e4 (mu = 3846.15, bulk 8333.33, i.e. nu = 0.3), rho0 = 1, A = 0.05, so c = 100 and one period
+of the motion is 2/c = 0.02.  (E = 1e7, rho0 = 1000 gives the same c and the same body force per
+unit mass: only E/rho0 enters.)  Phases: the paper's phi = (0, 2 pi/3, 4 pi/3) by default, so in
+2D/3D the body starts deformed: particles are placed at X + u(X, 0) with F = I + grad u(X, 0) and
+V = du/dt(X, 0) (reference volumes and masses rho0 V0 stay those of the undeformed lattice).
+In 1D phi = 0: the bar starts undeformed with V = A c pi sin(pi X).
+
+Where the body force is evaluated: at each particle's REFERENCE position X_p (as in Uintah, which
+uses x_p - u_p).  ``Simulation(body_force=...)`` calls ``body_force(x, t)`` with current positions;
+:class:`ManufacturedForce` holds the particles' reference positions (the particle order never
+changes) and evaluates b(X_p, t), ignoring x except for its shape and dtype.  This is exact, needs
+no change to the core, and is a plain static callable (hashable by value, so equal scenes share
+compiled code).  The alternative -- inverting x = X + u(X, t) by Newton's method -- would
+evaluate b at the numerically perturbed X and only works while the map is invertible.
+
+Boundary: u = 0 on X_i = 0 and X_i = 1.  Two treatments (``boundary``):
+
+* ``"walls"`` (default): the body is [0, 1]^D and the grid nodes on and beyond the planes X_a = 0, 1
+  get zero normal velocity (:class:`jaxmpm.Slip` with a plane selector, like the ``bar`` scene's
+  x <= 0; the tangential exact velocity there is not zero in 2D/3D).  Exact for linear shape
+  functions; with B-splines (and uGIMP) the grid reaches beyond the wall, and zeroing the outer
+  nodes instead of mirroring them (v_-k = -v_k, what the odd exact solution does) leaves
+  v(0) = N(1) v_1 != 0 and an O(h) error in the particles next to the wall, which spreads: B-splines
+  then converge at first order (Steffen, Wallstedt, Guilkey, Kirby & Berzins 2008 show how the boundary treatment changes
+  MPM's spatial convergence).  Leaving the
+  outer nodes free is worse still (measured: ~0.75 A error at 16-32 cells).
+* ``"extended"``: the body is [-1/2, 3/2]^D -- the exact solution continued oddly through the
+  walls, which is the mirror done with real material -- and the wall planes keep their Slip
+  condition (exact there).  The outer faces X_i = -1/2, 3/2 are free surfaces, where the exact
+  stress vanishes only if the axes do not couple: F_ii = 1 there, but P_ii carries lambda ln J from
+  the other axes, so this mode needs dim = 1 or nu = 0.  The errors (``reference.errors``) are then
+  measured on the particles inside [0, 1]^D only.  Needs an even number of cells (a node on X = 0).
+
+Time step: dt = cfl h / (c_d + A c pi) with c_d = sqrt((lambda + 2 mu)/rho0), then shortened so
+that a whole number of steps lands exactly on t_end (default: one period 2/c).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import hashlib
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._boundary import Slip
+from .._errors import check
+from .._grid import Grid
+from .._materials import NeoHookean
+from .._particles import Box, Particles, fill
+from .._schemes import FLIP, Damping
+from .._shapes import Linear
+from .._simulation import Simulation
+from ._common import Setup, cast_state, resolve_dtype
+
+E, NU, RHO0, AMPLITUDE = 1.0e4, 0.3, 1.0, 0.05
+PHASES = (0.0, 2.0 * math.pi / 3.0, 4.0 * math.pi / 3.0)  # Wallstedt & Guilkey / Uintah "AxisAligned"
+
+
+# --------------------------------------------------------------------------- exact motions
+@dataclasses.dataclass(frozen=True)
+class AxisAligned:
+    """u_i(X, t) = A sin(pi X_i) sin(c pi t + phi_i) for one point X (D,) at time t."""
+
+    amplitude: float
+    c: float
+    phases: tuple
+
+    def displacement(self, X, t):
+        phi = jnp.asarray(self.phases, X.dtype)
+        return self.amplitude * jnp.sin(jnp.pi * X) * jnp.sin(self.c * jnp.pi * t + phi)
+
+
+def _first_piola(material, F):
+    """P = tau F^-T (Kirchhoff stress from the material)."""
+    return material.kirchhoff_stress(F) @ jnp.linalg.inv(F).T
+
+
+def exact_fields(motion, material):
+    """Point functions of (X, t) built by automatic differentiation of ``motion.displacement``:
+    displacement u, velocity du/dt, acceleration d2u/dt2, F = I + du/dX, P and the body force
+    b = d2u/dt2 - Div_0 P / rho0 (per unit mass)."""
+    u = motion.displacement
+    vel = jax.jacfwd(u, argnums=1)
+    acc = jax.jacfwd(vel, argnums=1)
+
+    def deformation_gradient(X, t):
+        return jnp.eye(X.shape[0], dtype=X.dtype) + jax.jacfwd(u, argnums=0)(X, t)
+
+    def first_piola(X, t):
+        return _first_piola(material, deformation_gradient(X, t))
+
+    def body_force(X, t):
+        dP = jax.jacfwd(first_piola, argnums=0)(X, t)  # dP_iJ / dX_K
+        div = jnp.trace(dP, axis1=1, axis2=2)  # Div_0 P_i = dP_iJ / dX_J
+        return acc(X, t) - div / material.density
+
+    return dict(displacement=u, velocity=vel, acceleration=acc, F=deformation_gradient, P=first_piola,
+                body_force=body_force)
+
+
+# --------------------------------------------------------------------------- body force
+class ManufacturedForce:
+    """``body_force(x, t)`` for :class:`jaxmpm.Simulation`: the manufactured body force b(X_p, t)
+    at each particle's reference position ``X`` (N, D), by automatic differentiation of the exact
+    motion (:func:`exact_fields`).  ``x`` only supplies the shape check and the dtype.
+
+    Equality and hashing go by value (motion, material constants, X), so two equal scenes share
+    compiled code."""
+
+    def __init__(self, motion, material, X):
+        self.motion = motion
+        self.material = material
+        self.X = np.asarray(X, dtype=np.float64)
+        lam, mu = (float(v) for v in material.lame())
+        self._key = (type(material).__name__, motion, lam, mu, float(material.density),
+                     self.X.shape, hashlib.sha1(self.X.tobytes()).hexdigest())
+        self._field = exact_fields(motion, material)["body_force"]
+
+    def at(self, X, t):
+        """b(X, t) for points X (N, D) (any points, not only the particles')."""
+        return jax.vmap(self._field, in_axes=(0, None))(X, t)
+
+    def __call__(self, x, t):
+        check(x.shape == self.X.shape,
+              f"ManufacturedForce: got positions of shape {x.shape}, but this body force belongs to "
+              f"{self.X.shape[0]} particles in {self.X.shape[1]}D (build the scene again for other particles)")
+        X = jnp.asarray(self.X, x.dtype)
+        return self.at(X, jnp.asarray(t, x.dtype)).astype(x.dtype)
+
+    def __eq__(self, other):
+        return isinstance(other, ManufacturedForce) and other._key == self._key
+
+    def __hash__(self):
+        return hash(self._key)
+
+
+class ManufacturedReference:
+    """Exact solution of a manufactured scene: ``reference(X, t) -> (u, v)``, the exact
+    displacement and velocity (N, D) at reference points X (N, D) and time t.  ``X`` holds the
+    particles' reference positions and ``measured`` (N,) marks the particles the errors are taken
+    over, so ``reference.errors(time, x, v)`` gives the RMS particle errors per saved frame."""
+
+    def __init__(self, motion, X, measured=None):
+        self.motion = motion
+        self.X = np.asarray(X, dtype=np.float64)
+        self.measured = np.ones(self.X.shape[0], bool) if measured is None else np.asarray(measured, bool)
+        fields = exact_fields(motion, None)
+        self._u = jax.jit(jax.vmap(fields["displacement"], in_axes=(0, None)))
+        self._v = jax.jit(jax.vmap(fields["velocity"], in_axes=(0, None)))
+
+    def __call__(self, X, t):
+        X = jnp.asarray(X)
+        t = jnp.asarray(t, X.dtype)
+        return self._u(X, t), self._v(X, t)
+
+    def positions(self, t):
+        """Exact positions X + u(X, t) of all particles, (N, D)."""
+        return self.X + np.asarray(self(self.X, t)[0])
+
+    def errors(self, time, x, v, velocity_shift: float = 0.0):
+        """RMS over the measured particles of |x_p - x(X_p, t)| and |V_p - v(X_p, t - velocity_shift)|
+        for each frame (time (T,), x and v (T, N, D) of all particles).  Returns two (T,) arrays.
+        ``velocity_shift = dt/2`` compares V with the exact velocity half a step earlier (USL
+        particle velocities are leapfrog half-step velocities)."""
+        time = np.asarray(time, dtype=np.float64).reshape(-1)
+        keep = self.measured
+        X = self.X[keep]
+        x = np.asarray(x, dtype=np.float64)[:, keep]
+        v = np.asarray(v, dtype=np.float64)[:, keep]
+        ex, ev = [], []
+        for k, t in enumerate(time):
+            u_ex, _ = self(X, t)
+            _, v_ex = self(X, t - velocity_shift)
+            ex.append(np.sqrt(np.mean(np.sum((x[k] - X - np.asarray(u_ex)) ** 2, axis=-1))))
+            ev.append(np.sqrt(np.mean(np.sum((v[k] - np.asarray(v_ex)) ** 2, axis=-1))))
+        return np.array(ex), np.array(ev)
+
+
+# --------------------------------------------------------------------------- boundary selectors
+class _plane:
+    """Node selector x_axis == value (within round-off), or beyond it with ``outside``; hashable."""
+
+    def __init__(self, axis: int, value: float, outside: bool, tol: float):
+        self.axis, self.value, self.outside, self.tol = int(axis), float(value), bool(outside), float(tol)
+
+    def __call__(self, x):
+        d = x[:, self.axis] - self.value
+        if not self.outside:
+            return np.abs(d) <= self.tol
+        return d <= self.tol if self.value <= 0.5 else d >= -self.tol
+
+    def _key(self):
+        return (self.axis, self.value, self.outside, self.tol)
+
+    def __eq__(self, other):
+        return isinstance(other, _plane) and other._key() == self._key()
+
+    def __hash__(self):
+        return hash(("plane",) + self._key())
+
+
+def walls(dim: int, h: float, outside: bool = False) -> tuple:
+    """Zero normal velocity on the planes X_a = 0 and X_a = 1 of every axis a."""
+    tol = 1e-9 * h
+    return tuple(Slip(_plane(a, v, outside, tol), axis=a) for a in range(dim) for v in (0.0, 1.0))
+
+
+# --------------------------------------------------------------------------- helpers
+def schedule_exact(t_end: float, dt_max: float, frames: int) -> tuple[float, int, int]:
+    """(dt, steps, save_every): ``frames`` frames, dt <= dt_max, steps * dt = t_end exactly."""
+    check(t_end > 0, f"t_end = {t_end} must be positive")
+    check(isinstance(frames, (int, np.integer)) and frames >= 1, f"frames = {frames!r} must be a positive integer")
+    save_every = max(1, int(math.ceil(t_end / (dt_max * frames) - 1e-9)))
+    steps = save_every * frames
+    return t_end / steps, steps, save_every
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _initial_fields(motion, X):
+    """u(X, 0), du/dt(X, 0) and F(X, 0) for points X (N, D), in one compiled call."""
+    fields = exact_fields(motion, None)
+    t0 = jnp.zeros((), X.dtype)
+    return tuple(jax.vmap(fields[k], in_axes=(0, None))(X, t0) for k in ("displacement", "velocity", "F"))
+
+
+def start_deformed(sim, particles, motion, X, dtype):
+    """Initial state for a body that starts at x = X + u(X, 0) with F = I + grad u(X, 0) and
+    V = du/dt(X, 0); reference volumes and masses stay those of the lattice X."""
+    u0, v0, F0 = _initial_fields(motion, jnp.asarray(X))
+    moved = Particles(x=jnp.asarray(X) + u0, v=v0, volume=particles.volume, mass=particles.mass, ppc=particles.ppc)
+    state = sim.init(moved)
+    state = eqx.tree_at(lambda s: s.F, state, F0.astype(state.F.dtype))
+    return cast_state(state, dtype)
+
+
+# --------------------------------------------------------------------------- the scene
+def mms(
+    dim: int = 1,
+    cells: int = 16,
+    ppc: int = 2,
+    shape=None,
+    scheme=None,
+    amplitude: float = AMPLITUDE,
+    phases=None,
+    t_end: float | None = None,
+    cfl: float = 0.2,
+    dt: float | None = None,
+    update: str = "USL",
+    damping: Damping | None = None,
+    boundary: str = "walls",
+    dtype=None,
+    frames: int = 50,
+    E: float = E,
+    nu: float = NU,
+    density: float = RHO0,
+) -> Setup:
+    """The axis-aligned MMS on [0, 1]^dim with ``cells`` cells per unit length and ``ppc``
+    particles per cell per axis; ``phases`` default to (0, 2 pi/3, 4 pi/3)[:dim]; ``t_end`` to one
+    period 2/c; ``boundary`` is ``"walls"`` or ``"extended"`` (see the module docstring).
+    ``setup.reference(X, t) -> (u, v)`` is the exact solution (``setup.reference.X`` the particles'
+    reference positions, ``setup.reference.errors`` the RMS particle errors)."""
+    check(dim in (1, 2, 3), f"mms: dim = {dim!r}; use 1, 2 or 3")
+    check(isinstance(cells, (int, np.integer)) and cells >= 1, f"mms: cells = {cells!r} must be a positive integer")
+    check(boundary in ("walls", "extended"), f"mms: boundary = {boundary!r}; use 'walls' or 'extended'")
+    check(0 <= amplitude < 1.0 / math.pi,
+          f"mms: amplitude = {amplitude} must lie in [0, 1/pi) so that F = 1 + A pi cos(pi X) sin(...) stays > 0")
+    extended = boundary == "extended"
+    if extended:
+        check(cells % 2 == 0, f"mms: boundary='extended' needs an even number of cells (a node on X = 0), got {cells}")
+        check(dim == 1 or nu == 0.0,
+              f"mms: boundary='extended' with dim = {dim} needs nu = 0 (got {nu}): the outer faces X = -1/2, 3/2 "
+              "are traction-free only when the axes do not couple through lambda ln J")
+    dtype = resolve_dtype(dtype)
+    scheme = FLIP() if scheme is None else scheme
+    shape = Linear() if shape is None else shape
+    phases = PHASES[:dim] if phases is None else tuple(float(p) for p in phases)
+    check(len(phases) == dim, f"mms: phases has {len(phases)} entries; give one per axis ({dim})")
+    h = 1.0 / cells
+    lo, hi = (-0.5, 1.5) if extended else (0.0, 1.0)
+    grid = Grid.covering((lo,) * dim, (hi,) * dim, h, shape=shape)
+    material = NeoHookean(E=E, nu=nu, density=density)
+    c = math.sqrt(E / density)
+    motion = AxisAligned(amplitude=float(amplitude), c=c, phases=phases)
+    particles = fill(grid, Box((lo,) * dim, (hi,) * dim), ppc=ppc)
+    X = np.asarray(particles.x, dtype=np.float64)
+    force = ManufacturedForce(motion, material, X)
+    sim = Simulation(grid=grid, shape=shape, material=material, scheme=scheme, damping=damping, update=update,
+                     boundary=walls(dim, h, outside=not extended), body_force=force)
+    state = start_deformed(sim, particles, motion, X, dtype)
+    if t_end is None:
+        t_end = 2.0 / c
+    if dt is None:
+        dt = cfl * h / (float(material.wave_speed(dim)) + amplitude * c * math.pi)
+    dt, steps, save_every = schedule_exact(t_end, dt, frames)
+    reference = ManufacturedReference(motion, X, measured=np.all((X > 0.0) & (X < 1.0), axis=-1))
+    lam, mu = (float(v) for v in material.lame())
+    params = dict(dim=dim, cells=cells, ppc=ppc, h=h, amplitude=amplitude, phases=list(phases), E=E, nu=nu,
+                  lam=lam, mu=mu, density=density, c=c, cfl=cfl, dt=dt, t_end=t_end, boundary=boundary)
+    return Setup("mms", sim, state, dt, steps, save_every, params, reference, particles)

@@ -66,6 +66,11 @@ class Material(eqx.Module):
         lam = self.E * self.nu / ((1.0 + self.nu) * (1.0 - 2.0 * self.nu))
         return lam, mu
 
+    def keep_deformation(self, F):
+        """The deformation gradient carried to the next step: F itself for solids (no operation).
+        :class:`VolumetricFluid` overrides it."""
+        return F
+
     def wave_speed(self, dim: int):
         """Dilatational wave speed: sqrt(E/rho) in 1D, sqrt((lambda + 2 mu)/rho) otherwise."""
         if dim == 1 and isinstance(self, LinearElastic):
@@ -170,6 +175,16 @@ class VolumetricFluid(Material):
     def energy_density(self, F):
         J = jnp.linalg.det(F)
         return self.E * (J - 1.0 - NeoHookean._log_j(F))
+
+    def keep_deformation(self, F):
+        """F <- J^(1/D) I after each step (Taichi mpm99's fluid reset): the stress depends on J
+        only, so this changes no stress, but it drops the shear a fluid accumulates without bound,
+        which otherwise makes det F of a float32 F meaningless within t ~ 0.3 of mpm88 (|F| ~ 1e3
+        and growing; J = det F then comes out <= 0)."""
+        J = jnp.linalg.det(F)
+        positive = J > 0
+        iso = (jnp.where(positive, J, 1.0) ** (1.0 / F.shape[-1]))[..., None, None] * _identity(F)
+        return jnp.where(positive[..., None, None], iso, F)  # J <= 0 stays visible to the instability check
 
     def wave_speed(self, dim: int):
         return jnp.sqrt(self.E / self.density)

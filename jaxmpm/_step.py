@@ -85,6 +85,7 @@ def g2p(sim, state, transfer: Transfer, constraint: Constraint, grid: GridSoluti
         v_new = constraint.apply(safe_divide(transfer.momentum(upd.velocity), transfer.nodal_mass))
         v_strain = sim.scheme.strain_grid_velocity(v_new, transfer, constraint)
         F = update_deformation(F, transfer.velocity_gradient(v_strain), dt)
+    F = sim.material.keep_deformation(F)  # F itself except for fluids (VolumetricFluid: J^(1/D) I)
     extra = sim.scheme.particle_state(state, upd, transfer, grid)
     return eqx.tree_at(
         lambda s: (s.x, s.v, s.F, s.time, s.step, s.dissipated, s.affine),

@@ -15,7 +15,10 @@ Differences from mpm88, by design:
   velocity gradient of the strain update (sum_i v_i (x) G_pi, not mpm88's C_p = B_p D^-1), is
   the gradient form.  Both are consistent discretisations of the same equations; the gradient
   form keeps one step function for all schemes.
-* J = det F with F <- (I + grad v dt) F, where mpm88 updates J <- J (1 + dt tr C).
+* J = det F with F <- (I + grad v dt) F, where mpm88 updates J <- J (1 + dt tr C); after each
+  step the fluid resets F to J^(1/2) I (:meth:`VolumetricFluid.keep_deformation`), so F carries
+  only mpm88's one number J (without the reset the shear piles up in F, |F| ~ 5e3 by t = 0.28,
+  and a float32 det F turns <= 0).
 * The grid has 129 nodes per axis (mpm88: 128); particles never reach the extra node layer
   (it lies inside the wall), and ``Wall(face, layers=3)`` covers the same nodes as mpm88's
   ``i < 3`` and ``i > 125``.

@@ -78,15 +78,16 @@ def step(sim, state, dt):
 def g2p(sim, state, transfer: Transfer, constraint: Constraint, grid: GridSolution, dt):
     """Particle update by the scheme, then the USL-/MUSL strain update."""
     upd = sim.scheme.update(state.v, state.x, transfer, constraint, grid, sim.damping, dt)
+    extra = sim.scheme.particle_state(state, upd, transfer, grid)
     F = state.F
     if sim.update == "USL":  # USL-: the velocity the update just used
         F = update_deformation(F, transfer.velocity_gradient(upd.strain_velocity), dt)
-    elif sim.update == "MUSL":  # USL+: re-extrapolate p = S^T M V^{n+1} (003 §2.1.6)
-        v_new = constraint.apply(safe_divide(transfer.momentum(upd.velocity), transfer.nodal_mass))
+    elif sim.update == "MUSL":  # USL+: re-extrapolate p = S^T M V^{n+1} (003 §2.1.6), affine terms included
+        updated = eqx.tree_at(lambda s: (s.v, s.affine), state, (upd.velocity, extra), is_leaf=lambda x: x is None)
+        v_new = constraint.apply(safe_divide(sim.scheme.momentum(transfer, updated), transfer.nodal_mass))
         v_strain = sim.scheme.strain_grid_velocity(v_new, transfer, constraint)
         F = update_deformation(F, transfer.velocity_gradient(v_strain), dt)
     F = sim.material.keep_deformation(F)  # F itself except for fluids (VolumetricFluid: J^(1/D) I)
-    extra = sim.scheme.particle_state(state, upd, transfer, grid)
     return eqx.tree_at(
         lambda s: (s.x, s.v, s.F, s.time, s.step, s.dissipated, s.affine),
         state,

@@ -276,3 +276,22 @@ def test_spin_pic_loses_angular_momentum_and_energy(spin_changes):
     """PIC's S+ S smoothing removes the rotation: more than half of L and KE lost."""
     dL, dK = spin_changes["PIC"]
     assert dL[-1] < -0.5 and dK[-1] < -0.5
+
+
+def test_apic_musl_reextrapolation_keeps_the_affine_term():
+    """MUSL (USL+) re-extrapolates p = sum_p S_pi M_p (V_p + B_p D_p^-1 (x_i - X_p)) (002 eq. 3):
+    with an affine velocity field V = L X and B = L D (002 prop. 5.1) the grid field is exactly
+    affine, so the strain update sees grad v = L and F = I + L dt after one step, as under USL."""
+    L = jnp.array([[0.0, -1.0], [1.0, 0.0]]) * 0.5 + jnp.array([[0.1, 0.02], [0.03, -0.05]])
+    results = {}
+    for update in ("USL", "MUSL"):
+        setup = jm.scene("spin", scheme=jm.APIC(), shape=jm.QuadraticBSpline(), spacing=1 / 16,
+                         update=update, stress=False)
+        state = setup.state
+        centre = jnp.mean(state.x, axis=0)
+        state = eqx.tree_at(lambda s: s.v, state, (state.x - centre) @ L.T)
+        state = jm.with_velocity_gradient(setup.sim, state, L)
+        dt = 1e-3
+        results[update] = setup.sim.step(state, dt).F
+        expected = jnp.broadcast_to(jnp.eye(2) + L * dt, state.F.shape)
+        assert jnp.max(jnp.abs(results[update] - expected)) <= 1e-12, update

@@ -44,12 +44,13 @@ Boundary: u = 0 on X_i = 0 and X_i = 1.  Two treatments (``boundary``):
 * ``"walls"`` (default): the body is [0, 1]^D and the grid nodes on and beyond the planes X_a = 0, 1
   get zero normal velocity (:class:`jaxmpm.Slip` with a plane selector, like the ``bar`` scene's
   x <= 0; the tangential exact velocity there is not zero in 2D/3D).  Exact for linear shape
-  functions; with B-splines (and uGIMP) the grid reaches beyond the wall, and zeroing the outer
-  nodes instead of mirroring them (v_-k = -v_k, what the odd exact solution does) leaves
-  v(0) = N(1) v_1 != 0 and an O(h) error in the particles next to the wall, which spreads: B-splines
-  then converge at first order (Steffen, Wallstedt, Guilkey, Kirby & Berzins 2008 show how the boundary treatment changes
-  MPM's spatial convergence).  Leaving the
-  outer nodes free is worse still (measured: ~0.75 A error at 16-32 cells).
+  functions.  B-splines reach past the wall (uGIMP too, once particle domains do): zeroing the
+  outer nodes instead of mirroring them (v_-k = -v_k, what the odd exact solution does) leaves
+  v(0) = N(1) v_1 != 0 and an O(h) error in the particles next to the wall, which spreads, so
+  B-splines converge at first order (Steffen, Wallstedt, Guilkey, Kirby & Berzins 2008 show how
+  the boundary treatment changes MPM's spatial convergence).  Leaving the outer nodes free is
+  worse still (measured, 1D quadratic B-splines, cfl 0.2: errors 0.80 A and 0.49 A at 16 and 32
+  cells, against 0.22 A and 0.10 A with the outer nodes zeroed).
 * ``"extended"``: the body is [-1/2, 3/2]^D -- the exact solution continued oddly through the
   walls, which is the mirror done with real material -- and the wall planes keep their Slip
   condition (exact there).  The outer faces X_i = -1/2, 3/2 are free surfaces, where the exact
@@ -58,7 +59,11 @@ Boundary: u = 0 on X_i = 0 and X_i = 1.  Two treatments (``boundary``):
   measured on the particles inside [0, 1]^D only.  Needs an even number of cells (a node on X = 0).
 
 Time step: dt = cfl h / (c_d + A c pi) with c_d = sqrt((lambda + 2 mu)/rho0), then shortened so
-that a whole number of steps lands exactly on t_end (default: one period 2/c).
+that a whole number of steps lands exactly on t_end (default: one period 2/c).  Note for error
+studies: USL's (V, F) update is a leapfrog, so particle velocities are half-step velocities, and
+the FLIP/XPIC position update X += (S v + dV/2) dt (FMPM's X += (V^n + V^n+1) dt/2 likewise) lags
+the exact motion by about dt/2: at a fixed CFL both errors are O(h) and cap the observed order at 1
+on fine grids; refine dt like h^2 (``cfl`` proportional to h) to see the spatial order.
 """
 
 from __future__ import annotations
@@ -145,11 +150,11 @@ class ManufacturedForce:
         lam, mu = (float(v) for v in material.lame())
         self._key = (type(material).__name__, motion, lam, mu, float(material.density),
                      self.X.shape, hashlib.sha1(self.X.tobytes()).hexdigest())
-        self._field = exact_fields(motion, material)["body_force"]
+        self._at = jax.jit(jax.vmap(exact_fields(motion, material)["body_force"], in_axes=(0, None)))
 
     def at(self, X, t):
         """b(X, t) for points X (N, D) (any points, not only the particles')."""
-        return jax.vmap(self._field, in_axes=(0, None))(X, t)
+        return self._at(X, t)
 
     def __call__(self, x, t):
         check(x.shape == self.X.shape,
@@ -308,7 +313,8 @@ def mms(
     check(len(phases) == dim, f"mms: phases has {len(phases)} entries; give one per axis ({dim})")
     h = 1.0 / cells
     lo, hi = (-0.5, 1.5) if extended else (0.0, 1.0)
-    grid = Grid.covering((lo,) * dim, (hi,) * dim, h, shape=shape)
+    pad = 1.5 * amplitude if extended else 0.0  # the free outer faces move by up to A
+    grid = Grid.covering((lo,) * dim, (hi,) * dim, h, shape=shape, pad=pad)
     material = NeoHookean(E=E, nu=nu, density=density)
     c = math.sqrt(E / density)
     motion = AxisAligned(amplitude=float(amplitude), c=c, phases=phases)

@@ -35,9 +35,18 @@ The scene evaluates b by automatic differentiation of the exact motion
 (:class:`jaxmpm.scenes.mms.ManufacturedForce`, at each particle's reference position); the test
 compares it with this closed form.
 
-Defaults follow Uintah's GeneralizedVortex: E = 1000, nu = 0.3 (mu = 384.6), rho0 = 1000, A = 1
-(shear strain gamma up to ~6 at the peak), T = 1; grid spacing h = 0.05, quadratic B-splines, 2x2
-particles per cell, dt = cfl h / (c_d + max |v|), c_d = sqrt((lambda + 2 mu)/rho0).
+Material as in Uintah's GeneralizedVortex: E = 1000, nu = 0.3 (mu = 384.6), rho0 = 1000; T = 1;
+grid spacing h = 0.05, quadratic B-splines, 2x2 particles per cell,
+dt = cfl h / (c_d + max |v|), c_d = sqrt((lambda + 2 mu)/rho0).
+
+Amplitude: default A = 0.1 (peak shear gamma = R alpha' = 0.71), not Uintah's A = 1 (gamma = 7.1).
+Measured with A = 1: FLIP, XPIC(5) and APIC, USL or MUSL, cfl 0.1-0.4, lose a particle of the
+outer free surface, which runs off the grid by t ~ 0.4-0.7 at h = 1/8, 1/16 and 1/32
+(A = 0.5: at h = 1/16 and 1/32) while the kinetic energy grows past its exact value.  A likely
+mechanism: once a surface particle separates from the body it feels only its manufactured body
+force, which at the free surfaces is large and no longer balanced (b_theta = -(mu/rho0) R alpha'',
+g''(R_i) = g''(R_o) = 128).  A = 0.25 runs at h = 0.05 with FLIP, XPIC(5) and APIC but not with
+FMPM(4) (nor with FLIP at h = 1/32); A = 0.1 runs with all of them.
 """
 
 from __future__ import annotations
@@ -89,7 +98,7 @@ def vortex(
     shape=None,
     spacing: float = 0.05,
     ppc: int = 2,
-    amplitude: float = 1.0,
+    amplitude: float = 0.1,
     period: float = 1.0,
     t_end: float | None = None,
     cfl: float = 0.4,

@@ -30,7 +30,7 @@ import jax.numpy as jnp
 from ._diagnostics import angular_momentum as _particle_angular_momentum
 from ._schemes import ParticleUpdate, Scheme
 from ._shapes import Stencil
-from ._transfer import Transfer, scatter_weighted
+from ._transfer import Transfer, scatter_weighted, sum_over_stencil
 
 
 def nodes_per_axis(stencil: Stencil) -> int:
@@ -52,7 +52,9 @@ def _matmul(A, B):
 
 def _outer_sum(w, a, b):
     """sum_k w_pk a_pk b_pk^T, shape (N, D, D)."""
-    return jnp.einsum("pk,pka,pkb->pab", w, a, b)
+    wa = w[..., None] * a  # unrolled over the tiny (D, D) axes: fuses on CPU, a batched dot does not
+    return jnp.stack([jnp.stack([sum_over_stencil(wa[..., i] * b[..., j]) for j in range(b.shape[-1])], -1)
+                      for i in range(a.shape[-1])], -2)
 
 
 def inertia_tensor(stencil: Stencil):

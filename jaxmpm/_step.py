@@ -39,11 +39,10 @@ def p2g(sim, state) -> GridFields:
 def nodal_force(sim, state, transfer: Transfer):
     """f_i = -sum_p V0_p tau_p . G_pi + sum_p S_pi M_p b_p  (001 eq. 20, 003 eq. 2.10)."""
     tau = sim.material.kirchhoff_stress(state.F)
-    internal = transfer.divergence(state.volume0[:, None, None] * tau)
     body = jnp.broadcast_to(sim.gravity.astype(state.x.dtype), state.x.shape)
     if sim.body_force is not None:
         body = body + sim.body_force(state.x, state.time)
-    return internal + transfer.scatter(state.mass[:, None] * body)
+    return transfer.divergence(state.volume0[:, None, None] * tau, state.mass[:, None] * body)  # one scatter
 
 
 def grid_solve(fields: GridFields, force, dt, constraint: Constraint) -> GridSolution:

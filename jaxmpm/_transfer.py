@@ -30,35 +30,58 @@ def safe_divide(numerator, mass):
     return jnp.where(positive, numerator / denom, 0.0)
 
 
+def sum_over_stencil(a):
+    """sum_k a[:, k] for a of shape (N, K, ...), unrolled over the (4-64) stencil nodes: XLA's CPU
+    reduction over a short middle axis is several times slower than K-1 fused elementwise adds."""
+    total = a[:, 0]
+    for k in range(1, a.shape[1]):
+        total = total + a[:, k]
+    return total
+
+
+def _scatter_add(index, values, num_nodes: int):
+    """sum over rows r of ``values`` (R, ...) into node ``index[r]``."""
+    return jnp.zeros((num_nodes,) + values.shape[1:], values.dtype).at[index].add(values)
+
+
 def gather(stencil: Stencil, u):
     """(S u)_p = sum_i S_pi u_i for nodal ``u`` of shape (n,) or (n, C)."""
     values = u[stencil.index]  # (N, K, ...)
     w = stencil.weight if u.ndim == 1 else stencil.weight[..., None]
-    return jnp.sum(w * values, axis=1)
+    return sum_over_stencil(w * values)
 
 
 def scatter(stencil: Stencil, q, num_nodes: int):
     """(S^T q)_i = sum_p S_pi q_p for particle ``q`` of shape (N,) or (N, C)."""
     w = stencil.weight if q.ndim == 1 else stencil.weight[..., None]
     contrib = w * q[:, None]  # (N, K, ...)
-    flat = contrib.reshape((-1,) + q.shape[1:])
-    return jnp.zeros((num_nodes,) + q.shape[1:], q.dtype).at[stencil.index.reshape(-1)].add(flat)
+    return _scatter_add(stencil.index.reshape(-1), contrib.reshape((-1,) + q.shape[1:]), num_nodes)
 
 
 def scatter_weighted(stencil: Stencil, nodal_values, num_nodes: int):
     """sum_p sum_k c_pk over the stencil for per-(particle, node) contributions c of shape (N, K, C)."""
     flat = nodal_values.reshape((-1,) + nodal_values.shape[2:])
-    return jnp.zeros((num_nodes,) + nodal_values.shape[2:], nodal_values.dtype).at[stencil.index.reshape(-1)].add(flat)
+    return _scatter_add(stencil.index.reshape(-1), flat, num_nodes)
 
 
 def velocity_gradient(stencil: Stencil, v):
     """(grad v)_p[a, b] = sum_i v_i[a] G_pi[b]  (003 eq. 2.7)."""
-    return jnp.einsum("pka,pkb->pab", v[stencil.index], stencil.gradient)
+    values = v[stencil.index]  # (N, K, D)
+    g = stencil.gradient
+    # unrolled over the (1-3 long) component axes: elementwise products and a sum over K fuse on
+    # CPU, where a batched dot_general of (K, D) matrices does not
+    return jnp.stack([jnp.stack([sum_over_stencil(values[..., a] * g[..., b]) for b in range(g.shape[-1])], -1)
+                      for a in range(values.shape[-1])], -2)
 
 
-def divergence(stencil: Stencil, weighted_stress, num_nodes: int):
-    """Internal force f_i = - sum_p (V0_p tau_p) . G_pi  (001 eq. 20, 003 eq. 2.10)."""
-    contrib = -jnp.einsum("pab,pkb->pka", weighted_stress, stencil.gradient)
+def divergence(stencil: Stencil, weighted_stress, num_nodes: int, particle_force=None):
+    """Internal force f_i = - sum_p (V0_p tau_p) . G_pi  (001 eq. 20, 003 eq. 2.10), plus
+    sum_p S_pi q_p for an optional particle force ``q`` (N, D) (e.g. M_p b_p), in the same scatter."""
+    g = stencil.gradient
+    d = g.shape[-1]
+    contrib = -jnp.stack([sum(weighted_stress[:, None, a, b] * g[..., b] for b in range(d)) for a in range(d)], -1)
+    if particle_force is not None:
+        contrib = contrib + stencil.weight[..., None] * particle_force[:, None, :]
     return scatter_weighted(stencil, contrib, num_nodes)
 
 
@@ -96,5 +119,5 @@ class Transfer(eqx.Module):
     def velocity_gradient(self, v):
         return velocity_gradient(self.stencil, v)
 
-    def divergence(self, weighted_stress):
-        return divergence(self.stencil, weighted_stress, self.num_nodes)
+    def divergence(self, weighted_stress, particle_force=None):
+        return divergence(self.stencil, weighted_stress, self.num_nodes, particle_force)

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax
+import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
@@ -39,16 +41,24 @@ def ensemble(sim, state, dt, steps: int, save_every: int = 1, *, params: dict | 
         check(False, f"ensemble: steps = {steps} must be a multiple of save_every = {save_every}")
     frames = steps // save_every
 
+    dt = jnp.asarray(dt, state.x.dtype)
+    devices = jax.devices() if devices is None else list(devices)
+    used = max(d for d in range(1, len(devices) + 1) if batch % d == 0)
+    inputs = (params or None, states)
+    if used > 1:
+        inputs = _shard(inputs, devices[:used])
+    return _batched_rollout(sim, state, dt, frames, save_every, save_particles, *inputs)
+
+
+@eqx.filter_jit
+def _batched_rollout(sim, state, dt, frames, save_every, save_particles, params, states):
+    """vmap of one member's rollout; a module-level filter_jit, so repeated calls reuse the compilation."""
+
     def member(p, s):
         member_sim = set_params(sim, **p) if p else sim
         final, hist, failure = member_sim.rollout(state if s is None else s, dt, frames, save_every,
                                                   save_particles, checkpoint=False)
         return final, hist, failure.step
 
-    run = jax.jit(jax.vmap(member, in_axes=(0 if params else None, 0 if states is not None else None)))
-    devices = jax.devices() if devices is None else list(devices)
-    used = max(d for d in range(1, len(devices) + 1) if batch % d == 0)
-    inputs = (params or None, states)
-    if used > 1:
-        inputs = _shard(inputs, devices[:used])
-    return run(*inputs)
+    in_axes = (0 if params else None, 0 if states is not None else None)
+    return jax.vmap(member, in_axes=in_axes)(params, states)

@@ -22,6 +22,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import jaxmpm as jm
+from cases import GRIDS
 
 N_PARTICLES = 64
 EXAMPLES = settings(max_examples=25, deadline=None)
@@ -36,12 +37,6 @@ SHAPES = {
     "cubic": jm.CubicBSpline(),
 }
 
-# anisotropic, off-origin grids: a wrong spacing or lower corner anywhere shows up
-GRIDS = {
-    1: jm.Grid(lower=(-1.0,), upper=(3.0,), cells=(8,)),
-    2: jm.Grid(lower=(-1.0, 0.5), upper=(3.0, 2.5), cells=(8, 6)),
-    3: jm.Grid(lower=(-1.0, 0.5, 2.0), upper=(3.0, 2.5, 4.4), cells=(7, 6, 5)),
-}
 
 CASES = [pytest.param(name, dim, id=f"{name}-{dim}d") for name in SHAPES for dim in GRIDS]
 

@@ -16,21 +16,11 @@ import numpy as np
 import pytest
 
 import jaxmpm as jm
+from cases import FOUR_SHAPES, GRIDS
 
 N_PARTICLES = 64
 
-SHAPES = {
-    "linear": jm.Linear(),
-    "ugimp": jm.UGIMP(ppc=2),
-    "quadratic": jm.QuadraticBSpline(),
-    "cubic": jm.CubicBSpline(),
-}
-
-GRIDS = {
-    1: jm.Grid(lower=(-1.0,), upper=(3.0,), cells=(8,)),
-    2: jm.Grid(lower=(-1.0, 0.5), upper=(3.0, 2.5), cells=(8, 6)),
-    3: jm.Grid(lower=(-1.0, 0.5, 2.0), upper=(3.0, 2.5, 4.4), cells=(7, 6, 5)),
-}
+SHAPES = FOUR_SHAPES
 
 CASES = [pytest.param(name, dim, id=f"{name}-{dim}d") for name in SHAPES for dim in GRIDS]
 SEEDS = (0, 1, 2)

@@ -1,42 +1,67 @@
 """Memory and time of a reverse-mode gradient through a rollout, with and without checkpointing.
 
-d(final kinetic energy)/d(alpha_g) of the ``bar`` scene (FMPM(2), 128 cells so the state is not
-trivially small) for 1k, 4k and 16k steps.  Memory is XLA's own account of the compiled gradient
-(``compiled.memory_analysis().temp_size_in_bytes``: the live buffers it must keep, i.e. the
-residuals of the backward pass); time is the steady state (best of 3 after a compiling call), the
-forward run timed the same way gives the gradient's cost ratio.  Compile time is reported apart.
+The gradient is d(final kinetic energy)/d(alpha_g) of the ``bar`` scene (FMPM(2) by default, 128 cells =
+256 particles so that the per-step state is not trivially small, v0 = 0.01) for 1k, 4k and 16k steps,
+with ``sim.run(..., checkpoint=False)`` (every intermediate of every step is kept for the backward pass)
+and ``checkpoint=True`` (segments of about sqrt(steps) steps are recomputed: O(sqrt T) memory).
 
-    python benchmarks/gradient_memory.py [--quick] [--csv PATH]
+Each configuration runs in a fresh subprocess, which reports
+
+* ``temp_MiB``: XLA's own account of the compiled gradient, ``compiled.memory_analysis().temp_size_in_bytes``
+  (the buffers it keeps alive: the backward pass's residuals); ``forward_temp_MiB`` the same for the forward;
+* ``rss_compile_MiB`` / ``rss_peak_MiB``: the process's peak resident memory (``ru_maxrss``) after compiling
+  and after running, minus that of a baseline process that imports jax and jaxmpm and builds the scene
+  but compiles nothing (so they include XLA's compile-time memory and the arrays of the run);
+* ``compile_s``: lowering + compiling the gradient (``jax.jit(grad).lower(x).compile()``);
+* ``grad_s`` / ``forward_s``: best of 3 calls after a warm-up call; ``ratio`` = grad_s / forward_s.
+
+    python benchmarks/gradient_memory.py            # 1k, 4k, 16k steps (about 2 minutes on 2 CPU cores)
+    python benchmarks/gradient_memory.py --quick    # 1k and 4k steps
+    python benchmarks/gradient_memory.py --scheme flip --cells 256 --csv /tmp/g.csv
 """
+
+from __future__ import annotations
 
 import argparse
 import csv
+import json
 import os
+import platform
+import resource
+import subprocess
+import sys
 import time
+from pathlib import Path
 
-import jax
-
-jax.config.update("jax_enable_x64", True)
-
-import jax.numpy as jnp  # noqa: E402
-
-import jaxmpm as jm  # noqa: E402
+DEFAULT_CSV = Path(__file__).resolve().parent / "results" / "gradient_memory.csv"
+SCHEMES = ("fmpm2", "flip")
+FIELDS = ["scheme", "cells", "particles", "steps", "checkpoint", "temp_MiB", "forward_temp_MiB", "rss_compile_MiB",
+          "rss_peak_MiB", "baseline_rss_MiB", "compile_s", "grad_s", "forward_s", "ratio", "gradient", "load_1min"]
 
 
-def best_time(fn, arg, repeats=3):
-    best = float("inf")
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(fn(arg))
-        best = min(best, time.perf_counter() - start)
-    return best
+def peak_rss_mib() -> float:
+    """Peak resident set size of this process (Linux reports ru_maxrss in KiB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
-def measure(steps, checkpoint, cells):
-    setup = jm.scene("bar", scheme=jm.FMPM(order=2), cells=cells, v0=0.01)
+def build(scheme: str, cells: int):
+    """The bar scene and the loss of alpha_g; imports jax here so the parent process stays light."""
+    import jax
 
-    def loss(alpha):
-        sim = jm.set_params(setup.sim, alpha_g=alpha)
+    jax.config.update("jax_enable_x64", True)
+    import jaxmpm as jm
+
+    chosen = {"fmpm2": jm.FMPM(order=2), "flip": jm.FLIP()}[scheme]
+    return jax, jm, jm.scene("bar", scheme=chosen, cells=cells, v0=0.01)
+
+
+def child(scheme: str, cells: int, steps: int, checkpoint: bool) -> dict:
+    """One configuration, measured in this (fresh) process."""
+    jax, jm, setup = build(scheme, cells)
+    import jax.numpy as jnp
+
+    def loss(alpha_g):
+        sim = jm.set_params(setup.sim, alpha_g=alpha_g)
         final, _ = sim.run(setup.state, setup.dt, steps, steps, save_particles=False, checkpoint=checkpoint)
         return jm.kinetic_energy(final)
 
@@ -44,37 +69,98 @@ def measure(steps, checkpoint, cells):
     start = time.perf_counter()
     grad = jax.jit(jax.grad(loss)).lower(x).compile()
     compile_s = time.perf_counter() - start
-    temp = grad.memory_analysis().temp_size_in_bytes
     forward = jax.jit(loss).lower(x).compile()
-    jax.block_until_ready(grad(x))
-    jax.block_until_ready(forward(x))
-    t_grad = best_time(grad, x)
-    t_fwd = best_time(forward, x)
-    return dict(steps=steps, checkpoint=checkpoint, particles=int(setup.state.x.shape[0]),
-                temp_MiB=temp / 2**20, grad_s=t_grad, forward_s=t_fwd, ratio=t_grad / t_fwd, compile_s=compile_s)
+    rss_compile = peak_rss_mib()
+
+    def best(fn):
+        jax.block_until_ready(fn(x))  # warm-up
+        times = []
+        for _ in range(3):
+            start = time.perf_counter()
+            jax.block_until_ready(fn(x))
+            times.append(time.perf_counter() - start)
+        return min(times)
+
+    grad_s, forward_s = best(grad), best(forward)
+    return dict(
+        scheme=scheme, cells=cells, particles=int(setup.state.x.shape[0]), steps=steps, checkpoint=checkpoint,
+        temp_MiB=grad.memory_analysis().temp_size_in_bytes / 2**20,
+        forward_temp_MiB=forward.memory_analysis().temp_size_in_bytes / 2**20,
+        rss_compile_MiB=rss_compile, rss_peak_MiB=peak_rss_mib(), compile_s=compile_s, grad_s=grad_s,
+        forward_s=forward_s, ratio=grad_s / forward_s, gradient=float(grad(x)),
+    )
 
 
-def main():
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def baseline(scheme: str, cells: int) -> dict:
+    """Imports and the scene, nothing compiled: the memory every child starts from."""
+    build(scheme, cells)
+    return dict(rss_peak_MiB=peak_rss_mib())
+
+
+def in_subprocess(*args) -> dict:
+    out = subprocess.run([sys.executable, __file__, "--child", *map(str, args)], check=True, capture_output=True,
+                         text=True, env={k: v for k, v in os.environ.items() if k != "XLA_FLAGS"})
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def print_row(row: dict, header: bool) -> None:
+    cols = [("steps", 6, "d"), ("checkpoint", 10, ""), ("temp_MiB", 9, ".2f"), ("rss_peak_MiB", 12, ".1f"),
+            ("rss_compile_MiB", 15, ".1f"), ("compile_s", 9, ".2f"), ("forward_s", 9, ".3f"), ("grad_s", 8, ".3f"),
+            ("ratio", 6, ".2f")]
+    if header:
+        print("  ".join(f"{name:>{w}}" for name, w, _ in cols))
+    print("  ".join(f"{str(row[name]) if fmt == '' else format(row[name], fmt):>{w}}" for name, w, fmt in cols),
+          flush=True)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="1k and 4k steps only")
-    parser.add_argument("--cells", type=int, default=128)
-    parser.add_argument("--csv", default=os.path.join(os.path.dirname(__file__), "results", "gradient_memory.csv"))
-    args = parser.parse_args()
+    parser.add_argument("--steps", type=int, nargs="+", default=None, help="step counts (default 1000 4000 16000)")
+    parser.add_argument("--cells", type=int, default=128, help="cells along the bar (2 particles each)")
+    parser.add_argument("--scheme", choices=SCHEMES, default="fmpm2")
+    parser.add_argument("--csv", default=str(DEFAULT_CSV))
+    parser.add_argument("--child", nargs="+", help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+
+    if args.child:  # internal: one measurement, printed as JSON
+        if args.child[0] == "baseline":
+            result = baseline(args.child[1], int(args.child[2]))
+        else:
+            scheme, cells, steps, checkpoint = args.child
+            result = child(scheme, int(cells), int(steps), checkpoint == "True")
+        print(json.dumps(result))
+        return 0
+
+    steps_list = args.steps or ([1000, 4000] if args.quick else [1000, 4000, 16000])
+    print(f"bar, {args.scheme}, {args.cells} cells, float64; python {platform.python_version()}, "
+          f"{os.cpu_count()} CPUs; load {os.getloadavg()}")
+    base = in_subprocess("baseline", args.scheme, args.cells)["rss_peak_MiB"]
+    print(f"baseline process (imports + scene, nothing compiled): peak RSS {base:.1f} MiB")
     rows = []
-    for steps in ((1000, 4000) if args.quick else (1000, 4000, 16000)):
+    for steps in steps_list:
         for checkpoint in (False, True):
-            r = measure(steps, checkpoint, args.cells)
-            rows.append(r)
-            print(f"steps {steps:6d}  checkpoint {str(checkpoint):5s}  temp {r['temp_MiB']:9.2f} MiB  "
-                  f"grad {r['grad_s']:.3f} s  forward {r['forward_s']:.3f} s  grad/forward {r['ratio']:.2f}  "
-                  f"compile {r['compile_s']:.1f} s", flush=True)
-    os.makedirs(os.path.dirname(args.csv), exist_ok=True)
-    with open(args.csv, "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
-    print(f"uptime: {os.popen('uptime').read().strip()}")
+            row = in_subprocess(args.scheme, args.cells, steps, checkpoint)
+            row["rss_compile_MiB"] -= base
+            row["rss_peak_MiB"] -= base
+            row["baseline_rss_MiB"] = base
+            row["load_1min"] = os.getloadavg()[0]
+            print_row(row, header=not rows)
+            rows.append(row)
+    for steps in steps_list:
+        plain, remat = (next(r for r in rows if r["steps"] == steps and r["checkpoint"] is c) for c in (False, True))
+        print(f"{steps:6d} steps: checkpointing keeps {remat['temp_MiB'] / plain['temp_MiB']:.4f} of the temporaries, "
+              f"costs {remat['grad_s'] / plain['grad_s']:.2f}x the time; same gradient: "
+              f"{abs(remat['gradient'] - plain['gradient']) <= 1e-10 * abs(plain['gradient'])}")
+    path = Path(args.csv)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=FIELDS)
+        writer.writeheader()
+        writer.writerows(rows)
+    print(f"wrote {path}; load after: {os.getloadavg()}")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -92,6 +92,9 @@ def calibrate(
 
     optimizer = optax.adam(0.05) if optimizer is None else optimizer
     opt_state = optimizer.init(raw)
+    # strong types: optax.lbfgs starts with a weakly typed counter that its update makes strong, which
+    # would make the jitted update below compile twice
+    opt_state = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype=a.dtype) if hasattr(a, "dtype") else a, opt_state)
 
     def raw_loss(rr):
         return loss(constrained(rr))

@@ -50,6 +50,8 @@ def parse_args(argv=None):
     p.add_argument("--warmup", type=int, default=20, help="untimed steps first (compilation; default 20)")
     p.add_argument("--repeats", type=int, default=3, help="timed repeats; the best is reported (default 3)")
     p.add_argument("--quick", action="store_true", help="8192 particles, 100 steps, 2 repeats")
+    p.add_argument("--pause", type=float, default=2.0,
+                   help="seconds of idle before each engine's measurement (default 2; see main())")
     p.add_argument("--csv", default=str(DEFAULT_CSV))
     p.add_argument("--t-end", type=float, default=0.0,
                    help="also run 8192 particles to this time in Taichi and jaxmpm (f32, f64); 0 = skip")
@@ -155,7 +157,9 @@ def taichi_mpm88(ti, x0, v0, steps, warmup, repeats):
             substep()
         ti.sync()
         best = min(best, time.perf_counter() - start)
-    return best, x.to_numpy(), v.to_numpy()
+    result = best, x.to_numpy(), v.to_numpy()
+    ti.reset()  # shut the runtime (and its worker threads) down before anything else is timed
+    return result
 
 
 # --------------------------------------------------------------------------------------- jaxmpm
@@ -199,6 +203,7 @@ def full_run(ti, t_end):
     start = time.perf_counter()
     _, x, v = taichi_mpm88(ti, x0, v0, steps, 0, 1)
     results["Taichi f32"] = time.perf_counter() - start, x, v
+    time.sleep(2.0)  # let Taichi's worker threads go idle (see main())
     for dtype in ("f32", "f64"):
         setup = jm.scene("mpm88", dtype=dtype, t_end=steps * DT, frames=10)
         start = time.perf_counter()
@@ -238,8 +243,14 @@ def main(argv=None) -> int:
     for n in args.particles:
         setup = jm.scene("mpm88", n_particles=n, dtype="f32")
         x0, v0 = np.asarray(setup.state.x), np.asarray(setup.state.v)
-        t_ti, x_ti, v_ti = taichi_mpm88(ti, x0, v0, args.steps, args.warmup, args.repeats)
+        # each engine on a quiet machine: Taichi's CPU worker threads keep both cores busy for a
+        # while after its last kernel (measured: jaxmpm timed right after Taichi ran at 0.4-0.6x
+        # its own speed), so jaxmpm goes first, Taichi's runtime is shut down after its run, and
+        # every measurement waits --pause seconds
+        time.sleep(args.pause)
         t_jm, x_jm, v_jm = jaxmpm_mpm88(setup, args.steps, args.warmup, args.repeats)
+        time.sleep(args.pause)
+        t_ti, x_ti, v_ti = taichi_mpm88(ti, x0, v0, args.steps, args.warmup, args.repeats)
         rate_ti, rate_jm = n * args.steps / t_ti, n * args.steps / t_jm
         (c_ti, k_ti), (c_jm, k_jm) = summary(x_ti, v_ti), summary(x_jm, v_jm)
         print(f"{n:>9} | {rate_ti:>16.4g} | {rate_jm:>16.4g} | {rate_jm / rate_ti:>13.3f} | "

@@ -119,7 +119,7 @@ def contact_frames(setup, x_frames) -> np.ndarray:
     out = []
     for x in x_frames:
         st = shape.stencil(grid, x)
-        index, weight = np.asarray(st.index), np.asarray(st.weight)
+        index, weight = np.asarray(st.index).T, np.asarray(st.weight).T  # (N, K)
         nodes_a = set(index[:n_first][weight[:n_first] > 0].tolist())
         nodes_b = set(index[n_first:][weight[n_first:] > 0].tolist())
         out.append(bool(nodes_a & nodes_b))

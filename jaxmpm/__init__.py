@@ -15,9 +15,9 @@ from ._io import H5Writer, load_h5, save_h5
 from ._materials import LinearElastic, Material, NeoHookean, NoStress, VolumetricFluid
 from ._particles import Ball, Box, Disk, Particles, Region, Ring, fill
 from ._schemes import FLIP, FMPM, PIC, XPIC, Damping, Scheme, mass_matrix_series
-from ._shapes import CubicBSpline, Linear, QuadraticBSpline, ShapeFunction, Stencil, UGIMP
+from ._shapes import CubicBSpline, Linear, QuadraticBSpline, ShapeFunction, Stencil, StencilBase, TensorStencil, UGIMP
 from ._simulation import History, Simulation, StableTimeStepWarning, State
-from ._step import grid_solve, g2p, p2g
+from ._step import folds_force, grid_solve, g2p, p2g
 from ._transfer import Transfer, gather, scatter
 from .scenes import SCENES, scene
 
@@ -28,8 +28,8 @@ __all__ = [
     "Ball", "Box", "Constraint", "CubicBSpline", "Damping", "Disk", "FLIP", "FMPM", "Fixed", "Grid",
     "H5Writer", "History", "InputError", "InstabilityError", "Linear", "LinearElastic", "Material",
     "NeoHookean", "PIC", "Particles", "Prescribed", "QuadraticBSpline", "Region", "Ring", "SCENES",
-    "Scheme", "ShapeFunction", "Simulation", "Slip", "StableTimeStepWarning", "State", "Stencil",
-    "Transfer", "UGIMP", "XPIC", "angular_momentum", "fill", "g2p", "gather", "grid_solve",
+    "Scheme", "ShapeFunction", "Simulation", "Slip", "StableTimeStepWarning", "State", "Stencil", "StencilBase", "TensorStencil",
+    "Transfer", "UGIMP", "XPIC", "angular_momentum", "fill", "folds_force", "g2p", "gather", "grid_solve",
     "kinetic_energy", "linear_momentum", "load_h5", "mass_matrix_series", "p2g", "save_h5", "scatter",
     "scene", "stable_dt", "strain_energy",
     "APIC", "TPIC", "with_velocity_gradient", "Wall", "NoStress", "VolumetricFluid",

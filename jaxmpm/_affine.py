@@ -29,89 +29,110 @@ import jax.numpy as jnp
 
 from ._diagnostics import angular_momentum as _particle_angular_momentum
 from ._schemes import ParticleUpdate, Scheme
-from ._shapes import Stencil
-from ._transfer import Transfer, scatter_weighted, sum_over_stencil
+from ._shapes import StencilBase as Stencil, computed_once
+from ._transfer import Transfer, nodal_values, sum_over_stencil, to_particle_major
 
 
 def nodes_per_axis(stencil: Stencil) -> int:
     """K1 for a tensor-product stencil of K = K1^D nodes (static)."""
-    k, d = stencil.weight.shape[1], stencil.offset.shape[-1]
+    k, d = stencil.size, stencil.offset.shape[0]
     return int(round(k ** (1.0 / d)))
 
 
-def _matvec(A, x):
-    """A @ x over the trailing axes, unrolled over the (1-3 long) summed axis: on CPU this fuses
-    into one elementwise kernel, where einsum/matmul of tiny matrices do not."""
-    return sum(A[..., :, b] * x[..., b, None] for b in range(x.shape[-1]))
+# Per-particle (D, D) matrices are handled "planar" here, as (D, D, N) (see Stencil): every entry
+# is a row of N numbers, so the small matrix algebra below is elementwise on contiguous vectors.
+def to_planar(A):
+    """(N, D, D) -> (D, D, N)."""
+    return jnp.moveaxis(A, 0, -1)
 
 
-def _matmul(A, B):
-    """A @ B for batches of tiny matrices, unrolled like :func:`_matvec`."""
-    return sum(A[..., :, b, None] * B[..., None, b, :] for b in range(A.shape[-1]))
+def from_planar(A):
+    """(D, D, N) -> (N, D, D)."""
+    return to_particle_major(A)
 
 
-def _outer_sum(w, a, b):
-    """sum_k w_pk a_pk b_pk^T, shape (N, D, D)."""
-    wa = w[..., None] * a  # unrolled over the tiny (D, D) axes: fuses on CPU, a batched dot does not
-    return jnp.stack([jnp.stack([sum_over_stencil(wa[..., i] * b[..., j]) for j in range(b.shape[-1])], -1)
-                      for i in range(a.shape[-1])], -2)
+def _stack2(rows):
+    return jnp.stack([jnp.stack(r) for r in rows])
+
+
+def _weighted_moment(w, a, b):
+    """sum_k w_pk a_pk b_pk^T for planar a (D, K, N), b (D', K, N): (D, D', N)."""
+    return _stack2([[sum_over_stencil(w * a[i] * b[j]) for j in range(len(b))] for i in range(len(a))])
+
+
+def _planar_inverse(A):
+    """Inverse of the planar (D, D, N) matrices (D = 1, 2, 3) by the adjugate, elementwise."""
+    d = A.shape[0]
+    if d == 1:
+        return 1.0 / A
+    if d == 2:
+        det = A[0, 0] * A[1, 1] - A[0, 1] * A[1, 0]
+        return _stack2([[A[1, 1], -A[0, 1]], [-A[1, 0], A[0, 0]]]) / det
+    cof = [[A[(i + 1) % 3, (j + 1) % 3] * A[(i + 2) % 3, (j + 2) % 3]
+            - A[(i + 1) % 3, (j + 2) % 3] * A[(i + 2) % 3, (j + 1) % 3] for j in range(3)] for i in range(3)]
+    det = sum(A[0, j] * cof[0][j] for j in range(3))
+    return _stack2([[cof[j][i] for j in range(3)] for i in range(3)]) / det  # adj(A) = cof^T
+
+
+def _planar_matmul(A, B):
+    """A @ B for planar (D, D, N) matrices."""
+    d = A.shape[0]
+    return _stack2([[sum(A[i, k] * B[k, j] for k in range(d)) for j in range(d)] for i in range(d)])
+
+
+def _planar_matvec(A, x):
+    """A_p x_pk for planar A (D, D, N) and slot vectors x (D, K, N): (D, K, N)."""
+    d = A.shape[0]
+    return jnp.stack([sum(A[i, j][None] * x[j] for j in range(d)) for i in range(d)])
+
+
+def _inertia_planar(stencil: Stencil):
+    return stencil.inertia()
 
 
 def inertia_tensor(stencil: Stencil):
     """D_p = sum_i S_pi (x_i - X_p)(x_i - X_p)^T, shape (N, D, D)  (002 eq. 3)."""
-    return _outer_sum(stencil.weight, stencil.offset, stencil.offset)
+    return from_planar(_inertia_planar(stencil))
 
 
 def small_inverse(A):
-    """Inverse of a batch of 1x1, 2x2 or 3x3 matrices by the adjugate (elementwise; much faster on
-    CPU than a batched LAPACK call)."""
-    d = A.shape[-1]
-    if d == 1:
-        return 1.0 / A
-    if d == 2:
-        a, b, c, e = A[..., 0, 0], A[..., 0, 1], A[..., 1, 0], A[..., 1, 1]
-        det = a * e - b * c
-        return jnp.stack([jnp.stack([e, -b], -1), jnp.stack([-c, a], -1)], -2) / det[..., None, None]
-    cof = jnp.stack([jnp.cross(A[..., 1, :], A[..., 2, :]), jnp.cross(A[..., 2, :], A[..., 0, :]),
-                     jnp.cross(A[..., 0, :], A[..., 1, :])], -1)  # A^-1 = adj(A) / det, adj(A) = these columns
-    det = jnp.sum(A[..., 0, :] * cof[..., :, 0], -1)
-    return cof / det[..., None, None]
+    """Inverse of a batch (N, D, D) of 1x1, 2x2 or 3x3 matrices by the adjugate (elementwise; much
+    faster on CPU than a batched LAPACK call)."""
+    return from_planar(_planar_inverse(to_planar(A)))
 
 
 def affine_weights(stencil: Stencil):
-    """a_pi = S_pi D_p^-1 (x_i - X_p), shape (N, K, D): APIC's P2G weight of B_p (002 eq. 3).
+    """a_pi = S_pi D_p^-1 (x_i - X_p), planar (D, K, N): APIC's P2G weight of B_p (002 eq. 3).
 
     Multilinear stencils (2 nodes per axis) use the exact identity a_pi = G_pi, which has no
     0/0 when a particle sits on a grid line (see the module docstring)."""
     if nodes_per_axis(stencil) == 2:
         return stencil.gradient
-    d_inv = small_inverse(inertia_tensor(stencil))
-    return stencil.weight[..., None] * _matvec(d_inv[:, None], stencil.offset)
+    return stencil.weight * _planar_matvec(_planar_inverse(_inertia_planar(stencil)), stencil.offset)
 
 
 def apic_node_velocity(stencil: Stencil, B):
-    """c_pi = B_p D_p^-1 (x_i - X_p) S_pi, shape (N, K, D): the affine part of APIC's P2G (002 eq. 3)."""
+    """c_pi = B_p D_p^-1 (x_i - X_p) S_pi, planar (D, K, N): the affine part of APIC's P2G (002 eq. 3)."""
+    B = to_planar(B)
     if nodes_per_axis(stencil) == 2:
-        return _matvec(B[:, None], stencil.gradient)  # S_pi D_p^-1 (x_i - X_p) = G_pi
-    C = _matmul(B, small_inverse(inertia_tensor(stencil)))  # B_p D_p^-1
-    return taylor_node_velocity(stencil, C)
+        return _planar_matvec(B, stencil.gradient)  # S_pi D_p^-1 (x_i - X_p) = G_pi
+    C = computed_once(_planar_matmul(B, _planar_inverse(_inertia_planar(stencil))))  # B_p D_p^-1, once per particle
+    return stencil.weight * _planar_matvec(C, stencil.offset)
 
 
 def taylor_node_velocity(stencil: Stencil, C):
-    """c_pi = S_pi C_p (x_i - X_p), shape (N, K, D)."""
-    return stencil.weight[..., None] * _matvec(C[:, None], stencil.offset)
+    """c_pi = S_pi C_p (x_i - X_p), planar (D, K, N)."""
+    return stencil.weight * _planar_matvec(computed_once(to_planar(C)), stencil.offset)
 
 
-def affine_momentum(transfer: Transfer, velocity, per_node_velocity):
-    """p_i = sum_p M_p (S_pi V_p + c_pi), with c_pi (N, K, D) the affine part at node i."""
-    st = transfer.stencil
-    contrib = transfer.particle_mass[:, None, None] * (st.weight[..., None] * velocity[:, None, :] + per_node_velocity)
-    return scatter_weighted(st, contrib, transfer.num_nodes)
+def affine_momentum_contributions(stencil: Stencil, mass, velocity, per_node_velocity):
+    """M_p (S_pi V_p + c_pi) per slot, planar (D, K, N), with c_pi the affine part at node i."""
+    return mass * (stencil.weight * computed_once(velocity.T)[:, None, :] + per_node_velocity)
 
 
 def affine_velocity_moment(stencil: Stencil, v):
     """B_p = sum_i S_pi v_i (x_i - X_p)^T, shape (N, D, D)  (002 eq. 4)."""
-    return _outer_sum(stencil.weight, v[stencil.index], stencil.offset)
+    return from_planar(_weighted_moment(stencil.weight, nodal_values(stencil, v), stencil.offset))
 
 
 def affine_angular_momentum(mass, B):
@@ -143,9 +164,12 @@ class _AffineScheme(Scheme):
         """Zero affine matrices (a uniform start); see :func:`with_velocity_gradient`."""
         return _zero_affine(particles)
 
+    uses_lumped_velocity = False  # the update reads v_tilde, and v only for grid damping
+
     def update(self, V, X, transfer: Transfer, constraint, grid, damping, dt):
-        Sv = transfer.gather(grid.v)
-        V_new = transfer.gather(grid.v_tilde) - damping.acceleration(Sv, V) * dt  # 002 eq. (4), 000 eq. (2.77)
+        V_new = transfer.gather(grid.v_tilde)  # 002 eq. (4)
+        if damping is not None:
+            V_new = V_new - damping.acceleration(transfer.gather(grid.v), V) * dt  # 000 eq. (2.77)
         X_new = X + V_new * dt
         # 000 eq. (2.43) measures work against the lumped FLIP update; under APIC/TPIC part of the
         # motion lives in the affine field, which the particle kinetic energy does not carry, so
@@ -162,9 +186,9 @@ class APIC(_AffineScheme):
     being sum_p X_p x M_p V_p + sum_p M_p (B_p^T : eps) (002 def. 5.1).
     """
 
-    def momentum(self, transfer: Transfer, state):
-        """p_i = sum_p S_pi M_p (V_p + B_p D_p^-1 (x_i - X_p))  (002 eq. 3)."""
-        return affine_momentum(transfer, state.v, apic_node_velocity(transfer.stencil, state.affine))
+    def momentum_contributions(self, stencil: Stencil, state):
+        """S_pi M_p (V_p + B_p D_p^-1 (x_i - X_p)), summed over p into p_i  (002 eq. 3)."""
+        return affine_momentum_contributions(stencil, state.mass, state.v, apic_node_velocity(stencil, state.affine))
 
     def particle_state(self, state, update, transfer: Transfer, grid):
         """B_p = sum_i S_pi v~_i (x_i - X_p)^T  (002 eq. 4)."""
@@ -187,9 +211,9 @@ class TPIC(_AffineScheme):
     :meth:`angular_momentum` reports the particles' sum_p X_p x M_p V_p only.
     """
 
-    def momentum(self, transfer: Transfer, state):
-        """p_i = sum_p S_pi M_p (V_p + grad v_p (x_i - X_p))  (004)."""
-        return affine_momentum(transfer, state.v, taylor_node_velocity(transfer.stencil, state.affine))
+    def momentum_contributions(self, stencil: Stencil, state):
+        """S_pi M_p (V_p + grad v_p (x_i - X_p)), summed over p into p_i  (004)."""
+        return affine_momentum_contributions(stencil, state.mass, state.v, taylor_node_velocity(stencil, state.affine))
 
     def particle_state(self, state, update, transfer: Transfer, grid):
         """grad v_p = sum_i v~_i (x) G_pi  (004)."""

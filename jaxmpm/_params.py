@@ -22,6 +22,16 @@ PARAMETERS = {
 }
 
 
+def _with_damping(sim, name):
+    """``sim`` itself, or (built with ``damping=False``, no damping in the model) a copy with zero
+    damping put back, so that alpha_g and alpha_p can be read, set and differentiated."""
+    if name in ("alpha_g", "alpha_p") and sim.damping is None:
+        from ._schemes import Damping
+
+        sim = eqx.tree_at(lambda s: s.damping, sim, Damping(), is_leaf=lambda x: x is None)
+    return sim
+
+
 def _where(sim, name):
     check(name in PARAMETERS, f"unknown parameter {name!r}; choose one of {', '.join(PARAMETERS)}")
     where = PARAMETERS[name][0]
@@ -35,12 +45,13 @@ def _where(sim, name):
 
 def get_params(sim, *names) -> dict:
     """{name: value} for the named parameters."""
-    return {n: _where(sim, n)(sim) for n in names}
+    return {n: _where(_with_damping(sim, n), n)(_with_damping(sim, n)) for n in names}
 
 
 def set_params(sim, **values):
     """A copy of ``sim`` with the named parameters replaced (values may be traced)."""
     for name, value in values.items():
+        sim = _with_damping(sim, name)
         where = _where(sim, name)
         old = where(sim)
         sim = eqx.tree_at(where, sim, jnp.asarray(value, dtype=jnp.result_type(old)))

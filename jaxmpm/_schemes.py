@@ -21,7 +21,8 @@ from ._boundary import Constraint
 from ._diagnostics import angular_momentum
 from ._errors import check
 from ._materials import _leaf, concrete
-from ._transfer import Transfer
+from ._shapes import StencilBase as Stencil
+from ._transfer import Transfer, momentum_contributions, scatter_planar
 
 BOUNDARY_MODES = ("iterates", "result", "lumped")
 SERIES_FORMS = ("binomial", "neumann")
@@ -46,6 +47,11 @@ class Damping(eqx.Module):
 
     def acceleration(self, Sv, V):
         return self.grid * Sv + self.particle * V  # 000 eq. (2.77)
+
+
+def damping_acceleration(damping: Damping | None, Sv, V):
+    """A_damp = alpha_g S v + alpha_p V^n (000 eq. 2.77); zero when the model has no damping."""
+    return 0.0 if damping is None else damping.acceleration(Sv, V)
 
 
 class GridSolution(eqx.Module):
@@ -173,13 +179,23 @@ def dissipated_energy(mass, Sa, Sv, dV, dX, dt):
 class Scheme(eqx.Module):
     """Base class of particle updates."""
 
+    # the update reads the lumped v and a (not only v_tilde = v + a dt); schemes that read only
+    # v_tilde (APIC, TPIC) let P2G scatter p + f dt in place of p and f when there is no damping
+    uses_lumped_velocity = True
+
     def strain_grid_velocity(self, v, transfer: Transfer, constraint: Constraint):
         """Grid velocity used for the strain update, from lumped velocities (USF, MUSL)."""
         return v
 
+    def momentum_contributions(self, stencil: Stencil, state):
+        """S_pi M_p V_p per stencil slot, planar (D, K, N), summed over p into p_i (003 eq. 2.1);
+        APIC/TPIC add their affine terms.  P2G scatters it together with the mass and the force."""
+        return momentum_contributions(stencil, state.mass, state.v)
+
     def momentum(self, transfer: Transfer, state):
-        """Nodal momentum p_i = sum_p S_pi M_p V_p (003 eq. 2.1); APIC/TPIC add affine terms."""
-        return transfer.momentum(state.v)
+        """Nodal momentum p_i (one scatter of :meth:`momentum_contributions`)."""
+        return scatter_planar(transfer.stencil.index, self.momentum_contributions(transfer.stencil, state),
+                              transfer.num_nodes)
 
     def angular_momentum(self, state):
         """sum_p X_p x M_p V_p (000 ch. 5); APIC adds its particle term (002 def. 5.1)."""
@@ -233,7 +249,7 @@ class XPIC(Scheme):
         else:
             Svm = transfer.gather(mass_matrix_series(grid.v, self.order, transfer, constraint, self.boundary, self.series))
         beta = self.beta
-        V_new = beta * V + (1.0 - beta) * Svm + (Sa - damping.acceleration(Sv, V)) * dt  # 000 eq. (3.28)
+        V_new = beta * V + (1.0 - beta) * Svm + (Sa - damping_acceleration(damping, Sv, V)) * dt  # 000 eq. (3.28)
         if self.position == "Sv":
             X_new = X + (Sv + 0.5 * (V_new - V)) * dt  # 000 eq. (3.29), VV = S v
         elif self.position == "PV":
@@ -290,7 +306,7 @@ class FMPM(Scheme):
         Sa = transfer.gather(grid.a)
         v_plus = mass_matrix_series(grid.v_tilde, self.order, transfer, constraint, self.boundary, self.series)  # 003 eq. (2.13)
         beta = self.beta
-        V_new = beta * (V + Sa * dt) + (1.0 - beta) * transfer.gather(v_plus) - damping.acceleration(Sv, V) * dt
+        V_new = beta * (V + Sa * dt) + (1.0 - beta) * transfer.gather(v_plus) - damping_acceleration(damping, Sv, V) * dt
         X_new = X + 0.5 * (V_new + V) * dt  # 003 eq. (2.17)
         diss = dissipated_energy(transfer.particle_mass, Sa, Sv, V_new - V, X_new - X, dt)
         return ParticleUpdate(V_new, X_new, v_plus, diss)

@@ -21,14 +21,129 @@ import numpy as np
 from ._errors import check
 
 
-class Stencil(eqx.Module):
-    """Per-particle view of the grid: ``index`` (N, K) flat node numbers, ``weight`` (N, K) = S_pi,
-    ``gradient`` (N, K, D) = G_pi, ``offset`` (N, K, D) = x_i - X_p."""
+class StencilBase(eqx.Module):
+    """Per-particle view of the grid, stored node-slot-major with the particle axis last
+    ("planar": every per-(node, particle) quantity is a stack of length-N rows, so the arithmetic
+    of P2G/G2P runs on contiguous particle vectors):
+
+    * ``index``    (K, N) flat node numbers i of the K stencil slots of each particle
+    * ``weight``   (K, N) S_pi
+    * ``gradient`` (D, K, N) G_pi, component first
+    * ``offset``   (D, K, N) x_i - X_p, component first
+
+    :class:`Stencil` holds the four arrays (any stencil, e.g. a padded one in a test); shape
+    functions return a :class:`TensorStencil`, which stores per-axis factors and forms the four
+    arrays where they are used.  :meth:`matrices` gives the dense S (N, n) and G (N, n, D)."""
+
+    @property
+    def num_particles(self) -> int:
+        return self.index.shape[-1]
+
+    @property
+    def size(self) -> int:
+        """K, the number of nodes each particle touches."""
+        return self.index.shape[0]
+
+    @property
+    def dim(self) -> int:
+        return self.gradient.shape[0]
+
+    @property
+    def nodes_per_axis(self) -> int:
+        """K1 with K = K1^D for a tensor-product stencil."""
+        return int(round(self.size ** (1.0 / self.dim)))
+
+    def matrices(self, num_nodes: int):
+        """Dense NumPy S (N, n) and G (N, n, D) of this stencil (small problems, tests)."""
+        index = np.asarray(self.index)
+        k, n_p = index.shape
+        d = self.dim
+        rows = np.broadcast_to(np.arange(n_p), (k, n_p)).reshape(-1)
+        S = np.zeros((n_p, num_nodes))
+        np.add.at(S, (rows, index.reshape(-1)), np.asarray(self.weight).reshape(-1))
+        G = np.zeros((n_p, num_nodes, d))
+        grad = np.asarray(self.gradient).reshape(d, -1)
+        for a in range(d):
+            np.add.at(G[..., a], (rows, index.reshape(-1)), grad[a])
+        return S, G
+
+    def inertia(self):
+        """D_p = sum_i S_pi (x_i - X_p)(x_i - X_p)^T, planar (D, D, N)  (002 eq. 3)."""
+        w, off = self.weight, self.offset
+        d = self.dim
+        return jnp.stack([jnp.stack([jnp.sum(w * off[a] * off[b], axis=0) for b in range(d)]) for a in range(d)])
+
+    def explicit(self) -> "Stencil":
+        """The four planar arrays as a plain :class:`Stencil`."""
+        return Stencil(index=self.index, weight=self.weight, gradient=self.gradient, offset=self.offset)
+
+
+class Stencil(StencilBase):
+    """A stencil given by its four planar arrays (see :class:`StencilBase`)."""
 
     index: jnp.ndarray
     weight: jnp.ndarray
     gradient: jnp.ndarray
     offset: jnp.ndarray
+
+
+class TensorStencil(StencilBase):
+    """A tensor-product stencil kept as its per-axis factors (K1 nodes per axis, K = K1^D):
+
+    * ``index``  (K, N) flat node numbers, stored (every transfer reads them)
+    * ``w``      (D, K1, N) N(r) per axis,  ``dw`` (D, K1, N) dN/dx per axis (1/h included)
+    * ``dx``     (D, K1, N) x_i - X_p per axis
+
+    ``weight``, ``gradient`` and ``offset`` are products and sums of these factors,
+    S_pi = prod_a w_a,  G_pi[a] = dw_a prod_{b != a} w_b, formed where they are used: on CPU one
+    multiply per slot inside the consuming kernel is cheaper than reading a stored (K, N) array,
+    while the kernels themselves (selects, powers) are evaluated once per axis."""
+
+    index: jnp.ndarray
+    w: jnp.ndarray
+    dw: jnp.ndarray
+    dx: jnp.ndarray
+
+    @property
+    def num_particles(self) -> int:
+        return self.w.shape[-1]
+
+    @property
+    def size(self) -> int:
+        return self.w.shape[1] ** self.w.shape[0]
+
+    @property
+    def dim(self) -> int:
+        return self.w.shape[0]
+
+    @property
+    def nodes_per_axis(self) -> int:
+        return self.w.shape[1]
+
+    def inertia(self):
+        """D_p from the per-axis factors: with sum_i w_a,i = 1 per axis, D_aa = sum_i w_a,i dx_a,i^2
+        and D_ab = (sum_i w_a,i dx_a,i)(sum_j w_b,j dx_b,j) for a != b (zero for B-splines)."""
+        wdx = self.w * self.dx
+        m1 = sum(wdx[:, k] for k in range(self.nodes_per_axis))  # (D, N); unrolled: fuses on CPU
+        m2 = sum(wdx[:, k] * self.dx[:, k] for k in range(self.nodes_per_axis))
+        d = self.dim
+        return jnp.stack([jnp.stack([m2[a] if a == b else m1[a] * m1[b] for b in range(d)]) for a in range(d)])
+
+    @property
+    def weight(self):
+        return _tensor(list(self.w), jnp.multiply)
+
+    @property
+    def gradient(self):
+        d = self.dim
+        return jnp.stack([_tensor([self.dw[b] if b == a else self.w[b] for b in range(d)], jnp.multiply)
+                          for a in range(d)])
+
+    @property
+    def offset(self):
+        d = self.dim
+        zero = jnp.zeros_like(self.dx[0])
+        return jnp.stack([_tensor([self.dx[b] if b == a else zero for b in range(d)], jnp.add) for a in range(d)])
 
 
 class ShapeFunction(eqx.Module):
@@ -46,42 +161,33 @@ class ShapeFunction(eqx.Module):
         raise NotImplementedError
 
     # ----------------------------------------------------------------- public
-    def weights_1d(self, xi):
-        """Along one axis: first node ``base``, weights ``w`` (..., K1) and dN/dxi ``dw`` (..., K1)."""
-        base = self._base(xi)
-        k = jnp.arange(self.nodes_per_axis, dtype=base.dtype)
-        r = xi[..., None] - (base[..., None] + k)
-        w, dw = self._kernel(r)
-        return base, w, dw
+    def stencil(self, grid, x) -> "TensorStencil":
+        """S_pi and G_pi for particles at ``x`` (N, D) on ``grid`` (planar layout, see :class:`Stencil`)."""
+        # evaluated once, into its own buffers: otherwise XLA fuses the 1D kernels (selects, powers)
+        # into every consumer and recomputes them per (node, particle, component)
+        return evaluated_once(lambda x: self._factors(grid, x), x)
 
-    def stencil(self, grid, x) -> Stencil:
-        """S_pi and G_pi for particles at ``x`` (N, D) on ``grid``."""
+    def _factors(self, grid, x) -> "TensorStencil":
         dim = grid.dim
         k1 = self.nodes_per_axis
         lower = jnp.asarray(grid.lower, dtype=x.dtype)
         h = jnp.asarray(grid.spacing, dtype=x.dtype)
-        xi = (x - lower) / h
-        bases, ws, dws = [], [], []
+        xi = (x.T - lower[:, None]) / h[:, None]  # (D, N), in cells
+        k = jnp.arange(k1, dtype=jnp.int32)[:, None]
+        nodes_per_axis, ws, dws, dxs = [], [], [], []
         for a in range(dim):
-            b, w, dw = self.weights_1d(xi[:, a])
-            bases.append(b)
+            # first node, kept on the grid (cells + 1 nodes): every index is valid even for a
+            # particle that has left it (its weights are those of the nodes used, and a run reports
+            # it as a failure); inside the grid the clip changes nothing
+            first = jnp.clip(self._base(xi[a]), 0, grid.cells[a] + 1 - k1)  # (N,)
+            nodes = first + k  # (K1, N)
+            w, dw = self._kernel(xi[a] - nodes)  # r = particle minus node, in cells
+            nodes_per_axis.append(nodes * jnp.int32(grid.strides[a]))
             ws.append(w)
             dws.append(dw / h[a])
-        # tensor products by broadcasting (K = K1^D in C order, the order of itertools.product);
-        # no constant-index gathers, so XLA fuses each product into one elementwise kernel
-        k = jnp.arange(k1, dtype=jnp.int32)
-        weight = _tensor(ws, jnp.multiply)
-        gradient = jnp.stack([_tensor([dws[b] if b == a else ws[b] for b in range(dim)], jnp.multiply)
-                              for a in range(dim)], axis=-1)
-        nodes = [bases[a].astype(jnp.int32)[:, None] + k for a in range(dim)]  # (N, K1) node numbers per axis
-        index = _tensor([nodes[a] * jnp.int32(grid.strides[a]) for a in range(dim)], jnp.add)
-        offs = [nodes[a].astype(x.dtype) * h[a] + lower[a] - x[:, a:a + 1] for a in range(dim)]  # x_i - X_p per axis
-        offset = jnp.stack([_tensor([offs[b] if b == a else jnp.zeros_like(offs[b]) for b in range(dim)], jnp.add)
-                            for a in range(dim)], axis=-1)
-        # materialise the stencil once: without the barrier XLA fuses the 1D kernels into every
-        # consumer and recomputes them per (particle, node, component) -- measured 2-4x slower on CPU
-        index, weight, gradient, offset = _materialise((index, weight, gradient, offset), x)
-        return Stencil(index=index, weight=weight, gradient=gradient, offset=offset)
+            dxs.append(nodes.astype(x.dtype) * h[a] + lower[a] - x[:, a])  # x_i - X_p
+        index = _tensor(nodes_per_axis, jnp.add)
+        return TensorStencil(index, jnp.stack(ws), jnp.stack(dws), jnp.stack(dxs))
 
     def inside(self, grid, x):
         """True where the particle's whole stencil lies on the grid."""
@@ -92,6 +198,25 @@ class ShapeFunction(eqx.Module):
         top = base + self.nodes_per_axis - 1
         cells = jnp.asarray(grid.cells)
         return jnp.all((base >= 0) & (top <= cells) & jnp.isfinite(xi), axis=-1)
+
+
+def evaluated_once(fn, *args):
+    """``fn(*args)``, evaluated into its own buffers inside a conditional whose branch XLA cannot
+    see through (see :func:`_materialise`): its consumers read the result instead of recomputing
+    it, and unlike :func:`computed_once` no copy of the result is made."""
+    leaves = jax.tree_util.tree_leaves(args)
+    x = next(leaf for leaf in leaves if jnp.issubdtype(leaf.dtype, jnp.floating))
+    always = jnp.logical_not(x.reshape(-1)[0] > jnp.inf)
+    out = jax.eval_shape(fn, *args)
+    return jax.lax.cond(always, fn, lambda *a: jax.tree_util.tree_map(lambda o: jnp.zeros(o.shape, o.dtype), out), *args)
+
+
+def computed_once(arrays):
+    """``arrays`` (a pytree of float arrays) unchanged, but evaluated once, before their consumers:
+    per-particle quantities (APIC's C_p, the stress) would otherwise be recomputed by XLA for every
+    stencil slot and component of the kernel that uses them (see :func:`_materialise`)."""
+    leaves = jax.tree_util.tree_leaves(arrays)
+    return _materialise(arrays, leaves[0])
 
 
 def _materialise(arrays, x):
@@ -108,13 +233,13 @@ def _materialise(arrays, x):
 
 
 def _tensor(factors, combine):
-    """combine(f_0[k_0], f_1[k_1], ...) over all K1^D combinations, (N, K) in C order (the order of
-    itertools.product), by broadcasting the per-axis (N, K1) factors."""
-    n, k1 = factors[0].shape
+    """combine(f_0[k_0], f_1[k_1], ...) over all K1^D combinations, (K, N) in C order (the order of
+    itertools.product), by broadcasting the per-axis (K1, N) factors."""
+    k1, n = factors[0].shape
     out = factors[0]
     for f in factors[1:]:
-        out = combine(out[..., None], f.reshape((n,) + (1,) * (out.ndim - 1) + (k1,)))
-    return out.reshape(n, k1 ** len(factors))
+        out = combine(out[..., None, :], f.reshape((1,) * (out.ndim - 1) + (k1, n)))
+    return out.reshape(k1 ** len(factors), n)
 
 
 def _floor_int(v):

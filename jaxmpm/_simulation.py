@@ -97,7 +97,7 @@ class Simulation(eqx.Module):
     shape: ShapeFunction
     material: Material
     scheme: Scheme
-    damping: Damping
+    damping: Damping | None  # None: no damping in the model (damping=False)
     gravity: jnp.ndarray
     boundary: tuple = eqx.field(static=True)
     update: str = eqx.field(static=True)
@@ -127,8 +127,15 @@ class Simulation(eqx.Module):
         check(isinstance(material, Material),
               f"Simulation: material must be jm.LinearElastic or jm.NeoHookean, got {type(material).__name__}")
         check(update in UPDATES, f"Simulation: update = {update!r}; choose USF, USL (USL-) or MUSL (USL+)")
-        damping = Damping() if damping is None else damping
-        check(isinstance(damping, Damping), "Simulation: damping must be jm.Damping(grid=..., particle=...)")
+        # None: zero damping, still a differentiable parameter; False: no damping in the model at
+        # all (nothing compiled for it -- "model no more than a scene needs")
+        if damping is False:
+            damping = None
+        elif damping is None:
+            damping = Damping()
+        else:
+            check(isinstance(damping, Damping),
+                  "Simulation: damping must be jm.Damping(grid=..., particle=...), None (zero) or False (none)")
         self.grid = grid
         self.shape = shape
         self.material = material

@@ -12,14 +12,25 @@ import jax.numpy as jnp
 
 from ._boundary import Constraint
 from ._schemes import GridSolution
-from ._transfer import Transfer, safe_divide
+from ._shapes import StencilBase as Stencil, evaluated_once
+from ._transfer import Transfer, force_contributions, safe_divide, scatter_planar
 
 
 class GridFields(eqx.Module):
     """What P2G puts on the grid."""
 
     transfer: Transfer  # S, S+, S+S and the lumped nodal mass
-    momentum: jnp.ndarray  # p_i (n, D)
+    momentum: jnp.ndarray | None  # p_i (n, D); None when only the updated momentum was scattered
+    force: jnp.ndarray | None = None  # f_i (n, D); None when P2G was asked for no force (USF)
+    updated_momentum: jnp.ndarray | None = None  # p_i + f_i dt, when scattered in place of p and f
+
+
+def folds_force(sim) -> bool:
+    """Whether P2G may scatter the updated momentum p + f dt in place of p and f ((1 + D) numbers
+    per stencil slot instead of 1 + 2D): when nothing downstream needs v and a apart -- a scheme
+    that reads only v_tilde (APIC, TPIC), no damping in the model (``damping=False``), and a USL
+    or MUSL update (USF needs v before the force)."""
+    return sim.update != "USF" and sim.damping is None and not sim.scheme.uses_lumped_velocity
 
 
 def update_deformation(F, grad_v, dt):
@@ -28,26 +39,53 @@ def update_deformation(F, grad_v, dt):
     return (eye + grad_v * dt) @ F
 
 
-def p2g(sim, state) -> GridFields:
-    """Lumped mass m_i = sum_p S_pi M_p and momentum p_i = sum_p S_pi M_p V_p (003 eq. 2.1),
-    plus the scheme's affine terms (APIC/TPIC)."""
-    stencil = sim.shape.stencil(sim.grid, state.x)
-    transfer = Transfer.build(stencil, state.mass, sim.grid.num_nodes)
-    return GridFields(transfer=transfer, momentum=sim.scheme.momentum(transfer, state))
-
-
-def nodal_force(sim, state, transfer: Transfer):
-    """f_i = -sum_p V0_p tau_p . G_pi + sum_p S_pi M_p b_p  (001 eq. 20, 003 eq. 2.10)."""
+def force_contributions_of(sim, state, stencil: Stencil):
+    """Per-slot -V0_p tau_p . G_pi + S_pi M_p b_p, planar (D, K, N)  (001 eq. 20, 003 eq. 2.10)."""
     tau = sim.material.kirchhoff_stress(state.F)
     body = jnp.broadcast_to(sim.gravity.astype(state.x.dtype), state.x.shape)
     if sim.body_force is not None:
         body = body + sim.body_force(state.x, state.time)
-    return transfer.divergence(state.volume0[:, None, None] * tau, state.mass[:, None] * body)  # one scatter
+    return force_contributions(stencil, state.volume0[:, None, None] * tau, state.mass[:, None] * body)
+
+
+def p2g(sim, state, force: bool = True, dt=None) -> GridFields:
+    """Lumped mass m_i = sum_p S_pi M_p, momentum p_i = sum_p S_pi M_p V_p (003 eq. 2.1) plus the
+    scheme's affine terms (APIC/TPIC), and (``force=True``) the nodal force of :func:`nodal_force`,
+    all in one scatter-add of (1 + 2D) numbers per stencil slot.  With ``dt`` (see
+    :func:`folds_force`) the momentum and force are scattered as one updated momentum p + f dt."""
+    stencil = sim.shape.stencil(sim.grid, state.x)
+    d = state.x.shape[1]
+
+    def columns(stencil, state, dt):
+        mass = (stencil.weight * state.mass)[None]
+        momentum = sim.scheme.momentum_contributions(stencil, state)
+        if dt is not None:
+            return jnp.concatenate([mass, momentum + dt * force_contributions_of(sim, state, stencil)])
+        if force:
+            return jnp.concatenate([mass, momentum, force_contributions_of(sim, state, stencil)])
+        return jnp.concatenate([mass, momentum])
+
+    # evaluated into its own buffer (vectorised over particles), then scattered as (node, columns) rows
+    nodal = scatter_planar(stencil.index, evaluated_once(columns, stencil, state, dt), sim.grid.num_nodes)
+    transfer = Transfer(stencil, state.mass, nodal[:, 0], sim.grid.num_nodes)
+    if dt is not None:
+        return GridFields(transfer=transfer, momentum=None, updated_momentum=nodal[:, 1:])
+    return GridFields(transfer=transfer, momentum=nodal[:, 1:1 + d], force=nodal[:, 1 + d:] if force else None)
+
+
+def nodal_force(sim, state, transfer: Transfer):
+    """f_i = -sum_p V0_p tau_p . G_pi + sum_p S_pi M_p b_p  (001 eq. 20, 003 eq. 2.10)."""
+    return scatter_planar(transfer.stencil.index, force_contributions_of(sim, state, transfer.stencil),
+                          transfer.num_nodes)
 
 
 def grid_solve(fields: GridFields, force, dt, constraint: Constraint) -> GridSolution:
-    """v = p/m, a = f/m (0 where m = 0), v_tilde = v + a dt, with velocity conditions imposed."""
+    """v = p/m, a = f/m (0 where m = 0), v_tilde = v + a dt, with velocity conditions imposed.
+    From a folded P2G (:func:`folds_force`) only v_tilde = (p + f dt)/m exists (v, a are None);
+    it is the same v_tilde: the conditions act on v + a dt in both cases."""
     m = fields.transfer.nodal_mass
+    if fields.updated_momentum is not None:
+        return GridSolution(v=None, a=None, v_tilde=constraint.apply(safe_divide(fields.updated_momentum, m)))
     if constraint.wall is not None:  # one-sided walls act on v_tilde, as contact (jm.Wall)
         v, a, v_tilde = constraint.contact(constraint.apply_two_sided(safe_divide(fields.momentum, m)),
                                            constraint.zero(safe_divide(force, m)), dt)
@@ -61,15 +99,17 @@ def step(sim, state, dt):
     """One full time step; returns the new state.  Pure: jit, grad and vmap apply."""
     dt = jnp.asarray(dt, state.x.dtype)
     constraint = sim.constraint(state.x.dtype)
-    fields = p2g(sim, state)
-    transfer = fields.transfer
-    F = state.F
     if sim.update == "USF":  # stress first, with the start-of-step velocity
+        fields = p2g(sim, state, force=False)
+        transfer = fields.transfer
         v0 = constraint.apply(safe_divide(fields.momentum, transfer.nodal_mass))
         v_strain = sim.scheme.strain_grid_velocity(v0, transfer, constraint)
-        F = update_deformation(F, transfer.velocity_gradient(v_strain), dt)
-        state = eqx.tree_at(lambda s: s.F, state, F)
-    force = nodal_force(sim, state, transfer)
+        state = eqx.tree_at(lambda s: s.F, state, update_deformation(state.F, transfer.velocity_gradient(v_strain), dt))
+        force = nodal_force(sim, state, transfer)
+    else:  # USL, MUSL: the stress of the step's start, scattered with the mass and momentum
+        fields = p2g(sim, state, dt=dt if folds_force(sim) else None)
+        transfer, force = fields.transfer, fields.force
+
     grid = grid_solve(fields, force, dt, constraint)
     return g2p(sim, state, transfer, constraint, grid, dt)
 

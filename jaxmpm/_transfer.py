@@ -15,9 +15,10 @@ Every scheme uses these; none writes its own scatter.
 from __future__ import annotations
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 
-from ._shapes import Stencil
+from ._shapes import StencilBase as Stencil, computed_once
 
 
 def safe_divide(numerator, mass):
@@ -31,58 +32,97 @@ def safe_divide(numerator, mass):
 
 
 def sum_over_stencil(a):
-    """sum_k a[:, k] for a of shape (N, K, ...), unrolled over the (4-64) stencil nodes: XLA's CPU
-    reduction over a short middle axis is several times slower than K-1 fused elementwise adds."""
-    total = a[:, 0]
-    for k in range(1, a.shape[1]):
-        total = total + a[:, k]
+    """sum_k a[..., k, :] for planar a of shape (..., K, N), unrolled over the (4-64) stencil
+    slots: K-1 elementwise adds of contiguous particle rows, which XLA fuses with their producers."""
+    total = a[..., 0, :]
+    for k in range(1, a.shape[-2]):
+        total = total + a[..., k, :]
     return total
 
 
-def _scatter_add(index, values, num_nodes: int):
-    """sum over rows r of ``values`` (R, ...) into node ``index[r]``."""
-    return jnp.zeros((num_nodes,) + values.shape[1:], values.dtype).at[index].add(values)
+def scatter_planar(index, contributions, num_nodes: int):
+    """sum_p sum_k c[..., k, p] into node ``index[k, p]``: ``contributions`` (K, N) -> (n,) or
+    (C, K, N) -> (n, C).  The one scatter-add of the library; its rows are (node, components)."""
+    if contributions.ndim == 2:
+        rows = contributions.reshape(-1)
+    else:
+        rows = contributions.reshape(contributions.shape[0], -1).T
+    dims = jax.lax.ScatterDimensionNumbers(update_window_dims=tuple(range(1, rows.ndim)), inserted_window_dims=(0,),
+                                           scatter_dims_to_operand_dims=(0,))
+    # every index comes from a stencil that lies on the grid (Simulation checks that before a run)
+    return jax.lax.scatter_add(jnp.zeros((num_nodes,) + rows.shape[1:], rows.dtype), index.reshape(-1, 1), rows, dims,
+                               mode=jax.lax.GatherScatterMode.PROMISE_IN_BOUNDS)
+
+
+def nodal_values(stencil: Stencil, u):
+    """u_i at every stencil slot: (n,) -> (K, N), (n, C) -> a list of C arrays (K, N).  One gather
+    of scalars per component (from the transposed (C, n) nodal array): on CPU this is faster than
+    gathering (K N, C) rows and transposing them, and consumers read each component directly."""
+    index = stencil.index  # on the grid (shape functions clip it), so no bounds handling
+    if u.ndim == 1:
+        return computed_once(u).at[index].get(mode="promise_in_bounds")
+    # the nodal field is evaluated once first: XLA would otherwise fuse its whole computation
+    # (v = p/m, boundary conditions) into the gather and repeat it for every slot
+    return computed_once([uc.at[index].get(mode="promise_in_bounds") for uc in computed_once(u.T)])
+
+
+def gather_planar(stencil: Stencil, u):
+    """(S u)_p for nodal ``u`` (n,) or (n, C), planar result (N,) or (C, N)."""
+    values = nodal_values(stencil, u)
+    if u.ndim == 1:
+        return sum_over_stencil(stencil.weight * values)
+    w = stencil.weight
+    return jnp.stack([sum_over_stencil(w * vc) for vc in values])
 
 
 def gather(stencil: Stencil, u):
-    """(S u)_p = sum_i S_pi u_i for nodal ``u`` of shape (n,) or (n, C)."""
-    values = u[stencil.index]  # (N, K, ...)
-    w = stencil.weight if u.ndim == 1 else stencil.weight[..., None]
-    return sum_over_stencil(w * values)
+    """(S u)_p = sum_i S_pi u_i for nodal ``u`` of shape (n,) or (n, C); result (N,) or (N, C)."""
+    Su = gather_planar(stencil, u)
+    return Su if u.ndim == 1 else to_particle_major(Su)
+
+
+def to_particle_major(planar):
+    """(C..., N) -> (N, C...), evaluated first: otherwise XLA moves the whole planar computation
+    into the transpose, where it runs element by element instead of on particle vectors."""
+    return jnp.moveaxis(computed_once(planar), -1, 0)
 
 
 def scatter(stencil: Stencil, q, num_nodes: int):
     """(S^T q)_i = sum_p S_pi q_p for particle ``q`` of shape (N,) or (N, C)."""
-    w = stencil.weight if q.ndim == 1 else stencil.weight[..., None]
-    contrib = w * q[:, None]  # (N, K, ...)
-    return _scatter_add(stencil.index.reshape(-1), contrib.reshape((-1,) + q.shape[1:]), num_nodes)
-
-
-def scatter_weighted(stencil: Stencil, nodal_values, num_nodes: int):
-    """sum_p sum_k c_pk over the stencil for per-(particle, node) contributions c of shape (N, K, C)."""
-    flat = nodal_values.reshape((-1,) + nodal_values.shape[2:])
-    return _scatter_add(stencil.index.reshape(-1), flat, num_nodes)
+    contributions = stencil.weight * (q if q.ndim == 1 else q.T[:, None, :])  # (K, N) or (C, K, N)
+    return scatter_planar(stencil.index, contributions, num_nodes)
 
 
 def velocity_gradient(stencil: Stencil, v):
-    """(grad v)_p[a, b] = sum_i v_i[a] G_pi[b]  (003 eq. 2.7)."""
-    values = v[stencil.index]  # (N, K, D)
+    """(grad v)_p[a, b] = sum_i v_i[a] G_pi[b]  (003 eq. 2.7), shape (N, D, D)."""
+    values = nodal_values(stencil, v)  # D arrays (K, N)
     g = stencil.gradient
-    # unrolled over the (1-3 long) component axes: elementwise products and a sum over K fuse on
-    # CPU, where a batched dot_general of (K, D) matrices does not
-    return jnp.stack([jnp.stack([sum_over_stencil(values[..., a] * g[..., b]) for b in range(g.shape[-1])], -1)
-                      for a in range(values.shape[-1])], -2)
+    d = g.shape[0]
+    planar = jnp.stack([jnp.stack([sum_over_stencil(values[a] * g[b]) for b in range(d)]) for a in range(d)])
+    return to_particle_major(planar)
+
+
+def force_contributions(stencil: Stencil, weighted_stress, particle_force=None):
+    """Per-slot internal force -(V0_p tau_p) . G_pi (001 eq. 20, 003 eq. 2.10) plus S_pi q_p for an
+    optional particle force ``q`` (N, D) (e.g. M_p b_p); planar (D, K, N)."""
+    g = stencil.gradient
+    d = g.shape[0]
+    tau = computed_once(jnp.moveaxis(weighted_stress, 0, -1))[:, :, None, :]  # (D, D, 1, N), once per particle
+    contrib = -jnp.stack([sum(tau[a, b] * g[b] for b in range(d)) for a in range(d)])
+    if particle_force is not None:
+        contrib = contrib + stencil.weight * computed_once(particle_force.T)[:, None, :]
+    return contrib
 
 
 def divergence(stencil: Stencil, weighted_stress, num_nodes: int, particle_force=None):
     """Internal force f_i = - sum_p (V0_p tau_p) . G_pi  (001 eq. 20, 003 eq. 2.10), plus
-    sum_p S_pi q_p for an optional particle force ``q`` (N, D) (e.g. M_p b_p), in the same scatter."""
-    g = stencil.gradient
-    d = g.shape[-1]
-    contrib = -jnp.stack([sum(weighted_stress[:, None, a, b] * g[..., b] for b in range(d)) for a in range(d)], -1)
-    if particle_force is not None:
-        contrib = contrib + stencil.weight[..., None] * particle_force[:, None, :]
-    return scatter_weighted(stencil, contrib, num_nodes)
+    sum_p S_pi q_p for an optional particle force ``q`` (N, D), in the same scatter."""
+    return scatter_planar(stencil.index, force_contributions(stencil, weighted_stress, particle_force), num_nodes)
+
+
+def momentum_contributions(stencil: Stencil, mass, velocity):
+    """Per-slot momentum S_pi M_p V_p, planar (D, K, N)."""
+    return stencil.weight * (mass[:, None] * velocity).T[:, None, :]
 
 
 class Transfer(eqx.Module):
@@ -106,7 +146,8 @@ class Transfer(eqx.Module):
 
     def momentum(self, velocity):
         """p_i = sum_p S_pi M_p V_p  (003 eq. 2.1)."""
-        return self.scatter(self.particle_mass[:, None] * velocity)
+        return scatter_planar(self.stencil.index, momentum_contributions(self.stencil, self.particle_mass, velocity),
+                              self.num_nodes)
 
     def s_plus(self, U):
         """(S+ U)_i = sum_p S_pi M_p U_p / m_i  (000 eq. 1.10)."""

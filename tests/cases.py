@@ -16,3 +16,18 @@ GRIDS = {
     2: jm.Grid(lower=(-1.0, 0.5), upper=(3.0, 2.5), cells=(8, 6)),
     3: jm.Grid(lower=(-1.0, 0.5, 2.0), upper=(3.0, 2.5, 4.4), cells=(7, 6, 5)),
 }
+
+
+def particle_major(stencil):
+    """A stencil's arrays per particle, as NumPy: ``index``, ``weight`` (N, K), ``gradient``,
+    ``offset`` (N, K, D) -- the library stores them planar, (K, N) and (D, K, N)."""
+    import types
+
+    import numpy as np
+
+    return types.SimpleNamespace(
+        index=np.asarray(stencil.index).T,
+        weight=np.asarray(stencil.weight).T,
+        gradient=np.transpose(np.asarray(stencil.gradient), (2, 1, 0)),
+        offset=np.transpose(np.asarray(stencil.offset), (2, 1, 0)),
+    )

@@ -108,9 +108,22 @@ def setup(scheme_name, shape_name, dim, seed=0):
 def test_inertia_tensor_is_closed_form_for_b_splines(shape_name, dim):
     """002 eq. (3): D_p = c h^2 I with c = 1/4 (quadratic), 1/3 (cubic), per axis h_a."""
     _, shape, grid, transfer, _, _ = setup("apic", shape_name, dim)
-    D = inertia_tensor(transfer.stencil)
     expected = np.diag(shape.inertia_factor() * np.array(grid.spacing) ** 2)
-    np.testing.assert_allclose(np.asarray(D), np.broadcast_to(expected, D.shape), rtol=0, atol=TOL * expected.max())
+    # from the per-axis factors (what the step uses) and from the definition's sum over all nodes
+    for stencil in (transfer.stencil, transfer.stencil.explicit()):
+        D = inertia_tensor(stencil)
+        np.testing.assert_allclose(np.asarray(D), np.broadcast_to(expected, D.shape), rtol=0, atol=TOL * expected.max())
+
+
+@pytest.mark.parametrize("shape_name", list(SHAPES))
+@pytest.mark.parametrize("dim", list(GRIDS))
+def test_inertia_tensor_from_axis_factors_is_the_sum_over_nodes(shape_name, dim):
+    """D_p = sum_i S_pi (x_i - X_p)(x_i - X_p)^T (002 eq. 3) as the tensor stencil forms it from
+    per-axis sums equals the sum over all K nodes, for every shape (uGIMP's D_p varies)."""
+    _, _, _, transfer, _, _ = setup("apic", shape_name, dim)
+    factored, summed = inertia_tensor(transfer.stencil), inertia_tensor(transfer.stencil.explicit())
+    scale = float(np.max(np.abs(np.asarray(summed))))
+    np.testing.assert_allclose(np.asarray(factored), np.asarray(summed), rtol=0, atol=TOL * scale)
 
 
 @pytest.mark.parametrize("dim", list(GRIDS))
@@ -118,7 +131,7 @@ def test_multilinear_affine_weight_is_the_gradient(dim):
     """For tent functions S_pi D_p^-1 (x_i - X_p) = G_pi; the explicit inverse agrees off grid lines."""
     _, _, _, transfer, _, _ = setup("apic", "linear", dim)
     st = transfer.stencil
-    explicit = jnp.einsum("pab,pkb->pka", jnp.linalg.inv(inertia_tensor(st)), st.weight[..., None] * st.offset)
+    explicit = jnp.einsum("pab,bkp->akp", jnp.linalg.inv(inertia_tensor(st)), st.weight[None] * st.offset)  # planar
     scale = float(jnp.max(jnp.abs(st.gradient)))
     np.testing.assert_allclose(np.asarray(affine_weights(st)), np.asarray(explicit), rtol=0, atol=1e-10 * scale)
 

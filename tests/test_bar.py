@@ -88,13 +88,18 @@ def test_result_only_boundary_conditions_gain_energy(kind):
 def test_order_50_binomial_series_fails_neumann_form_is_stable():
     """XPIC at very high order turns unstable (OSParticulas documentation).  Measured cause: the
     binomial recursion cancels terms of size C(50, 25) ~ 1.3e14 in float64, so round-off noise of
-    ~1e-2 relative enters every step; the bar inverts at step 784.  The Neumann form of the same
+    ~1e-2 relative enters every step.  How it ends depends on that round-off: measured, the bar
+    inverted at step 784 with one summation order of the transfers and gained 260x its energy by
+    t = 40 without inverting with another; either is a failure.  The Neumann form of the same
     polynomial has no cancellation and stays stable and accurate."""
     with pytest.warns(UserWarning, match="order 50"):
         unstable = jm.XPIC(order=50)
-    with pytest.raises(jm.InstabilityError) as info:
-        run_bar(unstable)
-    assert info.value.step > 100
+    try:
+        r = run_bar(unstable)
+    except jm.InstabilityError as err:
+        assert err.step > 100
+    else:
+        assert r["energy_ratio"] > 2.0, r  # energy blow-up
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         stable = run_bar(jm.XPIC(order=50, series="neumann"))

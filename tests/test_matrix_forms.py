@@ -49,7 +49,7 @@ class Dense:
     """Dense S, M, m, S+, S+S, S S+ and m~ on the nodes with mass (000 ch. 1, 003 §1.2-1.3)."""
 
     def __init__(self, stencil, mass, num_nodes):
-        index, weight = np.asarray(stencil.index), np.asarray(stencil.weight)
+        index, weight = np.asarray(stencil.index).T, np.asarray(stencil.weight).T  # (N, K)
         n_particles = index.shape[0]
         full = np.zeros((n_particles, num_nodes))
         np.add.at(full, (np.repeat(np.arange(n_particles), index.shape[1]), index.ravel()), weight.ravel())
@@ -117,10 +117,10 @@ def padded(stencil, size):
     """The same S with each particle's stencil padded by zero-weight entries (on node 0) to ``size``
     entries: S u and S^T q gain exact zeros only, and every shape function then has the same array
     shapes, so each jitted check compiles once per dimension instead of once per shape."""
-    extra = size - stencil.index.shape[1]
+    extra = size - stencil.size
 
-    def pad(a):
-        return jnp.pad(a, [(0, 0), (0, extra)] + [(0, 0)] * (a.ndim - 2))
+    def pad(a):  # planar arrays: the slot axis K is second to last
+        return jnp.pad(a, [(0, 0)] * (a.ndim - 2) + [(0, extra), (0, 0)])
 
     return jm.Stencil(index=pad(stencil.index), weight=pad(stencil.weight), gradient=pad(stencil.gradient),
                       offset=pad(stencil.offset))

@@ -22,7 +22,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import jaxmpm as jm
-from cases import GRIDS
+from cases import GRIDS, particle_major
 
 N_PARTICLES = 64
 EXAMPLES = settings(max_examples=25, deadline=None)
@@ -42,8 +42,13 @@ CASES = [pytest.param(name, dim, id=f"{name}-{dim}d") for name in SHAPES for dim
 
 
 @eqx.filter_jit
-def stencil_of(shape, grid, x):
+def _stencil(shape, grid, x):
     return shape.stencil(grid, x)
+
+
+def stencil_of(shape, grid, x):
+    """The stencil's arrays per particle (N, K[, D]), as NumPy."""
+    return particle_major(_stencil(shape, grid, x))
 
 
 @eqx.filter_jit

@@ -54,12 +54,13 @@ def test_linear_shapes_invert_under_cell_crossing():
 
 def test_xpic_binomial_series_unstable_at_high_order():
     """000 eq. (3.25) as a binomial sum cancels terms of size C(50, 25) ~ 1.3e14 |v|: XPIC(50) goes
-    unstable on the bar; the same polynomial as a Neumann series (sum_j (I - S+S)^j v) is stable
-    and conserves energy like FLIP (measured max E/E0 = 1.008, final 1.003 at t = 16)."""
+    unstable on the bar -- the energy blows up (measured max E/E0 = 67), and depending on the
+    round-off a particle also inverts before the horizon; the same polynomial as a Neumann series
+    (sum_j (I - S+S)^j v) is stable and conserves energy like FLIP (measured max E/E0 = 1.008,
+    final 1.003 at t = 16)."""
     r = sm.high_order_xpic()
-    assert r["binomial"]["outcome"] in FAILED, r["binomial"]
-    assert r["binomial"]["time"] < sm.BAR_HORIZON_SHORT
-    assert r["binomial"]["max_energy_ratio"] > 2.0, r["binomial"]  # energy blew up before the inversion
+    assert r["binomial"]["outcome"] in FAILED + ("energy growth > 1%",), r["binomial"]
+    assert r["binomial"]["max_energy_ratio"] > 2.0, r["binomial"]  # energy blew up
     assert r["neumann"]["outcome"] == "stable", r["neumann"]
     assert r["neumann"]["time"] == pytest.approx(sm.BAR_HORIZON_SHORT, abs=0.1)
 

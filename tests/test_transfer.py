@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 import jaxmpm as jm
-from cases import FOUR_SHAPES, GRIDS
+from cases import FOUR_SHAPES, GRIDS, particle_major
 
 N_PARTICLES = 64
 
@@ -78,7 +78,8 @@ def transfer_outputs(shape, grid, x, mass, v=None, u=None, weighted_stress=None)
 
 def dense_S(stencil, num_nodes):
     """The (N, n) matrix S_pi from a stencil."""
-    index = np.asarray(stencil.index)
+    stencil = particle_major(stencil)
+    index = stencil.index
     S = np.zeros((index.shape[0], num_nodes))
     np.add.at(S, (np.repeat(np.arange(index.shape[0]), index.shape[1]), index.reshape(-1)),
               np.asarray(stencil.weight).reshape(-1))

@@ -7,6 +7,9 @@ weakly compressible fluid tau = E (J - 1) I with E = 400 (:class:`jaxmpm.Volumet
 APIC transfer, and mpm88's sticky walls ``bound = 3`` cells wide: on nodes i < 3 a velocity
 component v_x < 0 is zeroed, on nodes i > n - 3 a v_x > 0 (likewise y) -- one-sided walls,
 :class:`jaxmpm.Wall` with ``layers=3``, acting on the updated grid velocity as in mpm88.
+No damping in the model (``damping=False``; pass ``jm.Damping(...)`` to add it): with APIC
+and no damping, P2G scatters the updated momentum p + f dt, as mpm88 does
+(:func:`jaxmpm.folds_force`).
 
 Differences from mpm88, by design:
 * mpm88 is MLS-MPM: its force is -sum_p V0 tau D^-1 (x_i - X_p) S_pi with D = dx^2/4, which for
@@ -53,7 +56,7 @@ def mpm88(
     speed: float = 1.0,
     seed: int = 0,
     update: str = "USL",
-    damping: Damping | None = None,
+    damping: Damping | None | bool = False,
     dtype=None,
     frames: int = 200,
 ) -> Setup:

@@ -79,7 +79,8 @@ class StencilBase(eqx.Module):
 
 
 class Stencil(StencilBase):
-    """A stencil given by its four planar arrays (see :class:`StencilBase`)."""
+    """A stencil given by its four planar arrays (see :class:`StencilBase`).  ``index`` must lie
+    in [0, n): the transfers gather and scatter without bounds handling (shape functions clip)."""
 
     index: jnp.ndarray
     weight: jnp.ndarray

@@ -49,7 +49,7 @@ def scatter_planar(index, contributions, num_nodes: int):
         rows = contributions.reshape(contributions.shape[0], -1).T
     dims = jax.lax.ScatterDimensionNumbers(update_window_dims=tuple(range(1, rows.ndim)), inserted_window_dims=(0,),
                                            scatter_dims_to_operand_dims=(0,))
-    # every index comes from a stencil that lies on the grid (Simulation checks that before a run)
+    # in-bounds by construction: shape functions clip node numbers onto the grid (jm.Stencil)
     return jax.lax.scatter_add(jnp.zeros((num_nodes,) + rows.shape[1:], rows.dtype), index.reshape(-1, 1), rows, dims,
                                mode=jax.lax.GatherScatterMode.PROMISE_IN_BOUNDS)
 

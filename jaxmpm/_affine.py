@@ -33,12 +33,6 @@ from ._shapes import StencilBase as Stencil, computed_once
 from ._transfer import Transfer, nodal_values, sum_over_stencil, to_particle_major
 
 
-def nodes_per_axis(stencil: Stencil) -> int:
-    """K1 for a tensor-product stencil of K = K1^D nodes (static)."""
-    k, d = stencil.size, stencil.offset.shape[0]
-    return int(round(k ** (1.0 / d)))
-
-
 # Per-particle (D, D) matrices are handled "planar" here, as (D, D, N) (see Stencil): every entry
 # is a row of N numbers, so the small matrix algebra below is elementwise on contiguous vectors.
 def to_planar(A):
@@ -106,7 +100,7 @@ def affine_weights(stencil: Stencil):
 
     Multilinear stencils (2 nodes per axis) use the exact identity a_pi = G_pi, which has no
     0/0 when a particle sits on a grid line (see the module docstring)."""
-    if nodes_per_axis(stencil) == 2:
+    if stencil.nodes_per_axis == 2:
         return stencil.gradient
     return stencil.weight * _planar_matvec(_planar_inverse(_inertia_planar(stencil)), stencil.offset)
 
@@ -114,7 +108,7 @@ def affine_weights(stencil: Stencil):
 def apic_node_velocity(stencil: Stencil, B):
     """c_pi = B_p D_p^-1 (x_i - X_p) S_pi, planar (D, K, N): the affine part of APIC's P2G (002 eq. 3)."""
     B = to_planar(B)
-    if nodes_per_axis(stencil) == 2:
+    if stencil.nodes_per_axis == 2:
         return _planar_matvec(B, stencil.gradient)  # S_pi D_p^-1 (x_i - X_p) = G_pi
     C = computed_once(_planar_matmul(B, _planar_inverse(_inertia_planar(stencil))))  # B_p D_p^-1, once per particle
     return stencil.weight * _planar_matvec(C, stencil.offset)

@@ -85,7 +85,6 @@ import csv
 import dataclasses
 import math
 import subprocess
-import sys
 import time
 import warnings
 from pathlib import Path
@@ -99,8 +98,10 @@ import numpy as np  # noqa: E402
 
 import jaxmpm as jm  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))  # convergence.py sits next to this file
-from convergence import AMPLITUDES, PPC as MMS_PPC, cfl_for  # noqa: E402
+if __package__:  # imported as experiments.speed_vs_accuracy
+    from .convergence import AMPLITUDES, PPC as MMS_PPC, cfl_for  # noqa: E402
+else:  # run as a script: convergence.py sits next to this file, on sys.path[0]
+    from convergence import AMPLITUDES, PPC as MMS_PPC, cfl_for  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
 THRESHOLDS = (0.1, 0.01, 0.001)

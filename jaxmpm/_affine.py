@@ -1,6 +1,6 @@
 """Affine transfers: APIC (002 eqs. 3-4) and TPIC (004, "Taylor PIC").
 
-Both carry one extra (D, D) matrix per particle in ``State.affine`` and put an affine velocity
+Both carry one extra (D, D) matrix per particle in ``State.scheme_state`` and put an affine velocity
 field around each particle on the grid:
 
 * :class:`APIC`   p_i = sum_p S_pi M_p (V_p + B_p D_p^-1 (x_i - X_p))        002 eq. (3)
@@ -24,12 +24,15 @@ V_p = S v~ - (alpha_g S v + alpha_p V^n) dt (000 eq. 2.77); B_p / grad v_p are n
 
 from __future__ import annotations
 
-import equinox as eqx
 import jax.numpy as jnp
 
+from ._backend import materialise
 from ._diagnostics import angular_momentum as _particle_angular_momentum
-from ._schemes import ParticleUpdate, Scheme
-from ._shapes import StencilBase as Stencil, computed_once
+from ._errors import check
+from ._registry import register_scheme
+from ._scheme_base import ParticleUpdate, Scheme
+from ._shapes import StencilBase as Stencil
+from ._state import with_scheme_state
 from ._transfer import Transfer, nodal_values, sum_over_stencil, to_particle_major
 
 
@@ -110,18 +113,18 @@ def apic_node_velocity(stencil: Stencil, B):
     B = to_planar(B)
     if stencil.nodes_per_axis == 2:
         return _planar_matvec(B, stencil.gradient)  # S_pi D_p^-1 (x_i - X_p) = G_pi
-    C = computed_once(_planar_matmul(B, _planar_inverse(_inertia_planar(stencil))))  # B_p D_p^-1, once per particle
+    C = materialise(_planar_matmul(B, _planar_inverse(_inertia_planar(stencil))))  # B_p D_p^-1, once per particle
     return stencil.weight * _planar_matvec(C, stencil.offset)
 
 
 def taylor_node_velocity(stencil: Stencil, C):
     """c_pi = S_pi C_p (x_i - X_p), planar (D, K, N)."""
-    return stencil.weight * _planar_matvec(computed_once(to_planar(C)), stencil.offset)
+    return stencil.weight * _planar_matvec(materialise(to_planar(C)), stencil.offset)
 
 
 def affine_momentum_contributions(stencil: Stencil, mass, velocity, per_node_velocity):
     """M_p (S_pi V_p + c_pi) per slot, planar (D, K, N), with c_pi the affine part at node i."""
-    return mass * (stencil.weight * computed_once(velocity.T)[:, None, :] + per_node_velocity)
+    return mass * (stencil.weight * materialise(velocity.T)[:, None, :] + per_node_velocity)
 
 
 def affine_velocity_moment(stencil: Stencil, v):
@@ -154,7 +157,7 @@ def _zero_affine(particles):
 class _AffineScheme(Scheme):
     """Shared G2P of APIC and TPIC: V = S v~ - A_damp dt, X += V dt."""
 
-    def initial_affine(self, particles):
+    def initial_state(self, particles):
         """Zero affine matrices (a uniform start); see :func:`with_velocity_gradient`."""
         return _zero_affine(particles)
 
@@ -173,7 +176,7 @@ class _AffineScheme(Scheme):
 
 
 class APIC(_AffineScheme):
-    """Affine Particle-in-Cell (Jiang et al., 002 eqs. 3-4); ``State.affine`` holds B_p.
+    """Affine Particle-in-Cell (Jiang et al., 002 eqs. 3-4); ``State.scheme_state`` holds B_p.
 
     Preserves affine grid velocity fields through G2P + P2G (002 prop. 5.1) and conserves linear
     and angular momentum in both transfers (002 props. 5.2-5.5), the particles' angular momentum
@@ -182,19 +185,19 @@ class APIC(_AffineScheme):
 
     def momentum_contributions(self, stencil: Stencil, state):
         """S_pi M_p (V_p + B_p D_p^-1 (x_i - X_p)), summed over p into p_i  (002 eq. 3)."""
-        return affine_momentum_contributions(stencil, state.mass, state.v, apic_node_velocity(stencil, state.affine))
+        return affine_momentum_contributions(stencil, state.mass, state.v, apic_node_velocity(stencil, state.scheme_state))
 
-    def particle_state(self, state, update, transfer: Transfer, grid):
+    def next_state(self, state, update, transfer: Transfer, grid):
         """B_p = sum_i S_pi v~_i (x_i - X_p)^T  (002 eq. 4)."""
         return affine_velocity_moment(transfer.stencil, grid.v_tilde)
 
     def angular_momentum(self, state):
         """sum_p X_p x M_p V_p + sum_p M_p (B_p^T : eps)  (002 def. 5.1)."""
-        return _particle_angular_momentum(state) + affine_angular_momentum(state.mass, state.affine)
+        return _particle_angular_momentum(state) + affine_angular_momentum(state.mass, state.scheme_state)
 
 
 class TPIC(_AffineScheme):
-    """Taylor Particle-in-Cell (Nakamura et al. 2023, as written in 004); ``State.affine`` holds
+    """Taylor Particle-in-Cell (Nakamura et al. 2023, as written in 004); ``State.scheme_state`` holds
     the particle velocity gradient grad v_p.
 
     p_i = sum_p S_pi M_p (V_p + grad v_p (x_i - X_p)),  V_p = sum_i S_pi v~_i,
@@ -207,9 +210,9 @@ class TPIC(_AffineScheme):
 
     def momentum_contributions(self, stencil: Stencil, state):
         """S_pi M_p (V_p + grad v_p (x_i - X_p)), summed over p into p_i  (004)."""
-        return affine_momentum_contributions(stencil, state.mass, state.v, taylor_node_velocity(stencil, state.affine))
+        return affine_momentum_contributions(stencil, state.mass, state.v, taylor_node_velocity(stencil, state.scheme_state))
 
-    def particle_state(self, state, update, transfer: Transfer, grid):
+    def next_state(self, state, update, transfer: Transfer, grid):
         """grad v_p = sum_i v~_i (x) G_pi  (004)."""
         return transfer.velocity_gradient(grid.v_tilde)
 
@@ -225,4 +228,16 @@ def with_velocity_gradient(sim, state, gradient):
         affine = L
     else:  # Linear too: B G_pi = L D_p G_pi = L S_pi (x_i - X_p)
         affine = L @ inertia_tensor(sim.shape.stencil(sim.grid, state.x))
-    return eqx.tree_at(lambda s: s.affine, state, affine, is_leaf=lambda x: x is None)
+    return with_scheme_state(state, affine)
+
+
+def _no_beta(name):
+    def parse(arg, beta=None):
+        check(not arg, f"scheme {name}:{arg}: {name} takes no ':' argument")
+        check(beta is None, f"scheme {name!r}: {name} has no FLIP fraction; drop beta (--beta)")
+        return APIC() if name == "apic" else TPIC()
+    return parse
+
+
+register_scheme("apic", APIC, parse=_no_beta("apic"), spec="apic")
+register_scheme("tpic", TPIC, parse=_no_beta("tpic"), spec="tpic")

@@ -16,6 +16,7 @@ applied to nodal velocities (000 ch. 1; 003 §2.4).
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Callable, Union
 
 import equinox as eqx
@@ -28,13 +29,44 @@ from ._grid import Grid, parse_face
 Selector = Union[str, Callable]
 
 
+class NodeSet:
+    """A fixed set of grid nodes (a boolean mask over the nodes), compared and hashed by its
+    contents.  A model stores the nodes a callable selector picked, not the callable: two
+    models built alike are equal (and share compiled code) without any hand-written hashing."""
+
+    def __init__(self, mask):
+        self.mask = np.asarray(mask, dtype=bool)
+        self.mask.setflags(write=False)
+        self._hash = hash((self.mask.shape, self.mask.tobytes()))
+
+    def __eq__(self, other):
+        return isinstance(other, NodeSet) and self._hash == other._hash and np.array_equal(self.mask, other.mask)
+
+    def __hash__(self):
+        return self._hash
+
+    def __repr__(self):
+        return f"NodeSet({int(self.mask.sum())} of {self.mask.size} nodes)"
+
+
 def _select(grid: Grid, where: Selector, layers: int) -> np.ndarray:
     if isinstance(where, str):
         return grid.face_mask(where, layers)
+    if isinstance(where, NodeSet):
+        check(where.mask.shape == (grid.num_nodes,), "boundary: this node set belongs to another grid")
+        return where.mask
     check(callable(where), f"boundary: where={where!r} must be a face like 'x-' or a callable of node coordinates")
     mask = np.asarray(where(grid.node_coordinates()), dtype=bool)
     check(mask.shape == (grid.num_nodes,), "boundary: where(x) must return one bool per node, shape (num_nodes,)")
     return mask
+
+
+def resolve(grid: Grid, condition):
+    """``condition`` with a callable ``where`` replaced by the :class:`NodeSet` it selects."""
+    if isinstance(condition, Wall) or isinstance(condition.where, (str, NodeSet)):
+        return condition
+    nodes = NodeSet(_select(grid, condition.where, condition.layers))
+    return dataclasses.replace(condition, where=nodes)
 
 
 class Constraint(eqx.Module):
@@ -126,6 +158,7 @@ class Prescribed(eqx.Module):
 
     def __init__(self, where, velocity, axes=None, layers: int = 1):
         self.where = where
+        # an array leaf: jax.grad reaches a wall velocity, and jit does not recompile for a new one
         self.velocity = jnp.atleast_1d(jnp.asarray(velocity, dtype=float))
         self.axes = None if axes is None else tuple(int(a) for a in axes)
         self.layers = layers
@@ -190,7 +223,13 @@ def build_constraint(grid: Grid, conditions, dtype) -> Constraint:
                       wall=jnp.asarray(wall, dtype) if walls else None, inhomogeneous=inhomogeneous)
 
 
-def as_conditions(boundary) -> tuple:
+def as_conditions(boundary, grid: Grid | None = None) -> tuple:
+    """The conditions as a tuple; with ``grid``, callable selectors resolved to node sets."""
+    conditions = _as_tuple(boundary)
+    return conditions if grid is None else tuple(resolve(grid, c) for c in conditions)
+
+
+def _as_tuple(boundary) -> tuple:
     if boundary is None:
         return ()
     if isinstance(boundary, (Fixed, Slip, Prescribed, Wall)):

@@ -18,17 +18,7 @@ import numpy as np
 import optax
 
 from ._errors import check
-
-# default constraint of each named simulation parameter (see jaxmpm._params.PARAMETERS)
-DEFAULT_BOUNDS = {
-    "beta": (0.0, 1.0),
-    "alpha_g": "positive",
-    "alpha_p": "positive",
-    "E": "positive",
-    "density": "positive",
-    "nu": (-1.0, 0.5),
-}
-
+from ._params import default_bounds
 
 def _transform(bound):
     """(forward raw -> value, inverse value -> raw) for a bound."""
@@ -72,11 +62,11 @@ def calibrate(
     on the raw parameters; ``optax.lbfgs()`` converges in far fewer iterations on smooth,
     low-dimensional problems) for at most ``steps`` iterations, stopping early once the loss is
     below ``tol``.  ``bounds`` maps a name to ``"positive"``, ``(lower, upper)`` or ``None``;
-    names of simulation parameters get :data:`DEFAULT_BOUNDS`.
+    names of simulation parameters get the bounds their registration declares (``jaxmpm._registry``).
     ``callback(iteration, loss, params)`` is called every iteration."""
     check(isinstance(init, dict) and init, "calibrate: init must be a non-empty dict {name: initial value}")
     check(isinstance(steps, int) and steps >= 1, f"calibrate: steps = {steps!r} must be a positive integer")
-    bounds = {**{k: DEFAULT_BOUNDS.get(k) for k in init}, **(bounds or {})}
+    bounds = {**{k: default_bounds(k) for k in init}, **(bounds or {})}
     transforms = {k: _transform(bounds.get(k)) for k in init}
     for k, v in init.items():
         b = bounds.get(k)
@@ -104,7 +94,10 @@ def calibrate(
         value, grads = jax.value_and_grad(raw_loss)(r)
         # optimizers with a line search (optax.lbfgs) need the value, gradient and function;
         # the others ignore these extra arguments
-        updates, s = optimizer.update(grads, s, r, value=value, grad=grads, value_fn=raw_loss)
+        # optax mixes Python floats with integer step counts (Adam's decay**count): let it
+        # promote as it expects even when the caller runs JAX with strict promotion
+        with jax.numpy_dtype_promotion("standard"):
+            updates, s = optimizer.update(grads, s, r, value=value, grad=grads, value_fn=raw_loss)
         return optax.apply_updates(r, updates), s, value
 
     losses, trajectory = [], {k: [] for k in init}

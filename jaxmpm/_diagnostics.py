@@ -11,8 +11,8 @@ def kinetic_energy(state):
 
 
 def strain_energy(state, material):
-    """sum_p V0_p W(F_p), W the material's stored-energy density."""
-    return jnp.sum(state.volume0 * material.energy_density(state.F))
+    """sum_p V0_p W(F_p), W the material's stored-energy density (of F and the material state)."""
+    return jnp.sum(state.volume0 * material.stored_energy_density(state.F, state.material_state))
 
 
 def linear_momentum(state):
@@ -24,7 +24,7 @@ def angular_momentum(state):
     """sum_p X_p x M_p V_p (000 ch. 5): shape (1,) in 1D (always 0) and 2D, (3,) in 3D.
 
     Under APIC the particles' affine term sum_p M_p (B_p^T : eps) of 002 def. 5.1 is added
-    by the scheme through ``state.affine`` when present.
+    by the scheme through ``state.scheme_state`` when present.
     """
     x, p = state.x, state.mass[:, None] * state.v
     d = x.shape[-1]

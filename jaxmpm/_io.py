@@ -4,9 +4,13 @@
 /time (T,)   /particles/x (T,N,D)  /particles/v (T,N,D)  /particles/mass (N,)  /particles/volume0 (N,)
 /energy/kinetic (T,)  /energy/strain (T,)  /energy/dissipated (T,)
 /momentum/linear (T,D)  /momentum/angular (T,1 or 3)
+/particles/<name> (T,N,...)   every saved per-particle field a physics term declares
 attributes on /: scene, scheme, order, beta, alpha_g, alpha_p, shape, update, dt, cells, ppc,
-                 dtype, jaxmpm version, scene parameters (JSON)
+                 dtype, jaxmpm version, scene parameters (JSON), and every other float
+                 parameter the model's registered parts declare (E, nu, density, ...)
 ```
+A new field or parameter needs no edit here: the writer follows ``History.fields`` and the
+registry.
 """
 
 from __future__ import annotations
@@ -33,6 +37,8 @@ def run_attributes(sim, dt=None, scene: str | None = None, params: dict | None =
     """The root attributes of DESIGN.md for a simulation."""
     from . import __version__
 
+    from ._registry import sim_parameters
+
     scheme = sim.scheme
     attrs = {
         "scene": scene or "",
@@ -52,6 +58,10 @@ def run_attributes(sim, dt=None, scene: str | None = None, params: dict | None =
         "jaxmpm version": __version__,
         "scene parameters": json.dumps(params or {}, default=float),
     }
+    for name, (where, _) in sim_parameters(sim).items():  # the registered float parameters
+        value = np.asarray(where(sim))
+        if name not in ("alpha_g", "alpha_p") and np.issubdtype(value.dtype, np.floating):
+            attrs[name] = float(value) if value.ndim == 0 else value.astype(np.float64)
     return attrs
 
 
@@ -78,8 +88,9 @@ class H5Writer:
         t = np.asarray(history.time)
         if t.size == 0:
             return
-        for field, name in _SERIES.items():
-            value = getattr(history, field)
+        series = [(getattr(history, field), name) for field, name in _SERIES.items()]
+        series += [(value, f"particles/{field}") for field, value in history.fields.items()]
+        for value, name in series:
             if value is None:
                 continue
             arr = np.asarray(value)
@@ -162,6 +173,25 @@ def write_xdmf(h5_path: str, f: h5py.File) -> None:
             f"{h5name}:/{name}</DataItem></DataItem>"
         )
 
+    fields = [name for name, ds in f["particles"].items()
+              if name not in ("x", "v", "mass", "volume0") and ds.ndim in (2, 3) and ds.shape[:2] == (T, N)]
+
+    def field_attribute(name, t):
+        ds = f[f"particles/{name}"]
+        if ds.ndim == 2:  # a scalar per particle: (T, N)
+            item = (f'<DataItem ItemType="HyperSlab" Dimensions="{N}" Format="XML">'
+                    f'<DataItem Dimensions="3 2" Format="XML">{t} 0 1 1 1 {N}</DataItem>'
+                    f'<DataItem Dimensions="{T} {N}" NumberType="Float" Precision="{ds.dtype.itemsize}" '
+                    f'Format="HDF">{h5name}:/particles/{name}</DataItem></DataItem>')
+            return f'<Attribute Name="{name}" AttributeType="Scalar" Center="Node">{item}</Attribute>'
+        C = ds.shape[2]
+        item = (f'<DataItem ItemType="HyperSlab" Dimensions="{N} {C}" Format="XML">'
+                f'<DataItem Dimensions="3 3" Format="XML">{t} 0 0 1 1 1 1 {N} {C}</DataItem>'
+                f'<DataItem Dimensions="{T} {N} {C}" NumberType="Float" Precision="{ds.dtype.itemsize}" '
+                f'Format="HDF">{h5name}:/particles/{name}</DataItem></DataItem>')
+        kind = "Vector" if C == D else "Matrix"
+        return f'<Attribute Name="{name}" AttributeType="{kind}" Center="Node">{item}</Attribute>'
+
     lines = ['<?xml version="1.0" ?>', '<Xdmf Version="3.0">', "<Domain>",
              '<Grid Name="particles" GridType="Collection" CollectionType="Temporal">']
     geometry_type = geom if D > 1 else "X"
@@ -177,6 +207,8 @@ def write_xdmf(h5_path: str, f: h5py.File) -> None:
             kind = "Scalar" if D == 1 else "Vector"
             lines.append(f'<Attribute Name="velocity" AttributeType="{kind}" Center="Node">'
                          + slab("particles/v", t) + "</Attribute>")
+        for name in fields:  # the terms' saved per-particle fields (temperature, ...)
+            lines.append(field_attribute(name, t))
         lines.append("</Grid>")
     lines += ["</Grid>", "</Domain>", "</Xdmf>"]
     with open(os.path.splitext(h5_path)[0] + ".xdmf", "w") as out:

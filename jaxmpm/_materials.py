@@ -13,6 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._errors import check
+from ._registry import Parameter, register_material
 
 
 def concrete(x):
@@ -57,7 +58,9 @@ def _trace(A):
 
 
 class Material(eqx.Module):
-    """Base class: ``density`` (reference), ``kirchhoff_stress(F)``, ``energy_density(F)``."""
+    """Base class: ``density`` (reference), ``kirchhoff_stress(F)``, ``energy_density(F)``; a
+    material with per-particle state overrides :meth:`initial_state`, :meth:`particle_stress` and
+    :meth:`update_state`.  Register new materials with :func:`jaxmpm.register_material`."""
 
     density: jnp.ndarray
 
@@ -65,6 +68,25 @@ class Material(eqx.Module):
         mu = self.E / (2.0 * (1.0 + self.nu))
         lam = self.E * self.nu / ((1.0 + self.nu) * (1.0 - 2.0 * self.nu))
         return lam, mu
+
+    def initial_state(self, particles):
+        """The material's per-particle state at the start (``State.material_state``); None for
+        the elastic materials, e.g. a plastic strain for a plastic one."""
+        return None
+
+    def particle_stress(self, F, material_state):
+        """Kirchhoff stress of each particle from F and the material state (the elastic materials
+        need F only: :meth:`kirchhoff_stress`)."""
+        return self.kirchhoff_stress(F)
+
+    def stored_energy_density(self, F, material_state):
+        """Stored energy per reference volume from F and the material state (the elastic
+        materials: :meth:`energy_density` of F)."""
+        return self.energy_density(F)
+
+    def update_state(self, F, material_state, dt):
+        """The material state after the strain update to ``F`` (unchanged for elastic materials)."""
+        return material_state
 
     def keep_deformation(self, F):
         """The deformation gradient carried to the next step: F itself for solids (no operation).
@@ -190,4 +212,11 @@ class VolumetricFluid(Material):
         return jnp.sqrt(self.E / self.density)
 
 
-MATERIALS = {"linear": LinearElastic, "neohookean": NeoHookean}
+E = Parameter("E", lambda m: m.E, "Young's modulus (bulk modulus of VolumetricFluid)", "positive")
+NU = Parameter("nu", lambda m: m.nu, "Poisson's ratio", (-1.0, 0.5))
+DENSITY = Parameter("density", lambda m: m.density, "reference density (re-run sim.init for particle masses)",
+                    "positive")
+register_material("linear", LinearElastic, parameters=[E, NU, DENSITY])
+register_material("neohookean", NeoHookean, parameters=[E, NU, DENSITY])
+register_material("fluid", VolumetricFluid, parameters=[E, DENSITY])
+register_material("nostress", NoStress, parameters=[DENSITY])

@@ -1,58 +1,86 @@
 """Named float parameters of a :class:`Simulation`, for calibration and ensembles.
 
 ``set_params(sim, beta=0.5, alpha_g=0.1)`` returns a new simulation; ``get_params(sim, "beta")``
-reads them.  Each name is a path to an array leaf, so ``jax.grad`` and ``jax.vmap`` reach it.
+reads them.  The names come from the registry (``jaxmpm._registry``): every registered scheme,
+material, shape and term declares its parameters, each a path to an array leaf, so ``jax.grad``
+and ``jax.vmap`` reach it.  :data:`PARAMETERS` lists them all.
 """
 
 from __future__ import annotations
 
-import equinox as eqx
+from collections.abc import Mapping
+
 import jax.numpy as jnp
 
 from ._errors import check
-
-PARAMETERS = {
-    "beta": (lambda s: s.scheme.beta, "the scheme's FLIP fraction (FLIP, XPIC, FMPM)"),
-    "alpha_g": (lambda s: s.damping.grid, "grid damping alpha_g (1/time)"),
-    "alpha_p": (lambda s: s.damping.particle, "particle damping alpha_p (1/time)"),
-    "E": (lambda s: s.material.E, "Young's modulus"),
-    "nu": (lambda s: s.material.nu, "Poisson's ratio"),
-    "density": (lambda s: s.material.density, "reference density (re-run sim.init for particle masses)"),
-    "gravity": (lambda s: s.gravity, "gravity vector"),
-}
+from ._registry import TERMS, all_parameters, owner_registry, sim_parameters
 
 
-def _with_damping(sim, name):
-    """``sim`` itself, or (built with ``damping=False``, no damping in the model) a copy with zero
-    damping put back, so that alpha_g and alpha_p can be read, set and differentiated."""
-    if name in ("alpha_g", "alpha_p") and sim.damping is None:
-        from ._schemes import Damping
+class _ParameterTable(Mapping):
+    """{name: (where(sim) -> leaf, description)} over every registered parameter (live: a part
+    registered later shows up)."""
 
-        sim = eqx.tree_at(lambda s: s.damping, sim, Damping(), is_leaf=lambda x: x is None)
+    def __getitem__(self, name):
+        p = all_parameters()[name]
+        return (lambda sim: _where(sim, name)(sim)), p.doc
+
+    def __iter__(self):
+        return iter(all_parameters())
+
+    def __len__(self):
+        return len(all_parameters())
+
+
+PARAMETERS = _ParameterTable()
+
+
+def _with_owner(sim, name):
+    """``sim`` itself, or -- when ``name`` belongs to a term the model does not have, e.g. damping
+    in a model built with ``damping=False`` -- a copy with that term added at its neutral
+    default, so that the parameter can be read, set and differentiated."""
+    if name in sim_parameters(sim):
+        return sim
+    owner = owner_registry(name)
+    if owner is not None and owner[0] is TERMS:
+        for cls in owner[2]:
+            try:
+                return sim.with_term(cls())
+            except TypeError:  # needs arguments: no neutral default
+                continue
     return sim
 
 
 def _where(sim, name):
-    check(name in PARAMETERS, f"unknown parameter {name!r}; choose one of {', '.join(PARAMETERS)}")
-    where = PARAMETERS[name][0]
-    try:
-        where(sim)
-    except AttributeError:
-        check(False, f"parameter {name!r} does not exist for scheme {type(sim.scheme).__name__} / "
-                     f"material {type(sim.material).__name__}")
-    return where
+    known = all_parameters()
+    check(name in known, f"unknown parameter {name!r}; choose one of {', '.join(known)}")
+    present = sim_parameters(sim)
+    check(name in present, f"parameter {name!r} does not exist for scheme {type(sim.scheme).__name__} / "
+                           f"material {type(sim.material).__name__}; this model has {', '.join(present)}")
+    return present[name][0]
 
 
 def get_params(sim, *names) -> dict:
     """{name: value} for the named parameters."""
-    return {n: _where(_with_damping(sim, n), n)(_with_damping(sim, n)) for n in names}
+    out = {}
+    for n in names:
+        s = _with_owner(sim, n)
+        out[n] = _where(s, n)(s)
+    return out
 
 
 def set_params(sim, **values):
     """A copy of ``sim`` with the named parameters replaced (values may be traced)."""
+    import equinox as eqx
+
     for name, value in values.items():
-        sim = _with_damping(sim, name)
+        sim = _with_owner(sim, name)
         where = _where(sim, name)
         old = where(sim)
         sim = eqx.tree_at(where, sim, jnp.asarray(value, dtype=jnp.result_type(old)))
     return sim
+
+
+def default_bounds(name):
+    """The calibration bounds a registered parameter declares (None if unknown or unbounded)."""
+    p = all_parameters().get(name)
+    return None if p is None else p.bounds

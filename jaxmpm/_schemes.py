@@ -18,55 +18,18 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._boundary import Constraint
-from ._diagnostics import angular_momentum
 from ._errors import check
+from ._fields import GridSolution
 from ._materials import _leaf, concrete
-from ._shapes import StencilBase as Stencil
-from ._transfer import Transfer, momentum_contributions, scatter_planar
+from ._registry import Parameter, register_scheme, scheme_from_name
+from ._scheme_base import ParticleUpdate, Scheme, dissipated_energy
+from ._terms import Damping, damping_acceleration
+from ._transfer import Transfer
 
 BOUNDARY_MODES = ("iterates", "result", "lumped")
 SERIES_FORMS = ("binomial", "neumann")
 POSITION_UPDATES = ("Sv", "PV", "first_order")
 MAX_SAFE_ORDER = 40
-
-
-class Damping(eqx.Module):
-    """Grid and particle damping alpha_g, alpha_p in 1/time (001 §5.1.2):
-    A_damp = alpha_g S v + alpha_p V^n (000 eq. 2.77)."""
-
-    grid: jnp.ndarray
-    particle: jnp.ndarray
-
-    def __init__(self, grid=0.0, particle=0.0):
-        self.grid = _leaf(grid, "grid (alpha_g)", "Damping")
-        self.particle = _leaf(particle, "particle (alpha_p)", "Damping")
-        for name, val in (("grid", self.grid), ("particle", self.particle)):
-            c = concrete(val)
-            if c is not None:
-                check(np.all(c >= 0), f"Damping: {name} = {c} must be >= 0 (units 1/time); 0 switches it off")
-
-    def acceleration(self, Sv, V):
-        return self.grid * Sv + self.particle * V  # 000 eq. (2.77)
-
-
-def damping_acceleration(damping: Damping | None, Sv, V):
-    """A_damp = alpha_g S v + alpha_p V^n (000 eq. 2.77); zero when the model has no damping."""
-    return 0.0 if damping is None else damping.acceleration(Sv, V)
-
-
-class GridSolution(eqx.Module):
-    """Lumped-mass grid results of one step: v = p/m, a = f/m, v_tilde = v + a dt (all with BCs)."""
-
-    v: jnp.ndarray
-    a: jnp.ndarray
-    v_tilde: jnp.ndarray
-
-
-class ParticleUpdate(eqx.Module):
-    velocity: jnp.ndarray  # V^{n+1}
-    position: jnp.ndarray  # X^{n+1}
-    strain_velocity: jnp.ndarray  # grid velocity for a USL- strain update
-    dissipated: jnp.ndarray  # energy dissipated by the update this step (scalar)
 
 
 def _check_order(order, name: str) -> int:
@@ -159,55 +122,6 @@ def _series(start, order: int, transfer: Transfer, project, form: str):
 
     _, total = jax.lax.fori_loop(1, order, body, (start, start))
     return total
-
-
-def dissipated_energy(mass, Sa, Sv, dV, dX, dt):
-    """Energy removed by a particle update relative to the non-dissipative FLIP update.
-
-    From the generic form (000 eq. 2.41), Delta E_p = M_p (A dt) . (VV + A dt / 2) with
-    A dt = Delta V and VV dt = Delta X - Delta V dt / 2, so Delta E_p = M_p Delta V . Delta X / dt.
-    The FLIP reference is M_p (S a dt) . (S v + S a dt / 2) (000 eq. 2.42); their difference is
-    000 eq. (2.43), which reduces to 000 eq. (2.44) when VV = S v.  Valid for every position update,
-    including FMPM's VV = V^n (003 eq. 2.26).
-    """
-    safe_dt = jnp.where(dt > 0, dt, 1.0)
-    flip = jnp.sum((Sa * dt) * (Sv + 0.5 * Sa * dt), axis=-1)
-    actual = jnp.sum(dV * dX, axis=-1) / safe_dt
-    return jnp.sum(mass * (flip - actual))
-
-
-class Scheme(eqx.Module):
-    """Base class of particle updates."""
-
-    # the update reads the lumped v and a (not only v_tilde = v + a dt); schemes that read only
-    # v_tilde (APIC, TPIC) let P2G scatter p + f dt in place of p and f when there is no damping
-    uses_lumped_velocity = True
-
-    def strain_grid_velocity(self, v, transfer: Transfer, constraint: Constraint):
-        """Grid velocity used for the strain update, from lumped velocities (USF, MUSL)."""
-        return v
-
-    def momentum_contributions(self, stencil: Stencil, state):
-        """S_pi M_p V_p per stencil slot, planar (D, K, N), summed over p into p_i (003 eq. 2.1);
-        APIC/TPIC add their affine terms.  P2G scatters it together with the mass and the force."""
-        return momentum_contributions(stencil, state.mass, state.v)
-
-    def momentum(self, transfer: Transfer, state):
-        """Nodal momentum p_i (one scatter of :meth:`momentum_contributions`)."""
-        return scatter_planar(transfer.stencil.index, self.momentum_contributions(transfer.stencil, state),
-                              transfer.num_nodes)
-
-    def angular_momentum(self, state):
-        """sum_p X_p x M_p V_p (000 ch. 5); APIC adds its particle term (002 def. 5.1)."""
-        return angular_momentum(state)
-
-    def initial_affine(self, particles):
-        """Extra per-particle field this scheme carries (APIC's B_p, TPIC's grad v_p); None here."""
-        return None
-
-    def particle_state(self, state, update, transfer: Transfer, grid):
-        """New value of the scheme's extra per-particle field."""
-        return state.affine
 
 
 class XPIC(Scheme):
@@ -312,29 +226,50 @@ class FMPM(Scheme):
         return ParticleUpdate(V_new, X_new, v_plus, diss)
 
 
-def scheme_from_name(spec: str, beta: float | None = None) -> Scheme:
-    """Parse the CLI form: flip | pic | blend:B | xpic:M | fmpm:K | apic | tpic."""
-    name, _, arg = spec.partition(":")
-    name = name.lower()
-    if name in ("apic", "tpic"):
-        from ._affine import APIC, TPIC  # _affine builds on this module
-
-        check(not arg, f"scheme {spec!r}: {name} takes no ':' argument")
-        check(beta is None, f"scheme {spec!r}: {name} has no FLIP fraction; drop beta (--beta)")
-        return APIC() if name == "apic" else TPIC()
+def _number(arg: str, spec: str, kind=float):
+    """The part of a scheme spec after ':' as a number, or a clear error."""
     try:
-        if name == "flip":
-            return FLIP(beta=1.0 if beta is None else beta)
-        if name == "pic":
-            return PIC()
-        if name == "blend":
-            return FLIP(beta=float(arg) if arg else (0.99 if beta is None else beta))
-        if name == "xpic":
-            return XPIC(order=int(arg or 2), beta=0.0 if beta is None else beta)
-        if name == "fmpm":
-            return FMPM(order=int(arg or 2), beta=0.0 if beta is None else beta)
-    except ValueError as err:
-        if "invalid literal" in str(err):
-            check(False, f"scheme {spec!r}: the part after ':' must be a number")
-        raise
-    check(False, f"unknown scheme {spec!r}; choose flip, pic, blend:B, xpic:M or fmpm:K, or the affine apic or tpic")
+        value = kind(arg)
+    except ValueError:
+        check(False, f"scheme {spec!r}: the part after ':' must be {'an integer' if kind is int else 'a number'}, "
+                     f"got {arg!r}")
+    return value
+
+
+def _no_argument(name, arg):
+    check(not arg, f"scheme {name}:{arg!r}: {name} takes no ':' argument")
+
+
+def _parse_flip(arg, beta=None):
+    _no_argument("flip", arg)
+    return FLIP(beta=1.0 if beta is None else beta)
+
+
+def _parse_pic(arg, beta=None):
+    _no_argument("pic", arg)
+    check(beta is None, "scheme 'pic' has beta = 0 by definition; drop beta (--beta) or use blend:B")
+    return PIC()
+
+
+def _parse_blend(arg, beta=None):
+    check(not (arg and beta is not None), f"scheme 'blend:{arg}' already sets beta; drop beta (--beta)")
+    return FLIP(beta=_number(arg, f"blend:{arg}") if arg else (0.99 if beta is None else beta))
+
+
+def _parse_xpic(arg, beta=None):
+    return XPIC(order=_number(arg, f"xpic:{arg}", int) if arg else 2, beta=0.0 if beta is None else beta)
+
+
+def _parse_fmpm(arg, beta=None):
+    return FMPM(order=_number(arg, f"fmpm:{arg}", int) if arg else 2, beta=0.0 if beta is None else beta)
+
+
+BETA = Parameter("beta", lambda s: s.beta, "the scheme's FLIP fraction (FLIP, XPIC, FMPM)", (0.0, 1.0))
+register_scheme("flip", FLIP, parse=_parse_flip, spec="flip", parameters=[BETA])
+register_scheme("pic", PIC, parse=_parse_pic, spec="pic", parameters=[BETA])
+register_scheme("blend", FLIP, parse=_parse_blend, spec="blend:B", parameters=[BETA])
+register_scheme("xpic", XPIC, parse=_parse_xpic, spec="xpic:M", parameters=[BETA])
+register_scheme("fmpm", FMPM, parse=_parse_fmpm, spec="fmpm:K", parameters=[BETA])
+
+__all__ = ["XPIC", "FLIP", "PIC", "FMPM", "Damping", "GridSolution", "ParticleUpdate", "Scheme",
+           "damping_acceleration", "dissipated_energy", "mass_matrix_series", "scheme_from_name"]

@@ -14,11 +14,12 @@ from __future__ import annotations
 
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._backend import evaluate_once
 from ._errors import check
+from ._registry import register_shape
 
 
 class StencilBase(eqx.Module):
@@ -164,9 +165,9 @@ class ShapeFunction(eqx.Module):
     # ----------------------------------------------------------------- public
     def stencil(self, grid, x) -> "TensorStencil":
         """S_pi and G_pi for particles at ``x`` (N, D) on ``grid`` (planar layout, see :class:`Stencil`)."""
-        # evaluated once, into its own buffers: otherwise XLA fuses the 1D kernels (selects, powers)
-        # into every consumer and recomputes them per (node, particle, component)
-        return evaluated_once(lambda x: self._factors(grid, x), x)
+        # a stage boundary (jaxmpm._backend): on the CPU the 1D kernels (selects, powers) are
+        # evaluated once into their own buffers instead of being fused into every consumer
+        return evaluate_once(lambda x: self._factors(grid, x), x)
 
     def _factors(self, grid, x) -> "TensorStencil":
         dim = grid.dim
@@ -182,7 +183,7 @@ class ShapeFunction(eqx.Module):
             # it as a failure); inside the grid the clip changes nothing
             first = jnp.clip(self._base(xi[a]), 0, grid.cells[a] + 1 - k1)  # (N,)
             nodes = first + k  # (K1, N)
-            w, dw = self._kernel(xi[a] - nodes)  # r = particle minus node, in cells
+            w, dw = self._kernel(xi[a] - nodes.astype(x.dtype))  # r = particle minus node, in cells
             nodes_per_axis.append(nodes * jnp.int32(grid.strides[a]))
             ws.append(w)
             dws.append(dw / h[a])
@@ -197,40 +198,8 @@ class ShapeFunction(eqx.Module):
         xi = (x - lower) / h
         base = self._base(xi)
         top = base + self.nodes_per_axis - 1
-        cells = jnp.asarray(grid.cells)
+        cells = jnp.asarray(grid.cells, jnp.int32)
         return jnp.all((base >= 0) & (top <= cells) & jnp.isfinite(xi), axis=-1)
-
-
-def evaluated_once(fn, *args):
-    """``fn(*args)``, evaluated into its own buffers inside a conditional whose branch XLA cannot
-    see through (see :func:`_materialise`): its consumers read the result instead of recomputing
-    it, and unlike :func:`computed_once` no copy of the result is made."""
-    leaves = jax.tree_util.tree_leaves(args)
-    x = next(leaf for leaf in leaves if jnp.issubdtype(leaf.dtype, jnp.floating))
-    always = jnp.logical_not(x.reshape(-1)[0] > jnp.inf)
-    out = jax.eval_shape(fn, *args)
-    return jax.lax.cond(always, fn, lambda *a: jax.tree_util.tree_map(lambda o: jnp.zeros(o.shape, o.dtype), out), *args)
-
-
-def computed_once(arrays):
-    """``arrays`` (a pytree of float arrays) unchanged, but evaluated once, before their consumers:
-    per-particle quantities (APIC's C_p, the stress) would otherwise be recomputed by XLA for every
-    stencil slot and component of the kernel that uses them (see :func:`_materialise`)."""
-    leaves = jax.tree_util.tree_leaves(arrays)
-    return _materialise(arrays, leaves[0])
-
-
-def _materialise(arrays, x):
-    """``arrays`` unchanged, computed once.  XLA on CPU fuses cheap elementwise producers into every
-    consumer, so without this the 1D kernels (selects, abs, floor) are recomputed for each
-    (particle, node, component) of every transfer: measured 3x slower time step (mpm88, 8k
-    particles).  A conditional's result is not fused into its consumers (``lax.optimization_barrier``
-    is removed before fusion on CPU, and a cond with two identical branches is inlined).  The
-    predicate ``not (x > +inf)`` is true for every float, NaN included, but XLA cannot fold it, so
-    the taken branch is always the identity and the values are exactly the inputs (under vmap the
-    cond becomes a select that picks them)."""
-    always = jnp.logical_not(x.reshape(-1)[0] > jnp.inf)
-    return jax.lax.cond(always, lambda a: a, lambda a: jax.tree_util.tree_map(jnp.zeros_like, a), arrays)
 
 
 def _tensor(factors, combine):
@@ -346,14 +315,12 @@ class CubicBSpline(ShapeFunction):
         return 1.0 / 3.0
 
 
-SHAPES = {
-    "linear": Linear,
-    "ugimp": UGIMP,
-    "quadratic": QuadraticBSpline,
-    "cubic": CubicBSpline,
-}
+def _parse_ugimp(arg, ppc=None, **kwargs):
+    check(not arg, f"shape ugimp:{arg}: give ppc=..., not a ':' argument")
+    return UGIMP(**({} if ppc is None else {"ppc": ppc}))
 
 
-def shape_from_name(name: str, **kwargs) -> ShapeFunction:
-    check(name in SHAPES, f"unknown shape {name!r}; choose one of {', '.join(SHAPES)}")
-    return SHAPES[name](**kwargs)
+register_shape("linear", Linear)
+register_shape("ugimp", UGIMP, parse=_parse_ugimp)
+register_shape("quadratic", QuadraticBSpline)
+register_shape("cubic", CubicBSpline)

@@ -1,10 +1,11 @@
-"""``Simulation``: the static system (grid, shape, material, scheme, ...) with ``init``, ``step``
-and ``run`` (a ``lax.scan`` rollout that records diagnostics and detects instability)."""
+"""``Simulation``: the static model -- grid, shape function, material, scheme, physics terms,
+velocity conditions -- as one equinox module with ``init`` and ``step``.  Running it (``run``,
+``rollout``, checkpointing, chunked HDF5 writing, progress, instability detection) is the
+driver's job (``jaxmpm._driver``); ``sim.run`` and ``sim.rollout`` call it."""
 
 from __future__ import annotations
 
-import math
-import warnings
+import copy
 from typing import Callable
 
 import equinox as eqx
@@ -13,95 +14,41 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _diagnostics as diag
+from ._backend import POLICIES, use_policy
 from ._boundary import as_conditions, build_constraint
-from ._errors import InstabilityError, check
+from ._driver import History, StableTimeStepWarning, rollout, run  # noqa: F401  (re-exported)
+from ._errors import check
 from ._grid import Grid
 from ._materials import Material, _leaf, concrete
 from ._particles import Particles
-from ._schemes import Damping, Scheme, scheme_from_name
-from ._shapes import UGIMP, ShapeFunction, shape_from_name
+from ._registry import MATERIALS, SCHEMES, SHAPES, scheme_from_name, shape_from_name
+from ._scheme_base import Scheme
+from ._shapes import UGIMP, ShapeFunction
+from ._state import State
 from ._step import step as _step
+from ._terms import BodyForce, Damping, StressDivergence, Term
 
 UPDATES = {"USF": "USF", "USL": "USL", "USL-": "USL", "MUSL": "MUSL", "USL+": "MUSL"}
 
-CAUSES = {
-    1: "NaN or Inf in the particle state",
-    2: "J = det F <= 0 (a particle inverted)",
-    3: "particles left the grid",
-}
-
-
-class StableTimeStepWarning(UserWarning):
-    """dt exceeds the CFL limit h / max(c + |V|)."""
-
-
-class State(eqx.Module):
-    """Particle state: positions ``x`` (N, D), velocities ``v`` (N, D), deformation gradients ``F``
-    (N, D, D), masses, reference volumes, time, step count, cumulative dissipated energy, and the
-    scheme's extra field ``affine`` (None unless the scheme needs one)."""
-
-    x: jnp.ndarray
-    v: jnp.ndarray
-    F: jnp.ndarray
-    mass: jnp.ndarray
-    volume0: jnp.ndarray
-    time: jnp.ndarray
-    step: jnp.ndarray
-    dissipated: jnp.ndarray
-    affine: jnp.ndarray | None = None
-
-    @property
-    def volume(self):
-        """Current volume V0 det F."""
-        return self.volume0 * jnp.linalg.det(self.F)
-
-
-class History(eqx.Module):
-    """Saved frames (leading axis T): time, particle x/v (None if not saved), energies, momenta."""
-
-    time: jnp.ndarray
-    x: jnp.ndarray | None
-    v: jnp.ndarray | None
-    kinetic: jnp.ndarray
-    strain: jnp.ndarray
-    dissipated: jnp.ndarray
-    momentum: jnp.ndarray
-    angular: jnp.ndarray
-
-    @property
-    def total_energy(self):
-        return self.kinetic + self.strain
-
-    def __len__(self):
-        return int(self.time.shape[0])
-
-
-class Failure(eqx.Module):
-    """First failing step (-1 if none), cause code (see CAUSES) and the offending particle."""
-
-    step: jnp.ndarray
-    cause: jnp.ndarray
-    particle: jnp.ndarray
-
-
-def _is_traced(tree) -> bool:
-    return any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(tree))
-
 
 class Simulation(eqx.Module):
-    """An MPM model.  Float parameters (material constants, beta, damping, gravity) are array
-    leaves, so ``jax.grad``/``jax.vmap`` reach them; everything that fixes shapes or loop lengths
-    is static."""
+    """An MPM model.  Float parameters (material constants, beta, damping, gravity, prescribed
+    velocities) are array leaves, so ``jax.grad``/``jax.vmap`` reach them; everything that fixes
+    shapes or loop lengths is static.
+
+    ``terms`` holds the physics terms of the step in order: the stress divergence, the body
+    force (``gravity``, ``body_force``), damping (unless ``damping=False``), then any ``terms=``
+    given.  ``backend`` picks the fusion policy ("auto", "cpu", "gpu"; see ``jaxmpm._backend``):
+    it changes speed, never results."""
 
     grid: Grid
     shape: ShapeFunction
     material: Material
     scheme: Scheme
-    damping: Damping | None  # None: no damping in the model (damping=False)
-    gravity: jnp.ndarray
-    boundary: tuple = eqx.field(static=True)
+    terms: tuple
+    boundary: tuple  # velocity conditions, callable selectors resolved to node sets
     update: str = eqx.field(static=True)
-    body_force: Callable | None = eqx.field(static=True)
+    backend: str = eqx.field(static=True)
 
     def __init__(
         self,
@@ -114,19 +61,23 @@ class Simulation(eqx.Module):
         boundary=None,
         gravity=None,
         body_force: Callable | None = None,
+        terms=(),
+        backend: str = "auto",
     ):
         check(isinstance(grid, Grid), f"Simulation: grid must be a jm.Grid, got {type(grid).__name__}")
         if isinstance(shape, str):
             shape = shape_from_name(shape)
         check(isinstance(shape, ShapeFunction),
-              f"Simulation: unknown shape {shape!r}; use jm.Linear(), jm.UGIMP(), jm.QuadraticBSpline() or jm.CubicBSpline()")
+              f"Simulation: unknown shape {shape!r}; use one of {', '.join(SHAPES.names())} (jm.Linear(), ...)")
         if isinstance(scheme, str):
             scheme = scheme_from_name(scheme)
         check(isinstance(scheme, Scheme),
-              f"Simulation: unknown scheme {scheme!r}; use jm.FLIP, jm.PIC, jm.XPIC, jm.FMPM, jm.APIC or jm.TPIC")
+              f"Simulation: unknown scheme {scheme!r}; use a jm.Scheme or one of {SCHEMES.specs()}")
         check(isinstance(material, Material),
-              f"Simulation: material must be jm.LinearElastic or jm.NeoHookean, got {type(material).__name__}")
+              f"Simulation: material must be a jm.Material ({', '.join(MATERIALS.names())}), "
+              f"got {type(material).__name__}")
         check(update in UPDATES, f"Simulation: update = {update!r}; choose USF, USL (USL-) or MUSL (USL+)")
+        check(backend in POLICIES, f"Simulation: backend = {backend!r}; choose one of {', '.join(POLICIES)}")
         # None: zero damping, still a differentiable parameter; False: no damping in the model at
         # all (nothing compiled for it -- "model no more than a scene needs")
         if damping is False:
@@ -136,26 +87,68 @@ class Simulation(eqx.Module):
         else:
             check(isinstance(damping, Damping),
                   "Simulation: damping must be jm.Damping(grid=..., particle=...), None (zero) or False (none)")
+        g = jnp.zeros(grid.dim) if gravity is None else _leaf(gravity, "gravity", "Simulation")
+        g = jnp.broadcast_to(g, (grid.dim,)) if g.ndim == 0 else g
+        check(g.shape[-1:] == (grid.dim,), f"Simulation: gravity must have {grid.dim} components, got shape {g.shape}")
+        check(body_force is None or callable(body_force), "Simulation: body_force must be a callable b(x, t) -> (N, D)")
+        extra = (terms,) if isinstance(terms, Term) else tuple(terms)
+        for t in extra:
+            check(isinstance(t, Term), f"Simulation: terms must be jm.Term instances, got {t!r}")
         self.grid = grid
         self.shape = shape
         self.material = material
         self.scheme = scheme
-        self.damping = damping
+        self.terms = (StressDivergence(), BodyForce(g, body_force)) + ((damping,) if damping is not None else ()) + extra
+        self.boundary = as_conditions(boundary, grid)
         self.update = UPDATES[update]
-        self.boundary = as_conditions(boundary)
-        g = jnp.zeros(grid.dim) if gravity is None else _leaf(gravity, "gravity", "Simulation")
-        g = jnp.broadcast_to(g, (grid.dim,)) if g.ndim == 0 else g
-        check(g.shape[-1:] == (grid.dim,), f"Simulation: gravity must have {grid.dim} components, got shape {g.shape}")
-        self.gravity = g
-        check(body_force is None or callable(body_force), "Simulation: body_force must be a callable b(x, t) -> (N, D)")
-        self.body_force = body_force
+        self.backend = backend
+        names = [f.name for t in self.terms for f in t.particle_fields()]
+        check(len(names) == len(set(names)), f"Simulation: two terms declare the same particle field: {names}")
+
+    # ------------------------------------------------------------- the parts
+    def term(self, cls):
+        """The model's term of class ``cls``, or None."""
+        for t in self.terms:
+            if isinstance(t, cls):
+                return t
+        return None
+
+    def with_term(self, term: Term):
+        """A copy with ``term`` added (or replacing the term of the same class)."""
+        kept = tuple(t for t in self.terms if type(t) is not type(term))
+        return eqx.tree_at(lambda s: s.terms, self, kept + (term,))
+
+    def with_backend(self, backend: str):
+        """A copy traced under another fusion policy ("auto", "cpu", "gpu"; jaxmpm._backend)."""
+        check(backend in POLICIES, f"Simulation: backend = {backend!r}; choose one of {', '.join(POLICIES)}")
+        new = copy.copy(self)
+        object.__setattr__(new, "backend", backend)
+        return new
+
+    @property
+    def damping(self) -> Damping | None:
+        """The damping term, or None when the model has none (``damping=False``)."""
+        return self.term(Damping)
+
+    @property
+    def gravity(self):
+        return self.term(BodyForce).gravity
+
+    @property
+    def body_force(self):
+        return self.term(BodyForce).field
+
+    def particle_fields(self) -> tuple:
+        """The :class:`jaxmpm.ParticleField` declared by the model's terms."""
+        return tuple(f for t in self.terms for f in t.particle_fields())
 
     # ------------------------------------------------------------------ state
     def constraint(self, dtype):
         return build_constraint(self.grid, self.boundary, dtype)
 
-    def init(self, particles: Particles) -> State:
-        """Initial state from :func:`jaxmpm.fill` output (or any :class:`Particles`)."""
+    def init(self, particles: Particles, fields: dict | None = None) -> State:
+        """Initial state from :func:`jaxmpm.fill` output (or any :class:`Particles`); the fields
+        the terms declare start at their declared initial values unless ``fields`` gives them."""
         check(isinstance(particles, Particles), "Simulation.init: pass the jm.Particles returned by jm.fill")
         x = jnp.asarray(particles.x)
         d = self.grid.dim
@@ -188,6 +181,13 @@ class Simulation(eqx.Module):
                       f"material density is {float(rc):.6g}; drop density from jm.fill or make them agree")
         dtype = x.dtype
         n = x.shape[0]
+        declared = {f.name: f for f in self.particle_fields()}
+        given = dict(fields or {})
+        unknown = sorted(set(given) - set(declared))
+        check(not unknown, f"Simulation.init: fields {unknown} are not declared by any term of this model "
+                           f"(declared: {sorted(declared) or 'none'})")
+        values = {name: (jnp.broadcast_to(jnp.asarray(given[name], dtype), (n,) + tuple(f.shape)) if name in given
+                         else f.initial_value(x)) for name, f in declared.items()}
         return State(
             x=x,
             v=jnp.asarray(particles.v, dtype),
@@ -197,22 +197,40 @@ class Simulation(eqx.Module):
             time=jnp.zeros((), dtype),
             step=jnp.zeros((), jnp.int32),
             dissipated=jnp.zeros((), dtype),
-            affine=self.scheme.initial_affine(particles),
+            scheme_state=self.scheme.initial_state(particles),
+            material_state=self.material.initial_state(particles),
+            fields=values,
         )
 
     # ------------------------------------------------------------------- step
     def step(self, state: State, dt) -> State:
-        """Advance one time step (pure)."""
-        return _step(self, state, dt)
+        """Advance one time step (pure).  The model computes in its state's precision: float
+        parameters of another precision (a float64 model built in a 64-bit process, stepped with a
+        float32 state) are cast to the state's dtype on entry."""
+        with use_policy(self.backend):
+            return _step(self.in_precision(state.x.dtype), state, dt)
+
+    def in_precision(self, dtype):
+        """The model with its float leaves cast to ``dtype`` (itself if they already are)."""
+        leaves = [leaf for leaf in jax.tree_util.tree_leaves(self) if isinstance(leaf, jax.Array)
+                  and jnp.issubdtype(leaf.dtype, jnp.floating)]
+        if all(leaf.dtype == dtype for leaf in leaves):
+            return self
+        return jax.tree_util.tree_map(
+            lambda a: a.astype(dtype) if isinstance(a, jax.Array) and jnp.issubdtype(a.dtype, jnp.floating) else a,
+            self)
 
     def stable_dt(self, state: State, cfl: float = 1.0):
         """CFL time step h / max_p(c + |V_p|) times ``cfl``."""
-        return diag.stable_dt(self.grid, self.material, state.v, cfl)
+        return diag.stable_dt(self.grid, self.in_precision(state.x.dtype).material, state.v, cfl)
 
     def instability(self, state: State):
         """(cause code, particle index) for the first problem found in ``state``; code 0 = fine."""
         finite = jnp.all(jnp.isfinite(state.x), -1) & jnp.all(jnp.isfinite(state.v), -1)
         finite = finite & jnp.all(jnp.isfinite(state.F), (-1, -2))
+        for value in state.fields.values():  # the terms' fields too (e.g. a temperature)
+            if jnp.issubdtype(value.dtype, jnp.floating):
+                finite = finite & jnp.all(jnp.isfinite(value.reshape(value.shape[0], -1)), -1)
         positive = jnp.linalg.det(state.F) > 0
         inside = self.shape.inside(self.grid, state.x)
         code = jnp.where(~jnp.all(finite), 1, jnp.where(~jnp.all(positive), 2, jnp.where(~jnp.all(inside), 3, 0)))
@@ -228,194 +246,28 @@ class Simulation(eqx.Module):
             angular=self.scheme.angular_momentum(state),
         )
 
-    def _frame(self, state: State, save_particles: bool) -> History:
-        d = self.diagnostics(state)
+    def diagnostics_frame(self, state: State, save_particles: bool) -> History:
+        """One saved frame of a run: time, diagnostics and (``save_particles``) the particle
+        positions, velocities and the saved fields the terms declare."""
+        saved = {f.name for f in self.particle_fields() if f.save}
         return History(
             time=state.time,
             x=state.x if save_particles else None,
             v=state.v if save_particles else None,
-            **d,
+            fields={k: v for k, v in state.fields.items() if k in saved} if save_particles else {},
+            **self.diagnostics(state),
         )
 
-    # -------------------------------------------------------------------- run
+    # ----------------------------------------------------- the driver's entry points
     def rollout(self, state: State, dt, frames: int, save_every: int = 1, save_particles: bool = True,
                 checkpoint=True):
-        """Pure ``lax.scan`` rollout of ``frames * save_every`` steps.  Returns
-        ``(final_state, history, failure)``; ``history`` holds the initial frame and one frame
-        every ``save_every`` steps (``frames + 1`` in all).
+        """See :func:`jaxmpm._driver.rollout`."""
+        return rollout(self, state, dt, frames, save_every, save_particles, checkpoint)
 
-        ``checkpoint`` (reverse mode only; the forward pass is unchanged): ``True`` splits each
-        frame into segments of about sqrt(save_every) steps and rematerialises frames, segments and
-        steps, so the gradient stores O(frames + sqrt(save_every)) states instead of every
-        intermediate of every step; an int sets the segment length (a divisor of save_every);
-        ``False`` stores everything (fastest for short rollouts).
-        """
-        dt = jnp.asarray(dt, state.x.dtype)
-        none = Failure(jnp.array(-1, jnp.int32), jnp.array(0, jnp.int32), jnp.array(-1, jnp.int32))
-        segment = _segment_length(save_every, checkpoint)
-        remat = (lambda f: f) if segment is None else jax.checkpoint  # noqa: E731
+    def run(self, state: State, dt, steps: int, save_every: int = 1, **options):
+        """See :func:`jaxmpm._driver.run`."""
+        return run(self, state, dt, steps, save_every, **options)
 
-        @remat
-        def one_step(carry, _):
-            s, fail = carry
-            s = self.step(s, dt)
-            code, particle = self.instability(s)
-            new = (fail.step < 0) & (code > 0)
-            fail = Failure(
-                jnp.where(new, s.step, fail.step),
-                jnp.where(new, code, fail.cause),
-                jnp.where(new, particle, fail.particle),
-            )
-            return (s, fail), None
-
-        seg_len = save_every if segment is None else segment
-
-        @remat
-        def one_segment(carry, _):
-            carry, _ = jax.lax.scan(one_step, carry, None, length=seg_len)
-            return carry, None
-
-        @remat
-        def one_frame(carry, _):
-            carry, _ = jax.lax.scan(one_segment, carry, None, length=save_every // seg_len)
-            return carry, self._frame(carry[0], save_particles)
-
-        (final, failure), frames_hist = jax.lax.scan(one_frame, (state, none), None, length=frames)
-        first = self._frame(state, save_particles)
-        history = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a[None], b]), first, frames_hist)
-        return final, history, failure
-
-    def run(
-        self,
-        state: State,
-        dt,
-        steps: int,
-        save_every: int = 1,
-        *,
-        save_particles: bool = True,
-        check_stability: bool = True,
-        progress: bool = False,
-        writer=None,
-        frames_per_chunk: int | None = None,
-        checkpoint=True,
-    ):
-        """Run ``steps`` steps, saving a frame every ``save_every`` steps (plus the initial frame).
-
-        Returns ``(final_state, history)``.  Traceable: under ``jax.grad``/``vmap``/``jit`` it is a
-        single ``lax.scan``.  Called eagerly it also warns when ``dt`` exceeds the CFL limit and
-        raises :class:`InstabilityError` naming the first bad step.  With ``writer`` (a
-        :class:`jaxmpm.H5Writer`) or ``progress=True`` it runs in chunks of ``frames_per_chunk``
-        frames, writing/reporting each before the next, and returns ``(final_state, None)`` when
-        a writer holds the frames.  ``checkpoint`` controls rematerialisation for reverse-mode
-        gradients (see :meth:`rollout`); it does not change the forward results.
-        """
-        check(isinstance(steps, (int, np.integer)) and steps >= 0, f"run: steps = {steps!r} must be a non-negative integer")
-        check(isinstance(save_every, (int, np.integer)) and save_every >= 1,
-              f"run: save_every = {save_every!r} must be a positive integer")
-        check(steps % save_every == 0,
-              f"run: steps = {steps} is not a multiple of save_every = {save_every}; "
-              f"use steps = {math.ceil(steps / save_every) * save_every}")
-        frames = steps // save_every
-        traced = _is_traced((self, state, dt))
-        dt = jnp.asarray(dt, state.x.dtype)  # an array, so a new dt value does not recompile
-        if not traced:
-            dtc = float(np.asarray(dt))
-            check(math.isfinite(dtc) and dtc > 0, f"run: dt = {dtc} must be a positive number")
-            limit = float(self.stable_dt(state))
-            if dtc > limit:
-                warnings.warn(
-                    f"dt = {dtc:.6g} exceeds the stable limit {limit:.6g} (= h / max(c + |V|)); "
-                    f"use dt <= {0.5 * limit:.6g} (CFL 0.5) to stay stable",
-                    StableTimeStepWarning,
-                    stacklevel=2,
-                )
-        if traced or (writer is None and not progress):
-            final, history, failure = _jit_rollout(self, state, dt, frames, save_every, save_particles,
-                                                   checkpoint)
-            if not traced and check_stability:
-                _raise_if_failed(failure, dt, state)
-            return final, history
-        return self._run_chunked(state, dt, frames, save_every, save_particles, check_stability,
-                                 progress, writer, frames_per_chunk)
-
-    def _run_chunked(self, state, dt, frames, save_every, save_particles, check_stability, progress, writer,
-                     frames_per_chunk):
-        chunk = frames_per_chunk or max(1, min(frames, 50))
-        bar = None
-        if progress:
-            from tqdm.auto import tqdm
-
-            bar = tqdm(total=frames * save_every, unit="step", desc="jaxmpm")
-        pieces = []
-        first = jax.tree_util.tree_map(lambda a: a[None], _jit_frame(self, state, save_particles))
-        if writer is not None:
-            writer.append(first)
-        else:
-            pieces.append(first)
-        done = 0
-        try:
-            while done < frames:
-                n = min(chunk, frames - done)
-                start_step = int(state.step)
-                new_state, hist, failure = _jit_rollout(self, state, dt, n, save_every, save_particles)
-                hist = jax.tree_util.tree_map(lambda a: a[1:], hist)  # drop the repeated first frame
-                bad_step = int(failure.step)
-                if bad_step >= 0 and check_stability:
-                    good = max(0, (bad_step - start_step - 1) // save_every)  # frames strictly before failure
-                    hist = jax.tree_util.tree_map(lambda a: a[:good], hist)
-                if writer is not None:
-                    writer.append(hist)
-                else:
-                    pieces.append(hist)
-                if bar is not None:
-                    bar.update(n * save_every)
-                if check_stability:
-                    _raise_if_failed(failure, dt, state)
-                state = new_state
-                done += n
-        finally:
-            if bar is not None:
-                bar.close()
-            if writer is not None:
-                writer.flush()
-        if writer is not None:
-            return state, None
-        history = jax.tree_util.tree_map(lambda *a: jnp.concatenate(a), *pieces)
-        return state, history
-
-    # ------------------------------------------------------------- helpers
     @property
     def dim(self) -> int:
         return self.grid.dim
-
-
-@eqx.filter_jit
-def _jit_frame(sim, state, save_particles):
-    return sim._frame(state, save_particles)
-
-
-@eqx.filter_jit
-def _jit_rollout(sim, state, dt, frames, save_every, save_particles, checkpoint=True):
-    return sim.rollout(state, dt, frames, save_every, save_particles, checkpoint)
-
-
-def _segment_length(save_every: int, checkpoint):
-    """Steps per rematerialised segment, or None for no checkpointing."""
-    if checkpoint is False or checkpoint is None:
-        return None
-    if checkpoint is True:
-        divisors = [d for d in range(1, save_every + 1) if save_every % d == 0]
-        return min(divisors, key=lambda d: abs(d - math.sqrt(save_every)))
-    check(isinstance(checkpoint, (int, np.integer)) and checkpoint >= 1 and save_every % checkpoint == 0,
-          f"checkpoint = {checkpoint!r} must be True, False or a positive divisor of save_every = {save_every}")
-    return int(checkpoint)
-
-
-def _raise_if_failed(failure: Failure, dt, state0):
-    step = int(failure.step)
-    if step < 0:
-        return
-    cause = CAUSES.get(int(failure.cause), "unknown")
-    cause = f"{cause} (particle {int(failure.particle)})"
-    t = float(state0.time) + (step - int(state0.step)) * float(np.asarray(dt))
-    raise InstabilityError(step, cause, t)

@@ -1,8 +1,17 @@
-"""The three pure steps of one MPM time step (DESIGN.md "One time step"), single velocity field.
+"""One MPM time step as the stages of 003 §2.1, with the model's physics terms plugged in.
 
-``p2g``        particle -> grid: lumped mass m_i, momentum p_i, force f_i (001 eqs. 20-25)
-``grid_solve`` v = p/m, a = f/m, v_tilde = v + a dt with velocity boundary conditions
-``g2p``        the scheme's particle update, then (USL/MUSL) the strain update
+``step`` reads as the algorithm:
+
+1. shape functions S_pi, G_pi at the particles               (001 eqs. 16-17)
+2. ``p2g``: the nodal fields the scheme and the terms request, in one scatter-add --
+   lumped mass m_i, momentum p_i (003 eq. 2.1, plus APIC/TPIC's affine terms) and the terms'
+   columns (force f_i: stress divergence and body force, 001 eq. 20, 003 eq. 2.10)
+3. ``grid_solve``: v = p/m, a = f/m, v_tilde = v + a dt, velocity conditions; terms' grid actions
+4. ``g2p``: the scheme's particle update (000 eq. 3.28, 003 eq. 2.17, 002 eq. 4); terms' particle
+   actions; the strain update (USL-: the update's grid velocity; MUSL: re-extrapolated, 003
+   §2.1.6) and the material's state update
+
+USF computes the strain increment before the forces (from the start-of-step velocities).
 """
 
 from __future__ import annotations
@@ -11,18 +20,9 @@ import equinox as eqx
 import jax.numpy as jnp
 
 from ._boundary import Constraint
-from ._schemes import GridSolution
-from ._shapes import StencilBase as Stencil, evaluated_once
-from ._transfer import Transfer, force_contributions, safe_divide, scatter_planar
-
-
-class GridFields(eqx.Module):
-    """What P2G puts on the grid."""
-
-    transfer: Transfer  # S, S+, S+S and the lumped nodal mass
-    momentum: jnp.ndarray | None  # p_i (n, D); None when only the updated momentum was scattered
-    force: jnp.ndarray | None = None  # f_i (n, D); None when P2G was asked for no force (USF)
-    updated_momentum: jnp.ndarray | None = None  # p_i + f_i dt, when scattered in place of p and f
+from ._fields import GridFields, GridSolution
+from ._shapes import StencilBase as Stencil
+from ._transfer import Transfer, safe_divide, scatter_columns
 
 
 def folds_force(sim) -> bool:
@@ -39,44 +39,40 @@ def update_deformation(F, grad_v, dt):
     return (eye + grad_v * dt) @ F
 
 
-def force_contributions_of(sim, state, stencil: Stencil):
-    """Per-slot -V0_p tau_p . G_pi + S_pi M_p b_p, planar (D, K, N)  (001 eq. 20, 003 eq. 2.10)."""
-    tau = sim.material.kirchhoff_stress(state.F)
-    body = jnp.broadcast_to(sim.gravity.astype(state.x.dtype), state.x.shape)
-    if sim.body_force is not None:
-        body = body + sim.body_force(state.x, state.time)
-    return force_contributions(stencil, state.volume0[:, None, None] * tau, state.mass[:, None] * body)
+def term_columns(sim, state, stencil: Stencil) -> dict:
+    """The terms' per-slot columns, summed by name in term order."""
+    columns = {}
+    for term in sim.terms:
+        for name, c in term.p2g_columns(sim, state, stencil).items():
+            columns[name] = columns[name] + c if name in columns else c
+    return columns
 
 
 def p2g(sim, state, force: bool = True, dt=None) -> GridFields:
     """Lumped mass m_i = sum_p S_pi M_p, momentum p_i = sum_p S_pi M_p V_p (003 eq. 2.1) plus the
-    scheme's affine terms (APIC/TPIC), and (``force=True``) the nodal force of :func:`nodal_force`,
-    all in one scatter-add of (1 + 2D) numbers per stencil slot.  With ``dt`` (see
-    :func:`folds_force`) the momentum and force are scattered as one updated momentum p + f dt."""
+    scheme's affine terms (APIC/TPIC), and (``force=True``) the terms' columns (the nodal force),
+    all in one scatter-add.  With ``dt`` (see :func:`folds_force`) momentum and force are
+    scattered as one updated momentum p + f dt."""
     stencil = sim.shape.stencil(sim.grid, state.x)
-    d = state.x.shape[1]
 
     def columns(stencil, state, dt):
-        mass = (stencil.weight * state.mass)[None]
-        momentum = sim.scheme.momentum_contributions(stencil, state)
+        out = {"mass": stencil.weight * state.mass,
+               "momentum": sim.scheme.momentum_contributions(stencil, state)}
+        if force or dt is not None:
+            out.update(term_columns(sim, state, stencil))
         if dt is not None:
-            return jnp.concatenate([mass, momentum + dt * force_contributions_of(sim, state, stencil)])
-        if force:
-            return jnp.concatenate([mass, momentum, force_contributions_of(sim, state, stencil)])
-        return jnp.concatenate([mass, momentum])
+            out["updated_momentum"] = out.pop("momentum") + dt * out.pop("force")
+        return out
 
-    # evaluated into its own buffer (vectorised over particles), then scattered as (node, columns) rows
-    nodal = scatter_planar(stencil.index, evaluated_once(columns, stencil, state, dt), sim.grid.num_nodes)
-    transfer = Transfer(stencil, state.mass, nodal[:, 0], sim.grid.num_nodes)
-    if dt is not None:
-        return GridFields(transfer=transfer, momentum=None, updated_momentum=nodal[:, 1:])
-    return GridFields(transfer=transfer, momentum=nodal[:, 1:1 + d], force=nodal[:, 1 + d:] if force else None)
+    nodal = scatter_columns(stencil, columns, sim.grid.num_nodes, stencil, state, dt)
+    transfer = Transfer(stencil, state.mass, nodal.pop("mass"), sim.grid.num_nodes)
+    return GridFields(transfer, nodal)
 
 
 def nodal_force(sim, state, transfer: Transfer):
-    """f_i = -sum_p V0_p tau_p . G_pi + sum_p S_pi M_p b_p  (001 eq. 20, 003 eq. 2.10)."""
-    return scatter_planar(transfer.stencil.index, force_contributions_of(sim, state, transfer.stencil),
-                          transfer.num_nodes)
+    """The terms' nodal force alone (USF: after the strain update), one scatter-add."""
+    return scatter_columns(transfer.stencil, lambda s: {"force": term_columns(sim, s, transfer.stencil)["force"]},
+                           transfer.num_nodes, state)["force"]
 
 
 def grid_solve(fields: GridFields, force, dt, constraint: Constraint) -> GridSolution:
@@ -104,32 +100,46 @@ def step(sim, state, dt):
         transfer = fields.transfer
         v0 = constraint.apply(safe_divide(fields.momentum, transfer.nodal_mass))
         v_strain = sim.scheme.strain_grid_velocity(v0, transfer, constraint)
-        state = eqx.tree_at(lambda s: s.F, state, update_deformation(state.F, transfer.velocity_gradient(v_strain), dt))
-        force = nodal_force(sim, state, transfer)
+        F = update_deformation(state.F, transfer.velocity_gradient(v_strain), dt)
+        material_state = sim.material.update_state(F, state.material_state, dt)
+        state = eqx.tree_at(lambda s: (s.F, s.material_state), state, (F, material_state),
+                            is_leaf=lambda x: x is None)
+        fields = GridFields(transfer, fields.values, force=nodal_force(sim, state, transfer))
     else:  # USL, MUSL: the stress of the step's start, scattered with the mass and momentum
         fields = p2g(sim, state, dt=dt if folds_force(sim) else None)
-        transfer, force = fields.transfer, fields.force
+    transfer = fields.transfer
 
-    grid = grid_solve(fields, force, dt, constraint)
-    return g2p(sim, state, transfer, constraint, grid, dt)
+    solution = grid_solve(fields, fields.force, dt, constraint)
+    for term in sim.terms:
+        solution = term.grid_action(sim, fields, solution, dt)
+    return g2p(sim, state, transfer, constraint, solution, dt)
 
 
 def g2p(sim, state, transfer: Transfer, constraint: Constraint, grid: GridSolution, dt):
-    """Particle update by the scheme, then the USL-/MUSL strain update."""
+    """Particle update by the scheme, the terms' particle actions, then the USL-/MUSL strain
+    update and the material's state update."""
     upd = sim.scheme.update(state.v, state.x, transfer, constraint, grid, sim.damping, dt)
-    extra = sim.scheme.particle_state(state, upd, transfer, grid)
+    scheme_state = sim.scheme.next_state(state, upd, transfer, grid)
     F = state.F
     if sim.update == "USL":  # USL-: the velocity the update just used
         F = update_deformation(F, transfer.velocity_gradient(upd.strain_velocity), dt)
     elif sim.update == "MUSL":  # USL+: re-extrapolate p = S^T M V^{n+1} (003 §2.1.6), affine terms included
-        updated = eqx.tree_at(lambda s: (s.v, s.affine), state, (upd.velocity, extra), is_leaf=lambda x: x is None)
+        updated = eqx.tree_at(lambda s: (s.v, s.scheme_state), state, (upd.velocity, scheme_state),
+                              is_leaf=lambda x: x is None)
         v_new = constraint.apply(safe_divide(sim.scheme.momentum(transfer, updated), transfer.nodal_mass))
         v_strain = sim.scheme.strain_grid_velocity(v_new, transfer, constraint)
         F = update_deformation(F, transfer.velocity_gradient(v_strain), dt)
+    material_state = state.material_state
+    if sim.update != "USF":  # (USF updated the material state before the forces)
+        material_state = sim.material.update_state(F, material_state, dt)
     F = sim.material.keep_deformation(F)  # F itself except for fluids (VolumetricFluid: J^(1/D) I)
-    return eqx.tree_at(
-        lambda s: (s.x, s.v, s.F, s.time, s.step, s.dissipated, s.affine),
+    new = eqx.tree_at(
+        lambda s: (s.x, s.v, s.F, s.time, s.step, s.dissipated, s.scheme_state, s.material_state),
         state,
-        (upd.position, upd.velocity, F, state.time + dt, state.step + 1, state.dissipated + upd.dissipated, extra),
+        (upd.position, upd.velocity, F, state.time + dt, state.step + 1, state.dissipated + upd.dissipated,
+         scheme_state, material_state),
         is_leaf=lambda x: x is None,
     )
+    for term in sim.terms:
+        new = term.particle_action(sim, state, new, transfer, grid, dt)
+    return new

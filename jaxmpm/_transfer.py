@@ -18,7 +18,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._shapes import StencilBase as Stencil, computed_once
+from ._backend import evaluate_once, materialise
+from ._shapes import StencilBase as Stencil
 
 
 def safe_divide(numerator, mass):
@@ -54,16 +55,37 @@ def scatter_planar(index, contributions, num_nodes: int):
                                mode=jax.lax.GatherScatterMode.PROMISE_IN_BOUNDS)
 
 
+def scatter_columns(stencil: Stencil, columns, num_nodes: int, *args) -> dict:
+    """P2G of named columns in ONE scatter-add.  ``columns(*args)`` returns {name: per-slot
+    contributions, planar (K, N) or (C, K, N)}; the result is {name: nodal (n,) or (n, C)}.  The
+    columns are evaluated into one buffer (a stage boundary, see jaxmpm._backend) and scattered
+    as (node, all columns) rows."""
+    layout = {}  # name -> (width, scalar), in the order the columns are stacked
+
+    def stacked(*a):
+        cols = columns(*a)
+        layout.clear()
+        layout.update({name: (1 if c.ndim == 2 else c.shape[0], c.ndim == 2) for name, c in cols.items()})
+        return jnp.concatenate([c[None] if c.ndim == 2 else c for c in cols.values()])
+
+    nodal = scatter_planar(stencil.index, evaluate_once(stacked, *args), num_nodes)
+    out, start = {}, 0
+    for name, (width, scalar) in layout.items():
+        out[name] = nodal[:, start] if scalar else nodal[:, start:start + width]
+        start += width
+    return out
+
+
 def nodal_values(stencil: Stencil, u):
     """u_i at every stencil slot: (n,) -> (K, N), (n, C) -> a list of C arrays (K, N).  One gather
     of scalars per component (from the transposed (C, n) nodal array): on CPU this is faster than
     gathering (K N, C) rows and transposing them, and consumers read each component directly."""
     index = stencil.index  # on the grid (shape functions clip it), so no bounds handling
     if u.ndim == 1:
-        return computed_once(u).at[index].get(mode="promise_in_bounds")
+        return materialise(u).at[index].get(mode="promise_in_bounds")
     # the nodal field is evaluated once first: XLA would otherwise fuse its whole computation
     # (v = p/m, boundary conditions) into the gather and repeat it for every slot
-    return computed_once([uc.at[index].get(mode="promise_in_bounds") for uc in computed_once(u.T)])
+    return materialise([uc.at[index].get(mode="promise_in_bounds") for uc in materialise(u.T)])
 
 
 def gather_planar(stencil: Stencil, u):
@@ -84,7 +106,7 @@ def gather(stencil: Stencil, u):
 def to_particle_major(planar):
     """(C..., N) -> (N, C...), evaluated first: otherwise XLA moves the whole planar computation
     into the transpose, where it runs element by element instead of on particle vectors."""
-    return jnp.moveaxis(computed_once(planar), -1, 0)
+    return jnp.moveaxis(materialise(planar), -1, 0)
 
 
 def scatter(stencil: Stencil, q, num_nodes: int):
@@ -102,15 +124,25 @@ def velocity_gradient(stencil: Stencil, v):
     return to_particle_major(planar)
 
 
+def stress_divergence_contributions(stencil: Stencil, weighted_stress):
+    """Per-slot internal force -(V0_p tau_p) . G_pi (001 eq. 20, 003 eq. 2.10), planar (D, K, N)."""
+    g = stencil.gradient
+    d = g.shape[0]
+    tau = materialise(jnp.moveaxis(weighted_stress, 0, -1))[:, :, None, :]  # (D, D, 1, N), once per particle
+    return -jnp.stack([sum(tau[a, b] * g[b] for b in range(d)) for a in range(d)])
+
+
+def particle_force_contributions(stencil: Stencil, particle_force):
+    """Per-slot S_pi q_p of a particle force ``q`` (N, D) (e.g. M_p b_p), planar (D, K, N)."""
+    return stencil.weight * materialise(particle_force.T)[:, None, :]
+
+
 def force_contributions(stencil: Stencil, weighted_stress, particle_force=None):
     """Per-slot internal force -(V0_p tau_p) . G_pi (001 eq. 20, 003 eq. 2.10) plus S_pi q_p for an
     optional particle force ``q`` (N, D) (e.g. M_p b_p); planar (D, K, N)."""
-    g = stencil.gradient
-    d = g.shape[0]
-    tau = computed_once(jnp.moveaxis(weighted_stress, 0, -1))[:, :, None, :]  # (D, D, 1, N), once per particle
-    contrib = -jnp.stack([sum(tau[a, b] * g[b] for b in range(d)) for a in range(d)])
+    contrib = stress_divergence_contributions(stencil, weighted_stress)
     if particle_force is not None:
-        contrib = contrib + stencil.weight * computed_once(particle_force.T)[:, None, :]
+        contrib = contrib + particle_force_contributions(stencil, particle_force)
     return contrib
 
 

@@ -35,6 +35,9 @@ EXIT_ERROR = 2
 
 
 def build_parser() -> argparse.ArgumentParser:
+    import jaxmpm  # noqa: F401  (registers the schemes and shapes)
+    from jaxmpm._registry import SCHEMES, SHAPES
+
     parser = argparse.ArgumentParser(
         prog="jaxmpm",
         description="Differentiable Material Point Method in JAX: run the benchmark scenes.",
@@ -49,7 +52,7 @@ def build_parser() -> argparse.ArgumentParser:
         "Options left out keep the scene's defaults (see `jaxmpm scenes`).",
     )
     run.add_argument("scene", metavar="SCENE", help="scene name (see `jaxmpm scenes`)")
-    run.add_argument("--scheme", default=None, metavar="flip|pic|blend:B|xpic:M|fmpm:K|apic|tpic",
+    run.add_argument("--scheme", default=None, metavar=SCHEMES.specs().replace(" ", ""),
                      help="velocity update (default: the scene's, flip for bar and disks)")
     run.add_argument("--beta", type=float, default=None, metavar="B",
                      help="FLIP fraction of flip/xpic/fmpm (default: 1 for flip, 0 for xpic and fmpm); "
@@ -57,7 +60,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--alpha-g", type=float, default=None, metavar="A", help="grid damping alpha_g in 1/time (default 0)")
     run.add_argument("--alpha-p", type=float, default=None, metavar="A",
                      help="particle damping alpha_p in 1/time (default 0)")
-    run.add_argument("--shape", default=None, choices=["linear", "ugimp", "quadratic", "cubic"],
+    run.add_argument("--shape", default=None, choices=list(SHAPES.names()),
                      help="shape function (default: the scene's: linear for bar, ugimp for disks)")
     run.add_argument("--update", default=None, choices=["USL", "USF", "MUSL"], help="stress update (default: the scene's, USL for bar and disks)")
     run.add_argument("--cells", type=int, default=None, metavar="N", help="cells along the bar (bar)")
@@ -122,8 +125,7 @@ def build_setup(args):
     """Scene builder keyword arguments from ``args``; an option the builder does not take is an error."""
     import jaxmpm as jm
     from jaxmpm._errors import check
-    from jaxmpm._schemes import scheme_from_name
-    from jaxmpm._shapes import shape_from_name
+    from jaxmpm._registry import scheme_from_name, shape_from_name
 
     check(args.scene in jm.SCENES,
           f"unknown scene {args.scene!r}; choose one of {', '.join(jm.SCENES)} (see `jaxmpm scenes`)")

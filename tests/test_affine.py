@@ -32,41 +32,21 @@ from jaxmpm._affine import affine_angular_momentum, affine_weights, inertia_tens
 from jaxmpm._boundary import Constraint
 from jaxmpm._schemes import GridSolution
 from jaxmpm._transfer import Transfer
+from cases import AFFINE_GRIDS, FOUR_SHAPES, random_particles
 
 TOL = 1e-12
 N_PARTICLES = 40
 
-SHAPES = {
-    "linear": jm.Linear(),
-    "ugimp": jm.UGIMP(ppc=2),
-    "quadratic": jm.QuadraticBSpline(),
-    "cubic": jm.CubicBSpline(),
-}
-
-GRIDS = {
-    2: jm.Grid(lower=(-1.0, 0.5), upper=(3.0, 2.5), cells=(8, 5)),  # h = (0.5, 0.4): non-square cells
-    3: jm.Grid(lower=(-1.0, 0.5, 2.0), upper=(2.0, 2.5, 4.4), cells=(6, 5, 6)),
-}
-
 SCHEMES = {"apic": jm.APIC(), "tpic": jm.TPIC()}
 
-ALL = [pytest.param(s, n, d, id=f"{s}-{n}-{d}d") for s in SCHEMES for n in SHAPES for d in GRIDS]
-SPLINES = [pytest.param(n, d, id=f"{n}-{d}d") for n in ("quadratic", "cubic") for d in GRIDS]
-
-
-def random_particles(shape, grid, rng, n=N_PARTICLES):
-    """Positions whose stencils lie on the grid, masses in [0.5, 2], velocities ~ N(0, 1)."""
-    cells = np.array(grid.cells, dtype=float)
-    m = float(shape.margin)
-    xi = m + 0.01 + (cells - 2.0 * m - 0.02) * rng.random((n, grid.dim))
-    x = np.array(grid.lower) + xi * np.array(grid.spacing)
-    return jnp.asarray(x), jnp.asarray(0.5 + 1.5 * rng.random(n)), jnp.asarray(rng.normal(size=(n, grid.dim)))
+ALL = [pytest.param(s, n, d, id=f"{s}-{n}-{d}d") for s in SCHEMES for n in FOUR_SHAPES for d in AFFINE_GRIDS]
+SPLINES = [pytest.param(n, d, id=f"{n}-{d}d") for n in ("quadratic", "cubic") for d in AFFINE_GRIDS]
 
 
 def make_state(x, v, mass, affine):
     n, d = x.shape
     return jm.State(x=x, v=v, F=jnp.broadcast_to(jnp.eye(d), (n, d, d)), mass=mass, volume0=mass,
-                    time=jnp.zeros(()), step=jnp.zeros((), jnp.int32), dissipated=jnp.zeros(()), affine=affine)
+                    time=jnp.zeros(()), step=jnp.zeros((), jnp.int32), dissipated=jnp.zeros(()), scheme_state=affine)
 
 
 def no_constraint(grid):
@@ -78,7 +58,7 @@ def grid_to_particles(scheme, state, transfer, grid, v_tilde, dt):
     """The scheme's G2P of a given updated grid velocity: new State (x, v, affine)."""
     sol = GridSolution(v=v_tilde, a=jnp.zeros_like(v_tilde), v_tilde=v_tilde)
     upd = scheme.update(state.v, state.x, transfer, no_constraint(grid), sol, jm.Damping(), jnp.asarray(dt))
-    affine = scheme.particle_state(state, upd, transfer, sol)
+    affine = scheme.next_state(state, upd, transfer, sol)
     return make_state(upd.position, upd.velocity, state.mass, affine)
 
 
@@ -96,9 +76,9 @@ def build_transfer(shape, grid, x, mass):
 
 
 def setup(scheme_name, shape_name, dim, seed=0):
-    shape, grid = SHAPES[shape_name], GRIDS[dim]
+    shape, grid = FOUR_SHAPES[shape_name], AFFINE_GRIDS[dim]
     rng = np.random.default_rng(seed + 7 * dim)
-    x, mass, v = random_particles(shape, grid, rng)
+    x, mass, v = (jnp.asarray(a) for a in random_particles(shape, grid, rng, N_PARTICLES))
     transfer = build_transfer(shape, grid, x, mass)
     affine = jnp.asarray(rng.normal(size=(x.shape[0], dim, dim)))
     return SCHEMES[scheme_name], shape, grid, transfer, make_state(x, v, mass, affine), rng
@@ -115,8 +95,8 @@ def test_inertia_tensor_is_closed_form_for_b_splines(shape_name, dim):
         np.testing.assert_allclose(np.asarray(D), np.broadcast_to(expected, D.shape), rtol=0, atol=TOL * expected.max())
 
 
-@pytest.mark.parametrize("shape_name", list(SHAPES))
-@pytest.mark.parametrize("dim", list(GRIDS))
+@pytest.mark.parametrize("shape_name", list(FOUR_SHAPES))
+@pytest.mark.parametrize("dim", list(AFFINE_GRIDS))
 def test_inertia_tensor_from_axis_factors_is_the_sum_over_nodes(shape_name, dim):
     """D_p = sum_i S_pi (x_i - X_p)(x_i - X_p)^T (002 eq. 3) as the tensor stencil forms it from
     per-axis sums equals the sum over all K nodes, for every shape (uGIMP's D_p varies)."""
@@ -126,7 +106,7 @@ def test_inertia_tensor_from_axis_factors_is_the_sum_over_nodes(shape_name, dim)
     np.testing.assert_allclose(np.asarray(factored), np.asarray(summed), rtol=0, atol=TOL * scale)
 
 
-@pytest.mark.parametrize("dim", list(GRIDS))
+@pytest.mark.parametrize("dim", list(AFFINE_GRIDS))
 def test_multilinear_affine_weight_is_the_gradient(dim):
     """For tent functions S_pi D_p^-1 (x_i - X_p) = G_pi; the explicit inverse agrees off grid lines."""
     _, _, _, transfer, _, _ = setup("apic", "linear", dim)
@@ -159,8 +139,8 @@ def conservation_scale(state, extra=0.0):
     return float(jnp.sum(state.mass * speed * (1.0 + jnp.linalg.norm(state.x, axis=-1))) + extra)
 
 
-@pytest.mark.parametrize("shape_name", list(SHAPES))
-@pytest.mark.parametrize("dim", list(GRIDS))
+@pytest.mark.parametrize("shape_name", list(FOUR_SHAPES))
+@pytest.mark.parametrize("dim", list(AFFINE_GRIDS))
 def test_apic_p2g_conserves_linear_and_angular_momentum(shape_name, dim):
     """002 props. 5.2 and 5.4: sum_i p_i = sum_p M_p V_p; sum_i x_i x p_i = L^P (002 def. 5.1)."""
     scheme, _, grid, transfer, state, _ = setup("apic", shape_name, dim, seed=2)
@@ -175,8 +155,8 @@ def test_apic_p2g_conserves_linear_and_angular_momentum(shape_name, dim):
     assert np.max(np.abs(np.asarray(affine_angular_momentum(state.mass, state.affine)))) > 1e3 * TOL * scale
 
 
-@pytest.mark.parametrize("shape_name", list(SHAPES))
-@pytest.mark.parametrize("dim", list(GRIDS))
+@pytest.mark.parametrize("shape_name", list(FOUR_SHAPES))
+@pytest.mark.parametrize("dim", list(AFFINE_GRIDS))
 def test_apic_g2p_conserves_linear_and_angular_momentum(shape_name, dim):
     """002 props. 5.3 and 5.5: sum_p M_p V^{n+1} = sum_i m_i v~_i;
     L^{P,n+1} = sum_i (x_i + dt v~_i) x m_i v~_i (002 defs. 3.3-3.4, 5.2), any dt."""
@@ -196,8 +176,8 @@ def test_apic_g2p_conserves_linear_and_angular_momentum(shape_name, dim):
     np.testing.assert_allclose(np.asarray(after.x), np.asarray(state.x + dt * after.v), rtol=0, atol=1e-15 * 10)
 
 
-@pytest.mark.parametrize("shape_name", list(SHAPES))
-@pytest.mark.parametrize("dim", list(GRIDS))
+@pytest.mark.parametrize("shape_name", list(FOUR_SHAPES))
+@pytest.mark.parametrize("dim", list(AFFINE_GRIDS))
 def test_tpic_conserves_linear_momentum_and_p2g_angular_momentum(shape_name, dim):
     """TPIC (004): P2G sum_i p_i = sum_p M_p V_p and sum_i x_i x p_i = sum_p X_p x M_p V_p
     + sum_p M_p (grad v_p D_p)^T : eps (the grad v_p (x_i - X_p) term, summed as in 002 prop. 5.4);
@@ -229,7 +209,7 @@ def test_scheme_names_and_initial_field(name):
     assert type(scheme) is type(SCHEMES[name])
     with pytest.raises(jm.InputError, match="no FLIP fraction"):
         scheme_from_name(name, beta=0.5)
-    grid, shape = GRIDS[2], SHAPES["quadratic"]
+    grid, shape = AFFINE_GRIDS[2], FOUR_SHAPES["quadratic"]
     particles = jm.fill(grid, jm.Box((0.0, 1.0), (1.5, 2.0)), ppc=2, velocity=(1.0, 0.0))
     sim = jm.Simulation(grid=grid, shape=shape, material=jm.NoStress(), scheme=scheme)
     state = sim.init(particles)

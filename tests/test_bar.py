@@ -45,20 +45,13 @@ def test_flip_matches_modal_solution(update):
 def test_xpic_fmpm_match_modal_solution(scheme):
     r = run_bar(scheme)
     assert r["l2"] <= 0.025, r
-    assert r["energy_ratio"] >= 0.99, r
 
 
-@pytest.mark.parametrize("scheme", [jm.PIC(), jm.FMPM(order=1)], ids=["pic", "fmpm1"])
-def test_pic_and_fmpm1_dissipate(scheme):
-    r = run_bar(scheme)
-    assert r["energy_ratio"] < 0.5, r  # measured: 0.010 for both at dt = 0.1 h/c
-
-
-def test_pic_dissipation_grows_as_dt_shrinks():
-    """PIC damps once per step, so more steps lose more energy (000 §2.4.2)."""
-    small = run_bar(jm.PIC(), cfl=0.1)["energy_ratio"]
-    large = run_bar(jm.PIC(), cfl=0.5)["energy_ratio"]
-    assert small < large < 0.99  # measured 0.010 and 0.397
+def test_fmpm1_dissipates():
+    """FMPM(1) loses energy like PIC (measured E/E0 = 0.010 for both at dt = 0.1 h/c; PIC's
+    dissipation and how it grows as dt shrinks are in test_stability_known_failures.py)."""
+    r = run_bar(jm.FMPM(order=1))
+    assert r["energy_ratio"] < 0.5, r
 
 
 @pytest.mark.parametrize("scheme", [jm.FLIP(), jm.XPIC(order=2)], ids=["flip", "xpic2"])
@@ -68,38 +61,22 @@ def test_energy_budget_closes(scheme):
     assert abs(r["budget"] - 1.0) <= 0.01, r
 
 
-@pytest.mark.parametrize("order", [3, 4, 5, 6, 7, 8])
+@pytest.mark.parametrize("order", [2, 3, 4, 5, 6, 7, 8])
 @pytest.mark.parametrize("kind", ["XPIC", "FMPM"])
-def test_constrained_series_is_stable_at_high_order(kind, order):
-    """Boundary conditions on every iterate (003 §1.5) keep orders 3-8 stable and conservative."""
+def test_constrained_series_conserves_energy(kind, order):
+    """Boundary conditions on every iterate (003 §1.5) keep orders 2-8 stable and conservative
+    (measured E/E0 at t = 40: 0.991 at order 2, 0.9992 (XPIC) and 1.0001 (FMPM) at order 5)."""
     r = run_bar(getattr(jm, kind)(order=order))
     assert r["energy_ratio"] >= 0.99, r
     assert r["energy_ratio"] <= 1.01, r
 
 
-@pytest.mark.parametrize("kind", ["XPIC", "FMPM"])
-def test_result_only_boundary_conditions_gain_energy(kind):
-    """Documented failure (DESIGN.md): conditions imposed only on the series' result (003 eq. 2.53
-    read literally) pump energy into the bar at order 3 (measured: XPIC 1.74x, FMPM 1.27x at t = 40)."""
-    r = run_bar(getattr(jm, kind)(order=3, boundary="result"))
-    assert r["energy_ratio"] > 1.1, r
-
-
-def test_order_50_binomial_series_fails_neumann_form_is_stable():
-    """XPIC at very high order turns unstable (OSParticulas documentation).  Measured cause: the
-    binomial recursion cancels terms of size C(50, 25) ~ 1.3e14 in float64, so round-off noise of
-    ~1e-2 relative enters every step.  How it ends depends on that round-off: measured, the bar
-    inverted at step 784 with one summation order of the transfers and gained 260x its energy by
-    t = 40 without inverting with another; either is a failure.  The Neumann form of the same
-    polynomial has no cancellation and stays stable and accurate."""
+def test_order_50_warns_and_its_neumann_form_matches_modal_solution():
+    """An order above 40 warns (the binomial series cancels terms of size C(m, m/2); XPIC(50) in
+    that form fails on the bar: test_stability_known_failures.py).  The Neumann form of the same
+    polynomial has no cancellation and stays stable and accurate to t = 40."""
     with pytest.warns(UserWarning, match="order 50"):
-        unstable = jm.XPIC(order=50)
-    try:
-        r = run_bar(unstable)
-    except jm.InstabilityError as err:
-        assert err.step > 100
-    else:
-        assert r["energy_ratio"] > 2.0, r  # energy blow-up
+        jm.XPIC(order=50)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         stable = run_bar(jm.XPIC(order=50, series="neumann"))

@@ -14,6 +14,7 @@ import optax
 import pytest
 
 import jaxmpm as jm
+from cases import central_difference
 
 SCHEMES = {
     "flip": lambda: jm.FLIP(),
@@ -22,13 +23,6 @@ SCHEMES = {
     "xpic3": lambda: jm.XPIC(order=3, beta=0.2),
     "fmpm2": lambda: jm.FMPM(order=2, beta=0.1),
 }
-
-
-def richardson_fd(f, x, eps):
-    """Central difference with one Richardson step (truncation error O(eps^4))."""
-    d1 = (f(x + eps) - f(x - eps)) / (2 * eps)
-    d2 = (f(x + eps / 2) - f(x - eps / 2)) / eps
-    return (4 * d2 - d1) / 3
 
 
 def make_loss(setup, steps, names, checkpoint=False, start=None):
@@ -45,19 +39,20 @@ def make_loss(setup, steps, names, checkpoint=False, start=None):
     return loss
 
 
-def step_size(name, value, beta_step=0.05):
-    """Finite-difference step: relative 1e-4, except beta on the bar, whose effect over a short
-    rollout is ~1e-7 of the loss, so round-off needs a wide (Richardson-corrected) step."""
-    return beta_step if name == "beta" else 1e-4 * max(abs(float(value)), 1e-2)
+def step_size(name, value, beta_step=0.025):
+    """Finite-difference step h of the fourth-order central difference (points x +- h, x +- 2h):
+    relative 5e-5, except beta on the bar, whose effect over a short rollout is ~1e-7 of the loss,
+    so round-off needs a wide step."""
+    return beta_step if name == "beta" else 5e-5 * max(abs(float(value)), 1e-2)
 
 
-def check_gradient(loss, params, rtol, beta_step=0.05):
+def check_gradient(loss, params, rtol, beta_step=0.025):
     grad = jax.jit(jax.grad(loss))(params)
     f = jax.jit(loss)
     for name, value in params.items():
         def along(x, name=name):
             return f({**params, name: x})
-        fd = richardson_fd(along, jnp.asarray(value), step_size(name, value, beta_step))
+        fd = central_difference(along, jnp.asarray(value), step_size(name, value, beta_step), order=4)
         g = grad[name]
         assert np.isfinite(g), name
         assert abs(g - fd) <= rtol * max(abs(fd), 1e-12), (name, float(g), float(fd))
@@ -80,7 +75,7 @@ def test_bar_gradients_all_parameters(scheme):
                 x = jnp.reshape(x, (1,))
             return f({**params, name: x})
         x0 = params[name][0] if name == "gravity" else params[name]
-        fd = richardson_fd(along, x0, step_size(name, x0))
+        fd = central_difference(along, x0, step_size(name, x0), order=4)
         g = grad[name][0] if name == "gravity" else grad[name]
         assert np.isfinite(g)
         assert abs(g - fd) <= 1e-6 * abs(fd), (name, float(g), float(fd))
@@ -110,8 +105,9 @@ def test_disks_gradients(scheme, disks_in_contact):
         names["beta"] = float(jm.get_params(setup.sim, "beta")["beta"])
     params = {k: jnp.asarray(v) for k, v in names.items()}
     # in contact beta acts strongly; with C1 (quadratic) shapes the loss still has curvature
-    # kinks, so the step must stay inside one smooth piece: 1e-3 misses by 3e-6, 1e-4 agrees to 2e-12
-    check_gradient(make_loss(setup, 100, names, start=disks_in_contact), params, 1e-6, beta_step=1e-4)
+    # kinks, so the stencil must stay inside one smooth piece: reaching beta +- 1e-3 misses by
+    # 3e-6, beta +- 1e-4 (h = 5e-5) agrees to 2e-12
+    check_gradient(make_loss(setup, 100, names, start=disks_in_contact), params, 1e-6, beta_step=5e-5)
 
 
 def test_long_bar_rollout_gradient():
@@ -179,27 +175,21 @@ def particle_velocities(setup, start, steps, save_every):
     return observe
 
 
-def test_calibrate_beta_on_disks(disks_in_contact):
-    """beta of XPIC(2) from the particle velocities through the impact (null-space noise is
-    what beta keeps or removes), over a 50-step window in contact.  L-BFGS reaches 1% in 6
-    iterations here; Adam(0.1) needs ~100."""
-    setup = jm.scene("disks", scheme=jm.XPIC(order=2, beta=0.3), speed=0.5, shape=SMOOTH)
+@pytest.mark.parametrize("scheme, name, truth, guess", [
+    (jm.XPIC(order=2, beta=0.3), "beta", 0.3, 0.7),
+    (jm.FLIP(), "E", 1000.0, 600.0),
+], ids=["xpic2-beta", "flip-E"])
+def test_calibrate_on_disks(disks_in_contact, scheme, name, truth, guess):
+    """beta of XPIC(2), and E, from the particle velocities through the impact (null-space noise
+    is what beta keeps or removes), over a 50-step window in contact.  L-BFGS reaches 1% for beta
+    in 6 iterations here; Adam(0.1) needs ~100."""
+    setup = jm.scene("disks", scheme=scheme, speed=0.5, shape=SMOOTH)
     observe = particle_velocities(setup, disks_in_contact, 50, 10)
-    target = observe({"beta": 0.3})
-    result = jm.calibrate(relative_misfit(observe, target), {"beta": 0.7}, optimizer=optax.lbfgs(),
+    target = observe({name: truth})
+    result = jm.calibrate(relative_misfit(observe, target), {name: guess}, optimizer=optax.lbfgs(),
                           steps=200, tol=1e-9)
     assert result.iterations <= 200
-    assert abs(result.params["beta"] / 0.3 - 1) <= 0.01, result.params
-
-
-def test_calibrate_modulus_on_disks(disks_in_contact):
-    setup = jm.scene("disks", scheme=jm.FLIP(), speed=0.5, shape=SMOOTH)
-    observe = particle_velocities(setup, disks_in_contact, 50, 10)
-    target = observe({"E": 1000.0})
-    result = jm.calibrate(relative_misfit(observe, target), {"E": 600.0}, optimizer=optax.lbfgs(),
-                          steps=200, tol=1e-9)
-    assert result.iterations <= 200
-    assert abs(result.params["E"] / 1000.0 - 1) <= 0.01, result.params
+    assert abs(result.params[name] / truth - 1) <= 0.01, result.params
 
 
 def test_calibrate_rejects_bad_input():

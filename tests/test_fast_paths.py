@@ -18,22 +18,17 @@ import numpy as np
 import pytest
 
 import jaxmpm as jm
-from cases import GRIDS
-
-SHAPES = {"linear": jm.Linear(), "ugimp": jm.UGIMP(ppc=2), "quadratic": jm.QuadraticBSpline(),
-          "cubic": jm.CubicBSpline()}
+from cases import FOUR_SHAPES, GRIDS, at_cells, interior_cells
 
 
-@pytest.mark.parametrize("name", list(SHAPES))
+@pytest.mark.parametrize("name", list(FOUR_SHAPES))
 @pytest.mark.parametrize("dim", [1, 2, 3])
 def test_tensor_stencil_is_the_product_of_1d_kernels(name, dim):
     """weight = prod_a N(r_a), gradient[a] = N'(r_a)/h_a prod_{b!=a} N(r_b), offset = x_i - X_p,
     slot k = (k_0, ..., k_{D-1}) in C order, node i = sum_a (first_a + k_a) stride_a."""
-    shape, grid = SHAPES[name], GRIDS[dim]
-    rng = np.random.default_rng(dim)
-    cells, m = np.array(grid.cells, float), float(shape.margin)
-    xi = m + 0.01 + (cells - 2 * m - 0.02) * rng.random((7, dim))
-    x = np.array(grid.lower) + xi * np.array(grid.spacing)
+    shape, grid = FOUR_SHAPES[name], GRIDS[dim]
+    xi = interior_cells(shape, grid, np.random.default_rng(dim), 7)
+    x = at_cells(grid, xi)
     st = shape.stencil(grid, jnp.asarray(x))
     k1 = shape.nodes_per_axis
     first = np.array([np.asarray(shape._base(jnp.asarray(xi[:, a]))) for a in range(dim)])  # (D, N)
@@ -50,11 +45,11 @@ def test_tensor_stencil_is_the_product_of_1d_kernels(name, dim):
             np.testing.assert_allclose(np.asarray(st.offset)[a, slot], off, rtol=0, atol=1e-14)
 
 
-@pytest.mark.parametrize("name", list(SHAPES))
+@pytest.mark.parametrize("name", list(FOUR_SHAPES))
 def test_stencil_indices_stay_on_the_grid_off_it(name):
     """A particle outside the grid (or NaN) still gets node numbers in [0, n): the transfers use
     promise-in-bounds gathers and scatters, and a run reports such a particle as a failure."""
-    shape, grid = SHAPES[name], GRIDS[2]
+    shape, grid = FOUR_SHAPES[name], GRIDS[2]
     x = jnp.asarray([[-5.0, 1.0], [10.0, 40.0], [np.nan, 1.0], [0.5, np.inf]])
     index = np.asarray(shape.stencil(grid, x).index)
     assert index.min() >= 0 and index.max() < grid.num_nodes

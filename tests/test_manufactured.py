@@ -19,6 +19,7 @@ import pytest
 import jaxmpm as jm
 from jaxmpm.scenes.mms import AxisAligned, ManufacturedForce
 from jaxmpm.scenes.vortex import Vortex
+from cases import central_difference
 
 E, NU, RHO0 = 1.0e4, 0.3, 1.0
 LAM = E * NU / ((1 + NU) * (1 - 2 * NU))
@@ -47,27 +48,19 @@ def textbook_piola(F, lam, mu):
     return mu * (F - Finv_T) + lam * np.log(np.linalg.det(F)) * Finv_T
 
 
-def d1(f, delta):
-    """Fourth-order central first derivative of f(s) at s = 0."""
-    return (-f(2 * delta) + 8 * f(delta) - 8 * f(-delta) + f(-2 * delta)) / (12 * delta)
-
-
-def d2(f, delta):
-    """Fourth-order central second derivative of f(s) at s = 0."""
-    return (-f(2 * delta) + 16 * f(delta) - 30 * f(0.0) + 16 * f(-delta) - f(-2 * delta)) / (12 * delta**2)
-
-
 def fd_body_force(u, X, t, lam, mu, rho0, dx, dt):
     """b = d2u/dt2 - Div_0 P / rho0 by fourth-order central differences of the displacement field
     u(X, t): d2u/dt2 in time, F = I + du/dX, then Div_0 P from differences of P(F(X + s e_J))."""
     d = X.shape[0]
     eye = np.eye(d)
-    acc = d2(lambda s: u(X, t + s), dt)
+    acc = central_difference(lambda s: u(X, t + s), 0.0, dt, derivative=2, order=4)
 
     def F_at(Y):
-        return eye + np.stack([d1(lambda s: u(Y + s * eye[J], t), dx) for J in range(d)], axis=1)
+        return eye + np.stack([central_difference(lambda s: u(Y + s * eye[J], t), 0.0, dx, order=4)
+                               for J in range(d)], axis=1)
 
-    div = sum(d1(lambda s: textbook_piola(F_at(X + s * eye[J]), lam, mu)[:, J], dx) for J in range(d))
+    div = sum(central_difference(lambda s: textbook_piola(F_at(X + s * eye[J]), lam, mu)[:, J], 0.0, dx, order=4)
+              for J in range(d))
     return acc - div / rho0
 
 

@@ -28,16 +28,10 @@ import jaxmpm as jm
 from jaxmpm._boundary import build_constraint
 from jaxmpm._schemes import Damping, GridSolution, mass_matrix_series
 from jaxmpm._transfer import Transfer
+from cases import FOUR_SHAPES, UNIT_GRIDS, at_cells, dense_weights, interior_cells
 
 N_PARTICLES = 40
-GRIDS = {1: jm.Grid((0.0,), (1.0,), (8,)), 2: jm.Grid((0.0, 0.0), (1.0, 1.0), (5, 5))}
-SHAPES = {
-    "linear": jm.Linear(),
-    "ugimp": jm.UGIMP(ppc=2),
-    "quadratic": jm.QuadraticBSpline(),
-    "cubic": jm.CubicBSpline(),
-}
-CASES = [pytest.param(name, dim, id=f"{name}-{dim}d") for name in SHAPES for dim in GRIDS]
+CASES = [pytest.param(name, dim, id=f"{name}-{dim}d") for name in FOUR_SHAPES for dim in UNIT_GRIDS]
 STENCIL_SIZE = {1: 4, 2: 16}  # the cubic B-spline's 4^D nodes: every stencil is padded to this size
 ORDERS = (1, 2, 3, 4, 5, 6)
 TOL = 1e-12  # relative, the brief's round-off tolerance for orders <= 6
@@ -49,10 +43,7 @@ class Dense:
     """Dense S, M, m, S+, S+S, S S+ and m~ on the nodes with mass (000 ch. 1, 003 §1.2-1.3)."""
 
     def __init__(self, stencil, mass, num_nodes):
-        index, weight = np.asarray(stencil.index).T, np.asarray(stencil.weight).T  # (N, K)
-        n_particles = index.shape[0]
-        full = np.zeros((n_particles, num_nodes))
-        np.add.at(full, (np.repeat(np.arange(n_particles), index.shape[1]), index.ravel()), weight.ravel())
+        full, _ = dense_weights(stencil, num_nodes)  # (N, num_nodes)
         lumped = full.T @ mass
         self.active = lumped > 0
         self.S = full[:, self.active]  # (N, n_a)
@@ -98,10 +89,7 @@ def rel_err(actual, expected):
 
 def random_positions(shape, grid, rng, n=N_PARTICLES):
     """Uniform random positions whose whole stencil lies on the grid."""
-    cells = np.array(grid.cells, dtype=float)
-    margin = float(shape.margin)
-    xi = margin + 0.01 + (cells - 2.0 * margin - 0.02) * rng.random((n, grid.dim))
-    return np.array(grid.lower) + xi * np.array(grid.spacing)
+    return at_cells(grid, interior_cells(shape, grid, rng, n))
 
 
 def jittered_positions(shape, grid, rng, n=N_PARTICLES):
@@ -129,7 +117,7 @@ def padded(stencil, size):
 def problem(name, dim, seed=0, positions=random_positions):
     """Random particles, masses, velocities; the eager Transfer and its dense matrices."""
     rng = np.random.default_rng(seed)
-    shape, grid = SHAPES[name], GRIDS[dim]
+    shape, grid = FOUR_SHAPES[name], UNIT_GRIDS[dim]
     x = positions(shape, grid, rng)
     mass = rng.uniform(0.5, 2.0, N_PARTICLES)
     V = rng.normal(size=(N_PARTICLES, dim))
@@ -323,7 +311,7 @@ def series_dense(dense, u_a, order):
     return dense.binomial_series(order) @ u_a
 
 
-@pytest.mark.parametrize("name", list(SHAPES))
+@pytest.mark.parametrize("name", list(FOUR_SHAPES))
 def test_fixed_boundary_modes(name):
     """1D, first node Fixed: ``iterates`` = the series of the constrained operator Z S+S from Z u
     with exactly zero on the fixed node; ``result`` = the unconstrained series, then zeroed;

@@ -4,17 +4,13 @@ and the Pareto / "cheapest scheme" logic on hand-made tables."""
 
 import csv
 import math
-import sys
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
-import speed_vs_accuracy as sva  # noqa: E402
-
-import jaxmpm as jm  # noqa: E402
+import jaxmpm as jm
+from experiments import speed_vs_accuracy as sva
 
 
 @pytest.fixture(scope="module")
@@ -37,7 +33,7 @@ def test_quick_bar_sweep_rows_csv_and_convergence(quick_bar_rows, tmp_path):
         assert r["dt"] == pytest.approx(0.1 * h / 10.0, rel=1e-12)  # cfl 0.1, c = sqrt(E/rho) = 10
         assert r["steps"] * r["dt"] == pytest.approx(40.0, rel=1e-9)
         assert r["particles"] == 2 * cells
-        assert 0.0 < r["error"] < 0.1 and r["wall_s"] > 0.0 and r["compile_s"] >= 0.0
+        assert 0.0 < r["error"] < 0.1 and r["wall_s"] > 0.0 and math.isfinite(r["compile_s"])  # repeats = 1
     err = {(r["scheme"], r["resolution"]): r["error"] for r in rows}
     # FMPM(2) converges: the error falls by more than 2x from 8 to 16 cells (measured 2.6e-2 -> 4.1e-3)
     assert err["FMPM(2)", 16] < 0.5 * err["FMPM(2)", 8]

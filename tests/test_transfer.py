@@ -16,24 +16,12 @@ import numpy as np
 import pytest
 
 import jaxmpm as jm
-from cases import FOUR_SHAPES, GRIDS, particle_major
+from cases import FOUR_SHAPES, GRIDS, UNIT_SQUARE, dense_weights, random_particles
 
 N_PARTICLES = 64
 
-SHAPES = FOUR_SHAPES
-
-CASES = [pytest.param(name, dim, id=f"{name}-{dim}d") for name in SHAPES for dim in GRIDS]
+CASES = [pytest.param(name, dim, id=f"{name}-{dim}d") for name in FOUR_SHAPES for dim in GRIDS]
 SEEDS = (0, 1, 2)
-
-
-def random_particles(shape, grid, rng, n=N_PARTICLES, extent=1.0):
-    """Positions whose stencils lie on the grid (in the lower ``extent`` fraction of the interior
-    band), masses in [0.5, 2], velocities ~ N(0, 1)."""
-    cells = np.array(grid.cells, dtype=float)
-    m = float(shape.margin)
-    xi = m + 0.01 + extent * (cells - 2.0 * m - 0.02) * rng.random((n, grid.dim))
-    x = np.array(grid.lower) + xi * np.array(grid.spacing)
-    return x, 0.5 + 1.5 * rng.random(n), rng.normal(size=(n, grid.dim))
 
 
 def make_state(x, v, mass):
@@ -76,29 +64,19 @@ def transfer_outputs(shape, grid, x, mass, v=None, u=None, weighted_stress=None)
     return {k: (val if k == "stencil" else np.asarray(val)) for k, val in out.items()}
 
 
-def dense_S(stencil, num_nodes):
-    """The (N, n) matrix S_pi from a stencil."""
-    stencil = particle_major(stencil)
-    index = stencil.index
-    S = np.zeros((index.shape[0], num_nodes))
-    np.add.at(S, (np.repeat(np.arange(index.shape[0]), index.shape[1]), index.reshape(-1)),
-              np.asarray(stencil.weight).reshape(-1))
-    return S
-
-
 @pytest.mark.parametrize("name, dim", CASES)
 def test_p2g_conserves_mass_and_momentum(name, dim):
     """sum_i m_i = sum_p M_p and sum_i p_i = sum_p M_p V_p to round-off (partition of unity), and
     m = S^T M, p = S^T M V with the dense matrix S of the stencil (003 eq. 2.1)."""
-    shape, grid = SHAPES[name], GRIDS[dim]
+    shape, grid = FOUR_SHAPES[name], GRIDS[dim]
     for seed in SEEDS:
-        x, mass, v = random_particles(shape, grid, np.random.default_rng(seed))
+        x, mass, v = random_particles(shape, grid, np.random.default_rng(seed), N_PARTICLES)
         out = transfer_outputs(shape, grid, x, mass, v=v)
         m_i, p_i = out["nodal_mass"], out["momentum"]
         assert abs(m_i.sum() - mass.sum()) <= 1e-13 * mass.sum()
         scale = np.sum(mass[:, None] * np.abs(v))
         np.testing.assert_allclose(p_i.sum(axis=0), (mass[:, None] * v).sum(axis=0), rtol=0, atol=1e-13 * scale)
-        S = dense_S(out["stencil"], grid.num_nodes)
+        S, _ = dense_weights(out["stencil"], grid.num_nodes)
         np.testing.assert_allclose(m_i, S.T @ mass, rtol=1e-13, atol=1e-14)
         np.testing.assert_allclose(p_i, S.T @ (mass[:, None] * v), rtol=0, atol=1e-13 * scale)
 
@@ -107,9 +85,9 @@ def test_p2g_conserves_mass_and_momentum(name, dim):
 def test_s_plus_of_constant_is_constant_on_nodes_with_mass(name, dim):
     """(S+ U)_i = sum_p S_pi M_p c / m_i = c where m_i > 0, and 0 where m_i = 0 (000 eq. 1.10);
     S+S of a constant nodal field is the same constant (000 eq. 3.19)."""
-    shape, grid = SHAPES[name], GRIDS[dim]
+    shape, grid = FOUR_SHAPES[name], GRIDS[dim]
     rng = np.random.default_rng(11)
-    x, mass, _ = random_particles(shape, grid, rng, extent=0.4)  # the upper nodes stay empty
+    x, mass, _ = random_particles(shape, grid, rng, N_PARTICLES, extent=0.4)  # the upper nodes stay empty
     c = rng.normal(size=dim)
     const_nodal = np.broadcast_to(c, (grid.num_nodes, dim))
     out = transfer_outputs(shape, grid, x, mass, v=np.broadcast_to(c, x.shape), u=const_nodal)
@@ -125,9 +103,9 @@ def test_s_plus_of_constant_is_constant_on_nodes_with_mass(name, dim):
 def test_gather_reproduces_linear_nodal_field(name, dim):
     """(S u)_p = A X_p + b and grad v_p = sum_i u_i (x) G_pi = A for u_i = A x_i + b, at interior
     particles (linear reproduction of the shape functions)."""
-    shape, grid = SHAPES[name], GRIDS[dim]
+    shape, grid = FOUR_SHAPES[name], GRIDS[dim]
     rng = np.random.default_rng(3)
-    x, mass, _ = random_particles(shape, grid, rng)
+    x, mass, _ = random_particles(shape, grid, rng, N_PARTICLES)
     A, b = rng.normal(size=(dim, dim)), rng.normal(size=dim)
     u = grid.node_coordinates() @ A.T + b
     out = transfer_outputs(shape, grid, x, mass, u=u)
@@ -141,9 +119,9 @@ def test_divergence_sums_to_zero_and_does_virtual_work(name, dim):
     """f_i = -sum_p V0_p tau_p . G_pi (001 eq. 20): sum_i f_i = 0 because sum_i G_pi = 0, for a
     constant and for a random symmetric stress; sum_i f_i . (A x_i) = -sum_p V0_p tau_p : A (virtual
     work with the exact gradient A of a linear field); with A antisymmetric that is zero torque."""
-    shape, grid = SHAPES[name], GRIDS[dim]
+    shape, grid = FOUR_SHAPES[name], GRIDS[dim]
     rng = np.random.default_rng(5)
-    x, volume, _ = random_particles(shape, grid, rng)
+    x, volume, _ = random_particles(shape, grid, rng, N_PARTICLES)
     sym = rng.normal(size=(N_PARTICLES, dim, dim))
     tau_random = sym + np.swapaxes(sym, 1, 2)
     tau_constant = np.broadcast_to(tau_random[0], tau_random.shape)
@@ -164,7 +142,6 @@ def test_divergence_sums_to_zero_and_does_virtual_work(name, dim):
 
 
 # ----------------------------------------------------------------- one full step
-STEP_GRID = jm.Grid(lower=(0.0, 0.0), upper=(1.0, 1.0), cells=(8, 8))
 SCHEMES = {
     "FLIP": jm.FLIP(),
     "PIC": jm.PIC(),
@@ -192,7 +169,7 @@ def perturbed_elastic_state(sim, rng, n=40):
 def test_step_conserves_linear_momentum(scheme_name):
     """Without gravity or boundaries sum_i f_i = 0 and S+S keeps sum_i m_i u_i, so every scheme
     keeps sum_p M_p V_p (000 ch. 5; 003 §2.3) to round-off while the stresses change V."""
-    sim = jm.Simulation(grid=STEP_GRID, shape=jm.QuadraticBSpline(), scheme=SCHEMES[scheme_name],
+    sim = jm.Simulation(grid=UNIT_SQUARE, shape=jm.QuadraticBSpline(), scheme=SCHEMES[scheme_name],
                         material=jm.LinearElastic(E=1000.0, nu=0.3, density=1.0))
     state = perturbed_elastic_state(sim, np.random.default_rng(13))
     dt = jnp.asarray(0.2 * float(sim.stable_dt(state)))

@@ -6,7 +6,7 @@ time step and the number of steps; ``setup.run()`` runs it.
 
 from __future__ import annotations
 
-from ._common import Setup, resolve_dtype
+from ._common import Setup, cast_state, resolve_dtype
 from .bar import bar
 from .disks import disks
 from .mms import mms
@@ -34,4 +34,4 @@ def scene(name: str, **options) -> Setup:
     return SCENES[name][0](**options)
 
 
-__all__ = ["SCENES", "Setup", "scene", "resolve_dtype"]
+__all__ = ["SCENES", "Setup", "cast_state", "scene", "resolve_dtype"]

@@ -51,7 +51,8 @@ def bar(
     # room for the free end: its amplitude v0/omega (0.159 by default) plus one cell
     grid = Grid.covering((0.0,), (length + h + 2.0 * v0 / omega,), h, shape=shape)
     particles = fill(grid, Box((0.0,), (length,)), ppc=ppc, velocity=lambda x: v0 * np.sin(beta1 * x))
-    fixed = Fixed(where=_at_or_below_zero(length))
+    tol = 1e-9 * length
+    fixed = Fixed(where=lambda x: x[:, 0] <= tol)  # resolved to its nodes by the Simulation
     sim = Simulation(grid=grid, shape=shape, material=LinearElastic(E=E, nu=0.0, density=density),
                      scheme=scheme, damping=damping, update=update, boundary=fixed)
     state = cast_state(sim.init(particles), dtype)
@@ -65,19 +66,3 @@ def bar(
     params = dict(E=E, density=density, length=length, v0=v0, beta1=beta1, omega=omega, cells_along_bar=cells,
                   ppc=ppc, cfl=cfl, t_end=steps * dt)
     return Setup("bar", sim, state, dt, steps, save_every, params, reference, particles)
-
-
-class _at_or_below_zero:
-    """Node selector x <= 0 (hashable, so the simulation's static fields compare equal)."""
-
-    def __init__(self, length):
-        self.tol = 1e-9 * length
-
-    def __call__(self, x):
-        return x[:, 0] <= self.tol
-
-    def __eq__(self, other):
-        return isinstance(other, _at_or_below_zero) and other.tol == self.tol
-
-    def __hash__(self):
-        return hash(("x<=0", self.tol))

@@ -70,7 +70,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import hashlib
 import math
 
 import equinox as eqx
@@ -135,39 +134,38 @@ def exact_fields(motion, material):
 
 
 # --------------------------------------------------------------------------- body force
-class ManufacturedForce:
+class ManufacturedForce(eqx.Module):
     """``body_force(x, t)`` for :class:`jaxmpm.Simulation`: the manufactured body force b(X_p, t)
     at each particle's reference position ``X`` (N, D), by automatic differentiation of the exact
     motion (:func:`exact_fields`).  ``x`` only supplies the shape check and the dtype.
 
-    Equality and hashing go by value (motion, material constants, X), so two equal scenes share
-    compiled code."""
+    A pytree: the motion is static (a frozen dataclass, compared by value), the material and
+    ``X`` are array leaves, so two equal scenes share compiled code without any hashing here."""
+
+    motion: object = eqx.field(static=True)
+    material: object
+    X: jnp.ndarray
 
     def __init__(self, motion, material, X):
         self.motion = motion
         self.material = material
-        self.X = np.asarray(X, dtype=np.float64)
-        lam, mu = (float(v) for v in material.lame())
-        self._key = (type(material).__name__, motion, lam, mu, float(material.density),
-                     self.X.shape, hashlib.sha1(self.X.tobytes()).hexdigest())
-        self._at = jax.jit(jax.vmap(exact_fields(motion, material)["body_force"], in_axes=(0, None)))
+        self.X = jnp.asarray(np.asarray(X, dtype=np.float64))
 
     def at(self, X, t):
         """b(X, t) for points X (N, D) (any points, not only the particles')."""
-        return self._at(X, t)
+        return _body_force_at(self.motion, self.material, X, t)
 
     def __call__(self, x, t):
         check(x.shape == self.X.shape,
               f"ManufacturedForce: got positions of shape {x.shape}, but this body force belongs to "
               f"{self.X.shape[0]} particles in {self.X.shape[1]}D (build the scene again for other particles)")
-        X = jnp.asarray(self.X, x.dtype)
+        X = self.X.astype(x.dtype)
         return self.at(X, jnp.asarray(t, x.dtype)).astype(x.dtype)
 
-    def __eq__(self, other):
-        return isinstance(other, ManufacturedForce) and other._key == self._key
 
-    def __hash__(self):
-        return hash(self._key)
+@functools.partial(jax.jit, static_argnums=0)
+def _body_force_at(motion, material, X, t):
+    return jax.vmap(exact_fields(motion, material)["body_force"], in_axes=(0, None))(X, t)
 
 
 class ManufacturedReference:
@@ -213,26 +211,17 @@ class ManufacturedReference:
 
 
 # --------------------------------------------------------------------------- boundary selectors
-class _plane:
-    """Node selector x_axis == value (within round-off), or beyond it with ``outside``; hashable."""
+def _plane(axis: int, value: float, outside: bool, tol: float):
+    """Node selector x_axis == value (within round-off), or beyond it with ``outside`` (the
+    Simulation stores the nodes it selects, so a plain function will do)."""
 
-    def __init__(self, axis: int, value: float, outside: bool, tol: float):
-        self.axis, self.value, self.outside, self.tol = int(axis), float(value), bool(outside), float(tol)
+    def select(x):
+        d = x[:, axis] - value
+        if not outside:
+            return np.abs(d) <= tol
+        return d <= tol if value <= 0.5 else d >= -tol
 
-    def __call__(self, x):
-        d = x[:, self.axis] - self.value
-        if not self.outside:
-            return np.abs(d) <= self.tol
-        return d <= self.tol if self.value <= 0.5 else d >= -self.tol
-
-    def _key(self):
-        return (self.axis, self.value, self.outside, self.tol)
-
-    def __eq__(self, other):
-        return isinstance(other, _plane) and other._key() == self._key()
-
-    def __hash__(self):
-        return hash(("plane",) + self._key())
+    return select
 
 
 def walls(dim: int, h: float, outside: bool = False) -> tuple:

@@ -1,0 +1,121 @@
+"""Physics terms: the pieces a time step is assembled from, beside the scheme.
+
+A term contributes up to three things to the step of 003 §2.1 (see ``jaxmpm._step``):
+
+* ``p2g_columns(sim, state, stencil)`` -- named per-slot columns, planar (C, K, N), that P2G adds
+  into the nodal field of that name in its one scatter-add (terms writing the same name are
+  summed slot by slot, in the model's term order);
+* ``grid_action(sim, fields, solution, dt)`` -- a change to the grid solution (default: none);
+* ``particle_action(sim, old, new, transfer, solution, dt)`` -- a change to the new particle
+  state after the scheme's update (default: none);
+
+and it may declare per-particle fields (``particle_fields()``, :class:`jaxmpm.ParticleField`) that
+the state then carries and runs save.  The terms of today's single-field engine:
+
+* :class:`StressDivergence`  f_i += -sum_p V0_p tau_p . G_pi          (001 eq. 20, 003 eq. 2.10)
+* :class:`BodyForce`         f_i += sum_p S_pi M_p b_p, b = g + b(x, t) (001 eq. 20)
+* :class:`Damping`           A_damp = alpha_g S v + alpha_p V^n        (000 eq. 2.77, 001 §5.1.2);
+                             the scheme places it in its update (000 eq. 3.28, 003 eq. 2.17)
+
+Register a new term with :func:`jaxmpm.register_term` so that its parameters reach
+:func:`jaxmpm.set_params`, calibration and the HDF5 attributes.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+from ._errors import check
+from ._materials import _leaf, concrete
+from ._registry import Parameter, register_term
+from ._transfer import particle_force_contributions, stress_divergence_contributions
+
+
+class Term(eqx.Module):
+    """Base class of physics terms (see the module docstring); every hook defaults to nothing."""
+
+    def particle_fields(self) -> tuple:
+        """The :class:`jaxmpm.ParticleField` this term declares."""
+        return ()
+
+    def p2g_columns(self, sim, state, stencil) -> dict:
+        """{nodal field name: per-slot contributions, planar (C, K, N) or (K, N)}."""
+        return {}
+
+    def grid_action(self, sim, fields, solution, dt):
+        """The grid solution after this term (default: unchanged)."""
+        return solution
+
+    def particle_action(self, sim, old, new, transfer, solution, dt):
+        """The new particle state after this term (default: unchanged)."""
+        return new
+
+
+class StressDivergence(Term):
+    """Internal force f_i = -sum_p V0_p tau_p . G_pi (001 eq. 20, 003 eq. 2.10), tau the
+    material's Kirchhoff stress."""
+
+    def p2g_columns(self, sim, state, stencil):
+        tau = sim.material.particle_stress(state.F, state.material_state)
+        return {"force": stress_divergence_contributions(stencil, state.volume0[:, None, None] * tau)}
+
+
+class BodyForce(Term):
+    """Body force per unit mass b = g + b(x, t) on every particle: f_i += sum_p S_pi M_p b_p
+    (001 eq. 20).  ``gravity`` (D,) is a differentiable leaf; ``field`` an optional callable
+    b(x, t) -> (N, D) of the current positions and time (a function or an equinox module)."""
+
+    gravity: jnp.ndarray
+    field: Callable | None = None
+
+    def __init__(self, gravity, field: Callable | None = None):
+        self.gravity = gravity
+        check(field is None or callable(field), "body_force must be a callable b(x, t) -> (N, D)")
+        self.field = field
+
+    def acceleration(self, state):
+        """b_p = g + b(X_p, t), (N, D)."""
+        body = jnp.broadcast_to(self.gravity.astype(state.x.dtype), state.x.shape)
+        if self.field is not None:
+            body = body + self.field(state.x, state.time)
+        return body
+
+    def p2g_columns(self, sim, state, stencil):
+        return {"force": particle_force_contributions(stencil, state.mass[:, None] * self.acceleration(state))}
+
+
+class Damping(Term):
+    """Grid and particle damping alpha_g, alpha_p in 1/time (001 §5.1.2):
+    A_damp = alpha_g S v + alpha_p V^n (000 eq. 2.77), subtracted in the scheme's update."""
+
+    grid: jnp.ndarray
+    particle: jnp.ndarray
+
+    def __init__(self, grid=0.0, particle=0.0):
+        self.grid = _leaf(grid, "grid (alpha_g)", "Damping")
+        self.particle = _leaf(particle, "particle (alpha_p)", "Damping")
+        for name, val in (("grid", self.grid), ("particle", self.particle)):
+            c = concrete(val)
+            if c is not None:
+                check(np.all(c >= 0), f"Damping: {name} = {c} must be >= 0 (units 1/time); 0 switches it off")
+
+    def acceleration(self, Sv, V):
+        return self.grid * Sv + self.particle * V  # 000 eq. (2.77)
+
+
+def damping_acceleration(damping: Damping | None, Sv, V):
+    """A_damp = alpha_g S v + alpha_p V^n (000 eq. 2.77); zero when the model has no damping."""
+    return 0.0 if damping is None else damping.acceleration(Sv, V)
+
+
+register_term("stress", StressDivergence, doc="internal force -sum_p V0_p tau_p . G_pi (001 eq. 20)")
+register_term("body_force", BodyForce, doc="gravity and body force sum_p S_pi M_p b_p (001 eq. 20)",
+              parameters=[Parameter("gravity", lambda t: t.gravity, "gravity vector")])
+register_term("damping", Damping, doc="grid and particle damping (000 eq. 2.77)",
+              parameters=[Parameter("alpha_g", lambda t: t.grid, "grid damping alpha_g (1/time)", "positive"),
+                          Parameter("alpha_p", lambda t: t.particle, "particle damping alpha_p (1/time)",
+                                    "positive")])

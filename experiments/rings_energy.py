@@ -1,4 +1,4 @@
-"""Total energy of the ``rings`` collision per particle update (DESIGN.md "Scenes": rings).
+"""Total energy of the ``rings`` collision per particle update (docs/design.md "Scenes": rings).
 
 Two neo-Hookean rings (E = 100e6, nu = 0.2, rho = 1e3, r_i = 3, r_o = 4) meet head-on at +-30;
 no boundary or body force acts, so the exact total energy (kinetic + neo-Hookean strain) is

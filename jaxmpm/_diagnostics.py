@@ -1,4 +1,4 @@
-"""Energies and momenta of a particle state (DESIGN.md "Diagnostics")."""
+"""Energies and momenta of a particle state (docs/design.md "Diagnostics")."""
 
 from __future__ import annotations
 
@@ -36,7 +36,7 @@ def angular_momentum(state):
 
 
 def stable_dt(grid, material, velocity, cfl: float = 1.0):
-    """dt = CFL h / max_p (c + |V_p|), c the dilatational wave speed (DESIGN.md)."""
+    """dt = CFL h / max_p (c + |V_p|), c the dilatational wave speed (docs/design.md)."""
     c = material.wave_speed(grid.dim)
     speed = c + jnp.max(jnp.sqrt(jnp.sum(velocity**2, axis=-1)))
     return cfl * grid.h / speed

@@ -1,4 +1,4 @@
-"""HDF5 output in the layout of DESIGN.md, written chunk by chunk, with an XDMF sidecar.
+"""HDF5 output in the layout of docs/design.md, written chunk by chunk, with an XDMF sidecar.
 
 ```
 /time (T,)   /particles/x (T,N,D)  /particles/v (T,N,D)  /particles/mass (N,)  /particles/volume0 (N,)
@@ -34,7 +34,7 @@ _SERIES = {
 
 
 def run_attributes(sim, dt=None, scene: str | None = None, params: dict | None = None, ppc=None) -> dict:
-    """The root attributes of DESIGN.md for a simulation."""
+    """The root attributes of docs/design.md for a simulation."""
     from . import __version__
 
     from ._registry import sim_parameters

@@ -79,7 +79,7 @@ def mass_matrix_series(
         constrained system; prescribed non-zero velocities g enter through the coupling term
         S+S g, so the limit is the constrained full-mass solve (003 eq. 1.49).
       * ``"result"``: conditions imposed only on the result (003 eq. 2.53 read literally);
-        known to gain energy for orders >= 3 (DESIGN.md).
+        known to gain energy for orders >= 3 (docs/design.md).
       * ``"lumped"``: the lumped method (003 eq. 2.52): conditions only on the input momenta.
     """
     if order == 1:

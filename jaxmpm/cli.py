@@ -1,4 +1,4 @@
-"""The ``jaxmpm`` command line (DESIGN.md "Public API", last paragraph).
+"""The ``jaxmpm`` command line (docs/design.md "Public API", last paragraph).
 
 ``jaxmpm scenes`` lists the scenes; ``jaxmpm run SCENE [options] --out FILE.h5`` runs one with a
 progress bar, writes HDF5 as it goes (:class:`jaxmpm.H5Writer`) and prints a summary.  Input errors

@@ -1,4 +1,4 @@
-"""The ``bar`` scene against its exact modal solution (DESIGN.md scenes; issues "Core engine" and
+"""The ``bar`` scene against its exact modal solution (docs/design.md scenes; issues "Core engine" and
 "XPIC(m) and FMPM(k)").
 
 Exact solution: the first mode of the fixed-free bar, v(x, t) = v0 sin(beta1 x) cos(omega t), so the

@@ -1,5 +1,5 @@
 """Differentiable rollouts, checkpointing, calibration and ensembles (issue "Differentiable
-rollouts").  Gradients are checked against central finite differences in float64 (DESIGN.md)."""
+rollouts").  Gradients are checked against central finite differences in float64 (docs/design.md)."""
 
 import os
 import subprocess

@@ -1,5 +1,5 @@
 """Reverse-mode gradients through whole rollouts, against central finite differences in float64
-(DESIGN.md "Verification standards").  The XPIC(m)/FMPM(k) series are fixed-length fori_loops,
+(docs/design.md "Verification standards").  The XPIC(m)/FMPM(k) series are fixed-length fori_loops,
 so these gradients pass through them."""
 
 import equinox as eqx

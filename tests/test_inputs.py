@@ -1,4 +1,4 @@
-"""Fail loudly (DESIGN.md principle 6): bad input raises jm.InputError naming the parameter, a too
+"""Fail loudly (docs/design.md principle 6): bad input raises jm.InputError naming the parameter, a too
 large time step warns with the stable limit, and a run that goes unstable stops with
 jm.InstabilityError naming the first bad step and its cause (NaN/Inf, J <= 0, particles leaving the
 grid), keeping the frames written before it."""
@@ -130,7 +130,7 @@ def test_run_rejects_bad_step_counts(steps, save_every):
 
 
 def test_time_step_above_stable_limit_warns_with_the_limit():
-    """dt > h / max(c + |V|) (DESIGN.md "Diagnostics") warns and quotes the limit."""
+    """dt > h / max(c + |V|) (docs/design.md "Diagnostics") warns and quotes the limit."""
     sim = small_simulation()
     state = body_state(sim, 6.0, 10.0)
     limit = 1.0 / math.sqrt(2.0)  # h / c with h = 1, c = sqrt(E / rho) = sqrt(2), body at rest

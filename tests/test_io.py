@@ -1,4 +1,4 @@
-"""HDF5 output (DESIGN.md "HDF5 output layout"): save_h5 / H5Writer / load_h5 round trips, the
+"""HDF5 output (docs/design.md "HDF5 output layout"): save_h5 / H5Writer / load_h5 round trips, the
 root attributes, the XDMF sidecar, chunked writing during a run, and an interrupted run."""
 
 import json
@@ -14,7 +14,7 @@ import jaxmpm as jm
 STEPS, SAVE_EVERY = 40, 10
 FRAMES = STEPS // SAVE_EVERY + 1  # the initial frame plus one every SAVE_EVERY steps
 
-# DESIGN.md layout: dataset -> (History field or None, shape as a function of T, N, D)
+# docs/design.md layout: dataset -> (History field or None, shape as a function of T, N, D)
 LAYOUT = {
     "time": ("time", lambda T, N, D: (T,)),
     "particles/x": ("x", lambda T, N, D: (T, N, D)),

@@ -11,7 +11,7 @@ NumPy from the ``Stencil``:
   (003 eq. 1.41) = I - (I - S S+)^k (003 eq. 1.32), and the update of 003 eq. (2.17)
 * the limit k -> infinity: the full mass matrix solve m~ v = p, m~ = S^T M S (003 eq. 1.9),
   and with a fixed node the constrained solve of 003 eqs. (1.49)-(1.50)
-* velocity boundary conditions inside the series (003 §1.5, DESIGN.md): the three ``boundary`` modes
+* velocity boundary conditions inside the series (003 §1.5, docs/design.md): the three ``boundary`` modes
 * XPIC(1) = PIC over a whole ``bar`` run (000 eq. 3.25 with m = 1)
 
 Run with ``pytest tests/test_matrix_forms.py -s`` to see the measured convergence rates.

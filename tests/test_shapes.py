@@ -1,4 +1,4 @@
-"""Properties of the shape functions S_pi and gradients G_pi (DESIGN.md "Shape functions").
+"""Properties of the shape functions S_pi and gradients G_pi (docs/design.md "Shape functions").
 
 For every shape (Linear, uGIMP with ppc = 1, 2, 3, quadratic and cubic B-splines) in 1D, 2D and 3D:
 

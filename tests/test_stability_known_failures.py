@@ -45,15 +45,20 @@ def test_linear_shapes_invert_under_cell_crossing():
 
 
 def test_xpic_binomial_series_unstable_at_high_order():
-    """000 eq. (3.25) as a binomial sum cancels terms of size C(50, 25) ~ 1.3e14 |v|: XPIC(50) goes
-    unstable on the bar -- its energy blows up and a particle inverts (jm.InstabilityError) after
-    step 100, before the horizon (measured on c19617c: J <= 0 at step 758, t = 11.8, max E/E0 = 9.2
-    before it); the same polynomial as a Neumann series (sum_j (I - S+S)^j v) is stable and
-    conserves energy like FLIP (measured max E/E0 = 1.008, final 1.003 at t = 16)."""
+    """000 eq. (3.25) as a binomial sum cancels terms of size C(50, 25) ~ 1.3e14 |v|, so XPIC(50)'s
+    velocities are round-off amplified by ~14 digits and the bar blows up; the same polynomial as a
+    Neumann series (sum_j (I - S+S)^j v) is stable and conserves energy like FLIP (measured max
+    E/E0 = 1.008, final 1.003 at t = 16).
+
+    How the blow-up ends depends on the round-off itself, i.e. on the summation order: on c19617c a
+    particle inverted (jm.InstabilityError, J <= 0 at step 758, t = 11.8, max E/E0 = 9.2 before
+    it); since a6dba9f (planar layout: the stencil is summed in another order) the energy grows
+    without an inversion -- E/E0 passes 2 at step 250 (t = 3.9), max 67.3 within t = 16, 260 at
+    t = 40, with J in [0.82, 1.017] and every particle on the grid.  Asserted: the run is unstable
+    (inverted, left the grid, NaN, or energy growth) with E/E0 > 10 by t = 16."""
     r = sm.high_order_xpic()
-    assert r["binomial"]["outcome"] in FAILED, r["binomial"]  # raised jm.InstabilityError
-    assert 100 < r["binomial"]["step"] and r["binomial"]["time"] < sm.BAR_HORIZON_SHORT, r["binomial"]
-    assert r["binomial"]["max_energy_ratio"] > 2.0, r["binomial"]  # energy blew up before the failure
+    assert r["binomial"]["outcome"] in FAILED + ("energy growth > 1%",), r["binomial"]
+    assert r["binomial"]["max_energy_ratio"] > 10.0, r["binomial"]  # measured 67.3
     assert r["neumann"]["outcome"] == "stable", r["neumann"]
     assert r["neumann"]["time"] == pytest.approx(sm.BAR_HORIZON_SHORT, abs=0.1)
 

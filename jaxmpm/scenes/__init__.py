@@ -1,4 +1,4 @@
-"""Benchmark scenes with known answers (DESIGN.md "Scenes").
+"""Benchmark scenes with known answers (docs/design.md "Scenes").
 
 ``jm.scene(name, **options)`` returns a :class:`Setup` with the simulation, its initial state, the
 time step and the number of steps; ``setup.run()`` runs it.

@@ -5,7 +5,7 @@ Domain (-20, 20) x (-7.5, 7.5), h = 0.1, rings of inner radius 3 and outer radiu
 nu = 0.2, rho = 1e3 (plane strain), quadratic B-splines, 2x2 particles per cell,
 dt = CFL h / (c + max|V|) with CFL 0.8, t_end = 0.6.  No boundary conditions or gravity, so the
 exact total energy (kinetic + neo-Hookean strain) and linear momentum (zero) are constant; the
-energy a scheme loses is its dissipation (DESIGN.md "Scenes").
+energy a scheme loses is its dissipation (docs/design.md "Scenes").
 """
 
 from __future__ import annotations

@@ -17,7 +17,7 @@ policy's business:
 
 ``Simulation(..., backend="auto" | "cpu" | "gpu")`` picks the policy; ``"auto"`` resolves from
 ``jax.default_backend()`` when the step is traced.  Both policies give the same numbers: a
-boundary changes where values are computed, not how (tests/test_backend_policy.py, 1e-12).
+boundary changes where values are computed, not how (tests/test_open_core.py, 1e-12).
 """
 
 from __future__ import annotations

@@ -56,14 +56,6 @@ class Failure(eqx.Module):
     particle: jnp.ndarray
 
 
-class Failure(eqx.Module):
-    """First failing step (-1 if none), cause code (see CAUSES) and the offending particle."""
-
-    step: jnp.ndarray
-    cause: jnp.ndarray
-    particle: jnp.ndarray
-
-
 def _is_traced(tree) -> bool:
     return any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(tree))
 

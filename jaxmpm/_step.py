@@ -69,10 +69,10 @@ def p2g(sim, state, force: bool = True, dt=None) -> GridFields:
     return GridFields(transfer, nodal)
 
 
-def nodal_force(sim, state, transfer: Transfer):
-    """The terms' nodal force alone (USF: after the strain update), one scatter-add."""
-    return scatter_columns(transfer.stencil, lambda s: {"force": term_columns(sim, s, transfer.stencil)["force"]},
-                           transfer.num_nodes, state)["force"]
+def nodal_terms(sim, state, transfer: Transfer) -> dict:
+    """The terms' nodal fields alone (USF: after the strain update), in one scatter-add."""
+    return scatter_columns(transfer.stencil, lambda s: term_columns(sim, s, transfer.stencil), transfer.num_nodes,
+                           state)
 
 
 def grid_solve(fields: GridFields, force, dt, constraint: Constraint) -> GridSolution:
@@ -104,7 +104,7 @@ def step(sim, state, dt):
         material_state = sim.material.update_state(F, state.material_state, dt)
         state = eqx.tree_at(lambda s: (s.F, s.material_state), state, (F, material_state),
                             is_leaf=lambda x: x is None)
-        fields = GridFields(transfer, fields.values, force=nodal_force(sim, state, transfer))
+        fields = GridFields(transfer, {**fields.values, **nodal_terms(sim, state, transfer)})
     else:  # USL, MUSL: the stress of the step's start, scattered with the mass and momentum
         fields = p2g(sim, state, dt=dt if folds_force(sim) else None)
     transfer = fields.transfer

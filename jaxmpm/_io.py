@@ -160,17 +160,20 @@ def write_xdmf(h5_path: str, f: h5py.File) -> None:
     T, N, D = f["particles/x"].shape
     h5name = os.path.basename(h5_path)
     times = f["time"][()]
-    dtype = f["particles/x"].dtype
-    prec = dtype.itemsize
     geom = {1: "X", 2: "XY", 3: "XYZ"}[D]
 
     def slab(name, t):
-        # one time slice of a (T, N, D) dataset
+        """One time slice of a (T, N) or (T, N, C) dataset as an XDMF hyperslab."""
+        ds = f[name]
+        per = ds.shape[2:]  # () for a scalar per particle, (C,) otherwise
+        ones = " ".join(["1"] * len(ds.shape))
+        start = " ".join([str(t)] + ["0"] * (len(ds.shape) - 1))
+        count = " ".join(["1", str(N)] + [str(c) for c in per])
         return (
-            f'<DataItem ItemType="HyperSlab" Dimensions="{N} {D}" Format="XML">'
-            f'<DataItem Dimensions="3 3" Format="XML">{t} 0 0 1 1 1 1 {N} {D}</DataItem>'
-            f'<DataItem Dimensions="{T} {N} {D}" NumberType="Float" Precision="{prec}" Format="HDF">'
-            f"{h5name}:/{name}</DataItem></DataItem>"
+            f'<DataItem ItemType="HyperSlab" Dimensions="{" ".join(str(v) for v in (N,) + per)}" Format="XML">'
+            f'<DataItem Dimensions="3 {len(ds.shape)}" Format="XML">{start} {ones} {count}</DataItem>'
+            f'<DataItem Dimensions="{" ".join(str(v) for v in ds.shape)}" NumberType="Float" '
+            f'Precision="{ds.dtype.itemsize}" Format="HDF">{h5name}:/{name}</DataItem></DataItem>'
         )
 
     fields = [name for name, ds in f["particles"].items()
@@ -178,19 +181,8 @@ def write_xdmf(h5_path: str, f: h5py.File) -> None:
 
     def field_attribute(name, t):
         ds = f[f"particles/{name}"]
-        if ds.ndim == 2:  # a scalar per particle: (T, N)
-            item = (f'<DataItem ItemType="HyperSlab" Dimensions="{N}" Format="XML">'
-                    f'<DataItem Dimensions="3 2" Format="XML">{t} 0 1 1 1 {N}</DataItem>'
-                    f'<DataItem Dimensions="{T} {N}" NumberType="Float" Precision="{ds.dtype.itemsize}" '
-                    f'Format="HDF">{h5name}:/particles/{name}</DataItem></DataItem>')
-            return f'<Attribute Name="{name}" AttributeType="Scalar" Center="Node">{item}</Attribute>'
-        C = ds.shape[2]
-        item = (f'<DataItem ItemType="HyperSlab" Dimensions="{N} {C}" Format="XML">'
-                f'<DataItem Dimensions="3 3" Format="XML">{t} 0 0 1 1 1 1 {N} {C}</DataItem>'
-                f'<DataItem Dimensions="{T} {N} {C}" NumberType="Float" Precision="{ds.dtype.itemsize}" '
-                f'Format="HDF">{h5name}:/particles/{name}</DataItem></DataItem>')
-        kind = "Vector" if C == D else "Matrix"
-        return f'<Attribute Name="{name}" AttributeType="{kind}" Center="Node">{item}</Attribute>'
+        kind = "Scalar" if ds.ndim == 2 else "Vector" if ds.shape[2] == D else "Matrix"
+        return f'<Attribute Name="{name}" AttributeType="{kind}" Center="Node">{slab("particles/" + name, t)}</Attribute>'
 
     lines = ['<?xml version="1.0" ?>', '<Xdmf Version="3.0">', "<Domain>",
              '<Grid Name="particles" GridType="Collection" CollectionType="Temporal">']

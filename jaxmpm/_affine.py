@@ -231,13 +231,12 @@ def with_velocity_gradient(sim, state, gradient):
     return with_scheme_state(state, affine)
 
 
-def _no_beta(name):
+def _without_beta(cls, name):
     def parse(arg, beta=None):
-        check(not arg, f"scheme {name}:{arg}: {name} takes no ':' argument")
         check(beta is None, f"scheme {name!r}: {name} has no FLIP fraction; drop beta (--beta)")
-        return APIC() if name == "apic" else TPIC()
+        return cls()
     return parse
 
 
-register_scheme("apic", APIC, parse=_no_beta("apic"), spec="apic")
-register_scheme("tpic", TPIC, parse=_no_beta("tpic"), spec="tpic")
+register_scheme("apic", APIC, parse=_without_beta(APIC, "apic"), spec="apic")
+register_scheme("tpic", TPIC, parse=_without_beta(TPIC, "tpic"), spec="tpic")

@@ -63,7 +63,7 @@ def _select(grid: Grid, where: Selector, layers: int) -> np.ndarray:
 
 def resolve(grid: Grid, condition):
     """``condition`` with a callable ``where`` replaced by the :class:`NodeSet` it selects."""
-    if isinstance(condition, Wall) or isinstance(condition.where, (str, NodeSet)):
+    if isinstance(condition.where, (str, NodeSet)):
         return condition
     nodes = NodeSet(_select(grid, condition.where, condition.layers))
     return dataclasses.replace(condition, where=nodes)

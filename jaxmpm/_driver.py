@@ -60,7 +60,7 @@ def _is_traced(tree) -> bool:
     return any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(tree))
 
 
-def check_state(sim, state) -> None:
+def check_state(state) -> None:
     """A state whose float arrays mix precisions is rejected with the dtypes and the fix (a model
     of another precision than its state is cast on entry: ``Simulation.step``)."""
     dtypes = {}
@@ -150,7 +150,7 @@ def run(
           f"run: steps = {steps} is not a multiple of save_every = {save_every}; "
           f"use steps = {math.ceil(steps / save_every) * save_every}")
     frames = steps // save_every
-    check_state(sim, state)
+    check_state(state)
     sim = sim.in_precision(state.x.dtype)  # the model computes in its state's precision
     traced = _is_traced((sim, state, dt))
     dt = jnp.asarray(dt, state.x.dtype)  # an array, so a new dt value does not recompile

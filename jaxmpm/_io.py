@@ -58,9 +58,9 @@ def run_attributes(sim, dt=None, scene: str | None = None, params: dict | None =
         "jaxmpm version": __version__,
         "scene parameters": json.dumps(params or {}, default=float),
     }
-    for name, (where, _) in sim_parameters(sim).items():  # the registered float parameters
+    for name, (where, _) in sim_parameters(sim).items():  # the registered float parameters present
         value = np.asarray(where(sim))
-        if name not in ("alpha_g", "alpha_p") and np.issubdtype(value.dtype, np.floating):
+        if np.issubdtype(value.dtype, np.floating):
             attrs[name] = float(value) if value.ndim == 0 else value.astype(np.float64)
     return attrs
 

@@ -35,8 +35,8 @@ class Parameter:
 class Entry:
     name: str
     cls: type
-    parse: Callable | None
-    spec: str  # the command-line form, e.g. "xpic:M"
+    parse: Callable | None  # parse(argument after ':', **options) -> part; None: cls(**options)
+    spec: str  # the command-line form, e.g. "xpic:M"; without ':' the part takes no argument
     doc: str
     parameters: tuple
 
@@ -101,8 +101,8 @@ class Registry:
         name = name.lower()
         check(name in self._entries, f"unknown {self.kind} {spec!r}; choose {self.specs()}")
         entry = self._entries[name]
+        check(not arg or ":" in entry.spec, f"{self.kind} {spec!r}: {name} takes no ':' argument")
         if entry.parse is None:
-            check(not arg, f"{self.kind} {spec!r}: {name} takes no ':' argument")
             return entry.cls(**options)
         return entry.parse(arg, **options)
 

@@ -236,17 +236,11 @@ def _number(arg: str, spec: str, kind=float):
     return value
 
 
-def _no_argument(name, arg):
-    check(not arg, f"scheme {name}:{arg!r}: {name} takes no ':' argument")
-
-
 def _parse_flip(arg, beta=None):
-    _no_argument("flip", arg)
     return FLIP(beta=1.0 if beta is None else beta)
 
 
 def _parse_pic(arg, beta=None):
-    _no_argument("pic", arg)
     check(beta is None, "scheme 'pic' has beta = 0 by definition; drop beta (--beta) or use blend:B")
     return PIC()
 

@@ -315,9 +315,8 @@ class CubicBSpline(ShapeFunction):
         return 1.0 / 3.0
 
 
-def _parse_ugimp(arg, ppc=None, **kwargs):
-    check(not arg, f"shape ugimp:{arg}: give ppc=..., not a ':' argument")
-    return UGIMP(**({} if ppc is None else {"ppc": ppc}))
+def _parse_ugimp(arg, ppc=None):
+    return UGIMP() if ppc is None else UGIMP(ppc=ppc)
 
 
 register_shape("linear", Linear)

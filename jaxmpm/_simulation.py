@@ -90,7 +90,6 @@ class Simulation(eqx.Module):
         g = jnp.zeros(grid.dim) if gravity is None else _leaf(gravity, "gravity", "Simulation")
         g = jnp.broadcast_to(g, (grid.dim,)) if g.ndim == 0 else g
         check(g.shape[-1:] == (grid.dim,), f"Simulation: gravity must have {grid.dim} components, got shape {g.shape}")
-        check(body_force is None or callable(body_force), "Simulation: body_force must be a callable b(x, t) -> (N, D)")
         extra = (terms,) if isinstance(terms, Term) else tuple(terms)
         for t in extra:
             check(isinstance(t, Term), f"Simulation: terms must be jm.Term instances, got {t!r}")

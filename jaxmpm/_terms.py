@@ -74,7 +74,7 @@ class BodyForce(Term):
 
     def __init__(self, gravity, field: Callable | None = None):
         self.gravity = gravity
-        check(field is None or callable(field), "body_force must be a callable b(x, t) -> (N, D)")
+        check(field is None or callable(field), "Simulation: body_force must be a callable b(x, t) -> (N, D)")
         self.field = field
 
     def acceleration(self, state):

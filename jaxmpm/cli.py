@@ -144,12 +144,8 @@ def build_setup(args):
 
     kwargs = dict(dtype=args.dtype)
     if args.scheme is not None or args.beta is not None:
-        spec = args.scheme or "flip"
-        kind, _, value = spec.partition(":")
-        if args.beta is not None:
-            check(kind.lower() not in ("pic", "apic", "tpic"), f"--beta does not apply to --scheme {spec}")
-            check(not (kind.lower() == "blend" and value), f"--scheme {spec} already sets beta; drop --beta")
-        kwargs["scheme"] = scheme_from_name(spec, args.beta)
+        # the scheme's parser rejects a --beta it cannot take (pic, apic, tpic, blend:B)
+        kwargs["scheme"] = scheme_from_name(args.scheme or "flip", args.beta)
     if args.shape is not None:
         check(args.shape != "ugimp" or "ppc" in accepted, f"--shape ugimp needs a scene with ppc; {args.scene!r} has none")
         ppc = args.ppc if args.ppc is not None else accepted["ppc"].default if "ppc" in accepted else None

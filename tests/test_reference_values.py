@@ -4,13 +4,11 @@
 to 1e-13 relative, whole ``bar`` and ``spin`` runs to 1e-10 (float64)."""
 
 import os
-import sys
 
 import numpy as np
 import pytest
 
-sys.path.insert(0, os.path.join(os.path.dirname(__file__), "reference"))
-import configs  # noqa: E402
+from reference import configs
 
 STORED = np.load(os.path.join(os.path.dirname(__file__), "reference", "values.npz"))
 

@@ -21,7 +21,8 @@ from ._scheme_base import ParticleUpdate, Scheme
 from ._schemes import FLIP, FMPM, PIC, XPIC, mass_matrix_series
 from ._affine import APIC, TPIC, with_velocity_gradient
 from ._shapes import CubicBSpline, Linear, QuadraticBSpline, ShapeFunction, Stencil, StencilBase, TensorStencil, UGIMP
-from ._driver import History, StableTimeStepWarning
+from ._driver import History, RunInterrupted, StableTimeStepWarning
+from ._resume import resume
 from ._simulation import Simulation
 from ._state import State, with_fields, with_scheme_state
 from ._step import folds_force, grid_solve, g2p, p2g
@@ -38,10 +39,10 @@ __all__ = [
     "Ball", "BodyForce", "Box", "Constraint", "CubicBSpline", "Damping", "Disk", "FLIP", "FMPM", "Fixed", "Grid",
     "GridFields", "GridSolution", "H5Writer", "History", "InputError", "InstabilityError", "Linear", "LinearElastic",
     "Material", "NeoHookean", "NodeSet", "PIC", "ParticleField", "ParticleUpdate", "Particles", "Prescribed",
-    "QuadraticBSpline", "Region", "Ring", "SCENES", "Scheme", "ShapeFunction", "Simulation", "Slip",
+    "QuadraticBSpline", "Region", "Ring", "RunInterrupted", "SCENES", "Scheme", "ShapeFunction", "Simulation", "Slip",
     "StableTimeStepWarning", "State", "Stencil", "StencilBase", "StressDivergence", "TensorStencil", "Term",
     "Transfer", "UGIMP", "XPIC", "angular_momentum", "fill", "folds_force", "g2p", "gather", "grid_solve",
-    "kinetic_energy", "linear_momentum", "load_h5", "mass_matrix_series", "p2g", "save_h5", "scatter",
+    "kinetic_energy", "linear_momentum", "load_h5", "resume", "mass_matrix_series", "p2g", "save_h5", "scatter",
     "scene", "stable_dt", "strain_energy", "with_fields", "with_scheme_state",
     "APIC", "TPIC", "with_velocity_gradient", "Wall", "NoStress", "VolumetricFluid",
 ]

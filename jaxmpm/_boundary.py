@@ -25,6 +25,7 @@ import numpy as np
 
 from ._errors import check
 from ._grid import Grid, parse_face
+from ._validate import FINITE, positive_int
 
 Selector = Union[str, Callable]
 
@@ -51,7 +52,7 @@ class NodeSet:
 
 def _select(grid: Grid, where: Selector, layers: int) -> np.ndarray:
     if isinstance(where, str):
-        return grid.face_mask(where, layers)
+        return grid.face_mask(where, positive_int("boundary", "layers", layers, fix="node layers from the face"))
     if isinstance(where, NodeSet):
         check(where.mask.shape == (grid.num_nodes,), "boundary: this node set belongs to another grid")
         return where.mask
@@ -159,6 +160,7 @@ class Prescribed(eqx.Module):
     def __init__(self, where, velocity, axes=None, layers: int = 1):
         self.where = where
         # an array leaf: jax.grad reaches a wall velocity, and jit does not recompile for a new one
+        FINITE.check("Prescribed", "velocity", velocity)
         self.velocity = jnp.atleast_1d(jnp.asarray(velocity, dtype=float))
         self.axes = None if axes is None else tuple(int(a) for a in axes)
         self.layers = layers
@@ -188,10 +190,8 @@ class Wall(eqx.Module):
 
     def __init__(self, where: str, layers: int = 1):
         check(isinstance(where, str), f"Wall: where = {where!r} must be a grid face like 'x-' or 'y+'")
-        check(isinstance(layers, (int, np.integer)) and layers >= 1,
-              f"Wall: layers = {layers!r} must be a positive integer (node layers from the face)")
         self.where = where
-        self.layers = int(layers)
+        self.layers = positive_int("Wall", "layers", layers, fix="node layers from the face")
 
     def normal(self, grid: Grid) -> np.ndarray:
         """(n, D) outward normal sign on the wall's nodes, 0 elsewhere."""

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
+from ._validate import POSITIVE
+
 
 def kinetic_energy(state):
     """1/2 sum_p M_p |V_p|^2."""
@@ -36,7 +38,9 @@ def angular_momentum(state):
 
 
 def stable_dt(grid, material, velocity, cfl: float = 1.0):
-    """dt = CFL h / max_p (c + |V_p|), c the dilatational wave speed (docs/design.md)."""
+    """dt = CFL h / max_p (c + |V_p|), c the dilatational wave speed (docs/design.md).  A concrete
+    ``cfl`` must be a finite number > 0 (a traced one passes unchecked)."""
+    POSITIVE.check("stable_dt", "cfl", cfl, fix="the Courant number, e.g. 0.5")
     c = material.wave_speed(grid.dim)
     speed = c + jnp.max(jnp.sqrt(jnp.sum(velocity**2, axis=-1)))
     return cfl * grid.h / speed

@@ -9,13 +9,25 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from ._errors import check
-from ._params import set_params
+from ._params import _where, _with_owner, check_value, set_params
+from ._validate import POSITIVE, batch_members, positive_int
 
 
 def _batch_size(tree) -> int:
     sizes = {np.shape(leaf)[0] for leaf in jax.tree_util.tree_leaves(tree) if np.ndim(leaf) > 0}
     check(len(sizes) == 1, f"ensemble: every batched input needs the same leading (batch) size, got {sorted(sizes)}")
     return sizes.pop()
+
+
+def _check_members(sim, params: dict) -> None:
+    """Every member of a concrete parameter batch in its parameter's valid range, before tracing
+    (inside the vmap the values are tracers and cannot be checked)."""
+    for name, batch in params.items():
+        owned = _with_owner(sim, name)
+        _where(owned, name)  # an unknown name is an error here, not inside the trace
+        batch_members("ensemble", f"params[{name!r}]", batch,
+                      lambda i, member, s=owned, n=name: check_value(
+                          s, n, member, "ensemble" if i is None else f"ensemble member {i}"))
 
 
 def _shard(tree, devices):
@@ -36,6 +48,11 @@ def ensemble(sim, state, dt, steps: int, save_every: int = 1, *, params: dict | 
     failure_steps)``; ``failure_steps[b]`` is the first unstable step of member b, -1 if none.
     """
     check(params is not None or states is not None, "ensemble: give params={name: batch} and/or states=batch")
+    check(params is None or isinstance(params, dict), "ensemble: params must be a dict {name: batch}")
+    steps = positive_int("ensemble", "steps", steps, low=0)
+    save_every = positive_int("ensemble", "save_every", save_every)
+    POSITIVE.check("ensemble", "dt", dt)
+    _check_members(sim, params or {})
     batch = _batch_size((params or {}, states))
     if steps % save_every:
         check(False, f"ensemble: steps = {steps} must be a multiple of save_every = {save_every}")

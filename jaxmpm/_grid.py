@@ -13,17 +13,13 @@ import equinox as eqx
 import numpy as np
 
 from ._errors import check
+from ._validate import NON_NEGATIVE, POSITIVE, finite_vector, positive_int, sequence, show
 
 _AXES = "xyz"
 
 
-def _as_tuple(value, name: str) -> tuple:
-    if isinstance(value, (int, float, np.integer, np.floating)):
-        return (value,)
-    try:
-        return tuple(value)
-    except TypeError:
-        raise TypeError(f"Grid: {name} must be a number or a sequence of numbers, got {value!r}") from None
+def _as_tuple(value, name: str, owner: str = "Grid") -> tuple:
+    return sequence(owner, name, value)
 
 
 class Grid(eqx.Module):
@@ -38,8 +34,8 @@ class Grid(eqx.Module):
     cells: tuple = eqx.field(static=True)
 
     def __init__(self, lower: Sequence[float], upper: Sequence[float], cells: Sequence[int]):
-        lower = tuple(float(v) for v in _as_tuple(lower, "lower"))
-        upper = tuple(float(v) for v in _as_tuple(upper, "upper"))
+        lower = finite_vector("Grid", "lower", lower)
+        upper = finite_vector("Grid", "upper", upper)
         cells_in = _as_tuple(cells, "cells")
         check(1 <= len(lower) <= 3, f"Grid: lower has {len(lower)} axes; use 1, 2 or 3 axes")
         check(
@@ -47,20 +43,19 @@ class Grid(eqx.Module):
             f"Grid: lower, upper and cells must have the same number of axes "
             f"(got {len(lower)}, {len(upper)}, {len(cells_in)})",
         )
-        for a, c in enumerate(cells_in):
-            check(
-                float(c) == int(c) and int(c) > 0,
-                f"Grid: cells[{a}] = {c!r} must be a positive integer (number of cells along axis {_AXES[a]})",
-            )
+        cells_out = tuple(positive_int("Grid", f"cells[{a}]", c, fix=f"the number of cells along axis {_AXES[a]}")
+                          for a, c in enumerate(cells_in))
         for a, (lo, hi) in enumerate(zip(lower, upper)):
-            check(all(map(math.isfinite, (lo, hi))), f"Grid: lower/upper along axis {_AXES[a]} must be finite")
             check(
                 hi > lo,
                 f"Grid: upper[{a}] = {hi} must be greater than lower[{a}] = {lo}; swap them or widen the box",
             )
+            check(math.isfinite(hi - lo) and math.isfinite((hi - lo) / cells_out[a]) and (hi - lo) / cells_out[a] > 0,
+                  f"Grid: the box [{lo}, {hi}] along axis {_AXES[a]} with {cells_out[a]} cells has no finite "
+                  "positive cell size; use a smaller box or fewer cells")
         self.lower = lower
         self.upper = upper
-        self.cells = tuple(int(c) for c in cells_in)
+        self.cells = cells_out
 
     # ----------------------------------------------------------------- geometry
     @property
@@ -128,21 +123,37 @@ class Grid(eqx.Module):
         every particle inside the box has its whole stencil on the grid.  Nodes are aligned with
         ``lower`` (so a boundary plane at ``lower`` falls on a node).
         """
-        lower = _as_tuple(lower, "lower")
-        upper = _as_tuple(upper, "upper")
-        d = len(lower)
-        hs = _as_tuple(spacing, "spacing")
+        owner = "Grid.covering"
+        d = len(finite_vector(owner, "lower", lower))
+        check(1 <= d <= 3, f"{owner}: lower has {d} axes; use 1, 2 or 3 axes")
+        axes = f"lower has {d}"
+        finite_vector(owner, "upper", upper, d, broadcast=False, context=axes)
+        finite_vector(owner, "spacing", spacing, d, valid=POSITIVE, context=axes, fix="the cell size")
+        finite_vector(owner, "pad", pad, d, valid=NON_NEGATIVE, context=axes, fix="the room added around the box")
+        check(shape is None or hasattr(shape, "margin"),
+              f"{owner}: shape = {show(shape)} must be a shape function such as jm.Linear() (or None)")
+        lower = _as_tuple(lower, "lower", owner)
+        upper = _as_tuple(upper, "upper", owner)
+        for a, (lo, hi) in enumerate(zip(lower, upper)):
+            check(float(hi) >= float(lo), f"{owner}: upper[{a}] = {show(hi)} must be >= lower[{a}] = {show(lo)}; "
+                                          "swap them")
+        hs = _as_tuple(spacing, "spacing", owner)
         hs = hs * d if len(hs) == 1 else hs
-        pads = _as_tuple(pad, "pad")
+        pads = _as_tuple(pad, "pad", owner)
         pads = pads * d if len(pads) == 1 else pads
-        for a, h in enumerate(hs):
-            check(float(h) > 0, f"Grid.covering: spacing[{a}] = {h} must be positive")
         margin = 0.0 if shape is None else float(shape.margin)
         lo_out, hi_out, cells = [], [], []
-        for lo, hi, h, p in zip(lower, upper, hs, pads):
+        for a, (lo, hi, h, p) in enumerate(zip(lower, upper, hs, pads)):
+            check(math.isfinite(p / h) and math.isfinite((hi - lo + 2 * p) / h + 2 * margin),
+                  f"{owner}: spacing[{a}] = {show(h)} is too small for the box along axis {_AXES[a]}: the cell "
+                  "count is not a finite number; raise the spacing")
             lo_cells = math.ceil(margin + p / h - 1e-9)
             lo_g = lo - lo_cells * h
-            n = math.ceil((hi + p - lo_g) / h + margin - 1e-9)
+            span = (hi + p - lo_g) / h + margin - 1e-9
+            check(math.isfinite(lo_g) and math.isfinite(span) and math.isfinite(lo_g + (span + 1) * h),
+                  f"{owner}: the grid along axis {_AXES[a]} (box [{show(lo)}, {show(hi)}], spacing {show(h)}, "
+                  f"pad {show(p)}) overflows floating point; use smaller numbers")
+            n = math.ceil(span)
             n = max(n, 1)
             lo_out.append(lo_g)
             hi_out.append(lo_g + n * h)

@@ -8,45 +8,10 @@ Dimensions: 1D is uniaxial stress for :class:`LinearElastic`, 2D is plane strain
 from __future__ import annotations
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
-import numpy as np
 
-from ._errors import check
 from ._registry import Parameter, register_material
-
-
-def concrete(x):
-    """``x`` as a NumPy array, or None while it is being traced (jit/grad/vmap)."""
-    try:
-        return np.asarray(x)
-    except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError):
-        return None
-
-
-def _leaf(value, name: str, owner: str):
-    arr = jnp.asarray(value, dtype=jnp.result_type(float))
-    c = concrete(arr)
-    if c is not None:
-        check(np.all(np.isfinite(c)), f"{owner}: {name} = {value!r} must be finite")
-    return arr
-
-
-def _positive(value, name: str, owner: str):
-    arr = _leaf(value, name, owner)
-    c = concrete(arr)
-    if c is not None:
-        check(np.all(c > 0), f"{owner}: {name} = {value!r} must be positive")
-    return arr
-
-
-def _poisson(value, owner: str):
-    arr = _leaf(value, "nu", owner)
-    c = concrete(arr)
-    if c is not None:
-        check(np.all((c > -1.0) & (c < 0.5)),
-              f"{owner}: nu = {value!r} must lie in (-1, 0.5); 0.5 is incompressible and not supported")
-    return arr
+from ._validate import POISSON, POSITIVE
 
 
 def _identity(F):
@@ -111,9 +76,9 @@ class LinearElastic(Material):
     nu: jnp.ndarray
 
     def __init__(self, E, nu=0.0, density=1.0):
-        self.E = _positive(E, "E", "LinearElastic")
-        self.nu = _poisson(nu, "LinearElastic")
-        self.density = _positive(density, "density", "LinearElastic")
+        self.E = POSITIVE.leaf("LinearElastic", "E", E)
+        self.nu = POISSON.leaf("LinearElastic", "nu", nu)
+        self.density = POSITIVE.leaf("LinearElastic", "density", density)
 
     def strain(self, F):
         return 0.5 * (F + jnp.swapaxes(F, -1, -2)) - _identity(F)
@@ -139,9 +104,9 @@ class NeoHookean(Material):
     nu: jnp.ndarray
 
     def __init__(self, E, nu=0.3, density=1.0):
-        self.E = _positive(E, "E", "NeoHookean")
-        self.nu = _poisson(nu, "NeoHookean")
-        self.density = _positive(density, "density", "NeoHookean")
+        self.E = POSITIVE.leaf("NeoHookean", "E", E)
+        self.nu = POISSON.leaf("NeoHookean", "nu", nu)
+        self.density = POSITIVE.leaf("NeoHookean", "density", density)
 
     @staticmethod
     def _log_j(F):
@@ -166,7 +131,7 @@ class NoStress(Material):
     by the particle speed alone."""
 
     def __init__(self, density=1.0):
-        self.density = _positive(density, "density", "NoStress")
+        self.density = POSITIVE.leaf("NoStress", "density", density)
 
     def kirchhoff_stress(self, F):
         return jnp.zeros_like(F)
@@ -187,8 +152,8 @@ class VolumetricFluid(Material):
     E: jnp.ndarray
 
     def __init__(self, E, density=1.0):
-        self.E = _positive(E, "E", "VolumetricFluid")
-        self.density = _positive(density, "density", "VolumetricFluid")
+        self.E = POSITIVE.leaf("VolumetricFluid", "E", E)
+        self.density = POSITIVE.leaf("VolumetricFluid", "density", density)
 
     def kirchhoff_stress(self, F):
         J = jnp.linalg.det(F)
@@ -212,10 +177,10 @@ class VolumetricFluid(Material):
         return jnp.sqrt(self.E / self.density)
 
 
-E = Parameter("E", lambda m: m.E, "Young's modulus (bulk modulus of VolumetricFluid)", "positive")
-NU = Parameter("nu", lambda m: m.nu, "Poisson's ratio", (-1.0, 0.5))
+E = Parameter("E", lambda m: m.E, "Young's modulus (bulk modulus of VolumetricFluid)", "positive", valid=POSITIVE)
+NU = Parameter("nu", lambda m: m.nu, "Poisson's ratio", (-1.0, 0.5), valid=POISSON)
 DENSITY = Parameter("density", lambda m: m.density, "reference density (re-run sim.init for particle masses)",
-                    "positive")
+                    "positive", valid=POSITIVE)
 register_material("linear", LinearElastic, parameters=[E, NU, DENSITY])
 register_material("neohookean", NeoHookean, parameters=[E, NU, DENSITY])
 register_material("fluid", VolumetricFluid, parameters=[E, DENSITY])

@@ -11,9 +11,11 @@ from __future__ import annotations
 from collections.abc import Mapping
 
 import jax.numpy as jnp
+import numpy as np
 
 from ._errors import check
 from ._registry import TERMS, all_parameters, owner_registry, sim_parameters
+from ._validate import fail, traced
 
 
 class _ParameterTable(Mapping):
@@ -68,13 +70,29 @@ def get_params(sim, *names) -> dict:
     return out
 
 
+def check_value(sim, name, value, owner: str = "set_params", label: str | None = None):
+    """Raise InputError unless a concrete ``value`` of parameter ``name`` lies in the range its
+    registration declares (``Parameter.valid``) and, for a vector leaf such as gravity, has the
+    shape of the model's leaf.  A traced value passes unchecked."""
+    if traced(value):
+        return
+    where, p = sim_parameters(sim)[name]
+    p.check(owner, value, label or name)
+    old_shape = np.shape(where(sim))
+    if old_shape and np.shape(value) not in ((), old_shape):
+        fail(owner, f"{label or name} has shape {np.shape(value)}; this model's {name} has shape {old_shape} "
+                    f"(one value per grid axis)")
+
+
 def set_params(sim, **values):
-    """A copy of ``sim`` with the named parameters replaced (values may be traced)."""
+    """A copy of ``sim`` with the named parameters replaced (values may be traced).  Concrete
+    values are checked against the parameter's valid range (nu in (-1, 0.5), beta in [0, 1], ...)."""
     import equinox as eqx
 
     for name, value in values.items():
         sim = _with_owner(sim, name)
         where = _where(sim, name)
+        check_value(sim, name, value)
         old = where(sim)
         sim = eqx.tree_at(where, sim, jnp.asarray(value, dtype=jnp.result_type(old)))
     return sim

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import itertools
 from typing import Callable, Sequence
 
 import equinox as eqx
@@ -10,7 +9,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._errors import check
+from ._limits import require_memory
 from ._grid import Grid
+from ._validate import FINITE, NON_NEGATIVE, POSITIVE, finite_vector, ndim, positive_int
 
 
 class Region(eqx.Module):
@@ -28,10 +29,12 @@ class Box(Region):
     upper: tuple = eqx.field(static=True)
 
     def __init__(self, lower: Sequence[float], upper: Sequence[float]):
-        self.lower = tuple(float(v) for v in np.atleast_1d(lower))
-        self.upper = tuple(float(v) for v in np.atleast_1d(upper))
-        check(len(self.lower) == len(self.upper), "Box: lower and upper must have the same length")
-        check(all(u > l for l, u in zip(self.lower, self.upper)), "Box: every upper must exceed lower")
+        self.lower = finite_vector("Box", "lower", lower)
+        self.upper = finite_vector("Box", "upper", upper)
+        check(len(self.lower) == len(self.upper),
+              f"Box: lower has {len(self.lower)} axes but upper has {len(self.upper)}; give both the same number")
+        for a, (lo, hi) in enumerate(zip(self.lower, self.upper)):
+            check(hi > lo, f"Box: upper[{a}] = {hi} must be greater than lower[{a}] = {lo}")
 
     def contains(self, x):
         return np.all((x >= np.array(self.lower)) & (x < np.array(self.upper)), axis=-1)
@@ -47,9 +50,8 @@ class Ball(Region):
     radius: float = eqx.field(static=True)
 
     def __init__(self, center: Sequence[float], radius: float):
-        self.center = tuple(float(v) for v in np.atleast_1d(center))
-        check(radius > 0, f"{type(self).__name__}: radius = {radius} must be positive")
-        self.radius = float(radius)
+        self.center = finite_vector(type(self).__name__, "center", center)
+        self.radius = POSITIVE.real(type(self).__name__, "radius", radius)
 
     def contains(self, x):
         return np.sum((x - np.array(self.center)) ** 2, axis=-1) < self.radius**2
@@ -71,10 +73,10 @@ class Ring(Region):
     outer: float = eqx.field(static=True)
 
     def __init__(self, center: Sequence[float], inner: float, outer: float):
-        self.center = tuple(float(v) for v in np.atleast_1d(center))
-        check(0 <= inner < outer, f"Ring: need 0 <= inner ({inner}) < outer ({outer})")
-        self.inner = float(inner)
-        self.outer = float(outer)
+        self.center = finite_vector("Ring", "center", center)
+        self.inner = NON_NEGATIVE.real("Ring", "inner", inner)
+        self.outer = POSITIVE.real("Ring", "outer", outer)
+        check(self.inner < self.outer, f"Ring: need 0 <= inner ({inner}) < outer ({outer})")
 
     def contains(self, x):
         r2 = np.sum((x - np.array(self.center)) ** 2, axis=-1)
@@ -114,11 +116,15 @@ def fill(
     Each particle gets volume h^D / ppc^D and, if ``density`` is given, mass density * volume;
     ``velocity`` is a constant (scalar or D-vector) or a function of position ``f(x) -> (N, D)``.
     """
-    check(isinstance(ppc, (int, np.integer)) and ppc >= 1,
-          f"fill: ppc = {ppc!r} must be a positive integer (particles per cell per axis)")
+    check(isinstance(grid, Grid), f"fill: grid must be a jm.Grid, got {type(grid).__name__}")
+    ppc = positive_int("fill", "ppc", ppc, fix="particles per cell per axis")
     if density is not None:
-        check(np.all(np.asarray(density) > 0), f"fill: density = {density!r} must be positive")
+        POSITIVE.check("fill", "density", density)
     dim = grid.dim
+    if not callable(velocity) and ndim(velocity) <= 1:  # a constant: one number or one per axis
+        finite_vector("fill", "velocity", velocity, dim)
+    elif not callable(velocity):
+        FINITE.check("fill", "velocity", velocity)
     h = np.array(grid.spacing)
     lower = np.array(grid.lower)
     # lattice over all cells, restricted to the region's bounding box when known
@@ -134,6 +140,14 @@ def fill(
         first = np.zeros(dim, int)
         last = np.array(grid.cells)
         contains = region
+    # the lattice is built whole before the region selects from it: size it first.  Per lattice
+    # point: its coordinates, the mesh and the mask (about 3 D + 1 floats); per particle kept, the
+    # State a Simulation makes of it (x, v, F, mass, volume: D^2 + 2 D + 2 floats) a few times over
+    candidates = float(np.prod((last - first).astype(float))) * float(ppc) ** dim
+    require_memory(f"fill: {candidates:.4g} lattice points ({ppc} per cell per axis over "
+                   f"{' x '.join(str(int(n)) for n in last - first)} cells)",
+                   candidates * 8.0 * (3 * dim + 1 + 4 * (dim * dim + 2 * dim + 2)),
+                   "use a coarser grid (spacing/cells) or fewer particles per cell (ppc)")
     offsets = (np.arange(ppc) + 0.5) / ppc
     for a in range(dim):
         cells = np.arange(first[a], last[a])
@@ -146,8 +160,14 @@ def fill(
     volume = np.full(x.shape[0], np.prod(h) / ppc**dim)
     if callable(velocity):
         v = np.asarray(velocity(x), dtype=float)
+        check(np.all(np.isfinite(v)), "fill: velocity(x) returned non-finite values (NaN or inf)")
     else:
-        v = np.broadcast_to(np.asarray(velocity, dtype=float), (x.shape[0], dim))
+        v = np.asarray(velocity, dtype=float)
+        check(v.shape in ((), (dim,), (x.shape[0], dim)),
+              f"fill: velocity has shape {v.shape}; give one number, {dim} (one per axis) or ({x.shape[0]}, {dim})")
+        v = np.broadcast_to(v, (x.shape[0], dim))
     check(v.shape == (x.shape[0], dim), f"fill: velocity must give {dim} components per particle, got {v.shape}")
+    check(density is None or np.shape(density) in ((), (x.shape[0],)),
+          f"fill: density has shape {np.shape(density)}; give one number (or one per particle, {x.shape[0]})")
     mass = None if density is None else jnp.asarray(np.asarray(density) * volume)
     return Particles(x=jnp.asarray(x), v=jnp.asarray(np.array(v)), volume=jnp.asarray(volume), mass=mass, ppc=int(ppc))

@@ -17,18 +17,33 @@ import dataclasses
 from typing import Any, Callable
 
 from ._errors import check
+from ._validate import as_range
 
 
 @dataclasses.dataclass(frozen=True)
 class Parameter:
     """A float parameter of a registered part: ``name`` (unique across the library: it is the
     keyword of :func:`jaxmpm.set_params`), ``get(part)`` the array leaf it names, a one-line
-    ``doc`` and the calibration ``bounds`` (None, ``"positive"`` or ``(lower, upper)``)."""
+    ``doc``, the calibration ``bounds`` (None, ``"positive"`` or ``(lower, upper)``) and the
+    validity range ``valid`` that :func:`jaxmpm.set_params` and :func:`jaxmpm.ensemble` check
+    concrete values against: a ``jaxmpm._validate.Range``, ``"finite"`` (the default),
+    ``"positive"``, ``"non-negative"``, a closed ``(lower, upper)`` or None (no check).  The two
+    differ where calibration needs an open interval inside a closed valid one (beta: bounds
+    (0, 1) for the logit transform, valid [0, 1]; damping: bounds "positive", valid >= 0)."""
 
     name: str
     get: Callable[[Any], Any]
     doc: str
     bounds: Any = None
+    valid: Any = "finite"
+
+    def __post_init__(self):
+        object.__setattr__(self, "valid", as_range(self.valid))
+
+    def check(self, owner: str, value, label: str | None = None) -> None:
+        """Raise InputError unless a concrete ``value`` lies in :attr:`valid` (traced: passes)."""
+        if self.valid is not None:
+            self.valid.check(owner, label or self.name, value)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -10,21 +10,19 @@ Both use one series, :func:`mass_matrix_series`, sum_{r=1}^{m} (-1)^{r+1} C(m,r)
 
 from __future__ import annotations
 
-import warnings
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from ._boundary import Constraint
 from ._errors import check
 from ._fields import GridSolution
-from ._materials import _leaf, concrete
 from ._registry import Parameter, register_scheme, scheme_from_name
 from ._scheme_base import ParticleUpdate, Scheme, dissipated_energy
 from ._terms import Damping, damping_acceleration
 from ._transfer import Transfer
+from ._validate import FRACTION, positive_int
 
 BOUNDARY_MODES = ("iterates", "result", "lumped")
 SERIES_FORMS = ("binomial", "neumann")
@@ -33,26 +31,21 @@ MAX_SAFE_ORDER = 40
 
 
 def _check_order(order, name: str) -> int:
-    check(
-        isinstance(order, (int, np.integer)) and not isinstance(order, bool) and order >= 1,
-        f"{name}: order = {order!r} must be a positive integer (it is a static loop length)",
-    )
+    order = positive_int(name, "order", order, fix="it is a static loop length")
     if order > MAX_SAFE_ORDER:
-        warnings.warn(
+        from ._warn import warn  # attributed to the user's line, not an equinox __init__
+
+        warn(
             f"{name}: order {order} > {MAX_SAFE_ORDER}; XPIC is known to turn unstable at very high "
             "orders (OSParticulas documentation): the binomial series cancels terms of size C(m, m/2) and "
             "loses that many digits. Use series='neumann' (same result, stable) or an order of 2-10.",
-            stacklevel=3,
+            UserWarning,
         )
     return int(order)
 
 
 def _check_beta(beta, owner: str):
-    arr = _leaf(beta, "beta", owner)
-    c = concrete(arr)
-    if c is not None:
-        check(np.all((c >= 0) & (c <= 1)), f"{owner}: beta = {c} must lie in [0, 1] (the FLIP fraction)")
-    return arr
+    return FRACTION.leaf(owner, "beta", beta)
 
 
 def mass_matrix_series(
@@ -231,8 +224,8 @@ def _number(arg: str, spec: str, kind=float):
     try:
         value = kind(arg)
     except ValueError:
-        check(False, f"scheme {spec!r}: the part after ':' must be {'an integer' if kind is int else 'a number'}, "
-                     f"got {arg!r}")
+        what = "the order must be a positive integer" if kind is int else "the part after ':' must be a number"
+        check(False, f"scheme {spec!r}: {what}, got {arg!r}")
     return value
 
 
@@ -258,7 +251,8 @@ def _parse_fmpm(arg, beta=None):
     return FMPM(order=_number(arg, f"fmpm:{arg}", int) if arg else 2, beta=0.0 if beta is None else beta)
 
 
-BETA = Parameter("beta", lambda s: s.beta, "the scheme's FLIP fraction (FLIP, XPIC, FMPM)", (0.0, 1.0))
+BETA = Parameter("beta", lambda s: s.beta, "the scheme's FLIP fraction (FLIP, XPIC, FMPM)", (0.0, 1.0),
+                 valid=FRACTION)
 register_scheme("flip", FLIP, parse=_parse_flip, spec="flip", parameters=[BETA])
 register_scheme("pic", PIC, parse=_parse_pic, spec="pic", parameters=[BETA])
 register_scheme("blend", FLIP, parse=_parse_blend, spec="blend:B", parameters=[BETA])

@@ -18,8 +18,9 @@ from ._backend import POLICIES, use_policy
 from ._boundary import as_conditions, build_constraint
 from ._driver import History, StableTimeStepWarning, rollout, run  # noqa: F401  (re-exported)
 from ._errors import check
+from ._limits import require_memory
 from ._grid import Grid
-from ._materials import Material, _leaf, concrete
+from ._materials import Material
 from ._particles import Particles
 from ._registry import MATERIALS, SCHEMES, SHAPES, scheme_from_name, shape_from_name
 from ._scheme_base import Scheme
@@ -27,6 +28,7 @@ from ._shapes import UGIMP, ShapeFunction
 from ._state import State
 from ._step import step as _step
 from ._terms import BodyForce, Damping, StressDivergence, Term
+from ._validate import FINITE, concrete
 
 UPDATES = {"USF": "USF", "USL": "USL", "USL-": "USL", "MUSL": "MUSL", "USL+": "MUSL"}
 
@@ -65,6 +67,10 @@ class Simulation(eqx.Module):
         backend: str = "auto",
     ):
         check(isinstance(grid, Grid), f"Simulation: grid must be a jm.Grid, got {type(grid).__name__}")
+        # a step holds a few nodal fields of 1 + D (mass, momentum) up to D^2 columns per node
+        require_memory(f"Simulation: a grid of {grid.num_nodes:.4g} nodes ({' x '.join(map(str, grid.node_shape))})",
+                       8.0 * grid.num_nodes * 4 * (1 + grid.dim + grid.dim**2),
+                       "use a coarser grid (larger spacing or fewer cells)")
         if isinstance(shape, str):
             shape = shape_from_name(shape)
         check(isinstance(shape, ShapeFunction),
@@ -87,7 +93,7 @@ class Simulation(eqx.Module):
         else:
             check(isinstance(damping, Damping),
                   "Simulation: damping must be jm.Damping(grid=..., particle=...), None (zero) or False (none)")
-        g = jnp.zeros(grid.dim) if gravity is None else _leaf(gravity, "gravity", "Simulation")
+        g = jnp.zeros(grid.dim) if gravity is None else FINITE.leaf("Simulation", "gravity", gravity)
         g = jnp.broadcast_to(g, (grid.dim,)) if g.ndim == 0 else g
         check(g.shape[-1:] == (grid.dim,), f"Simulation: gravity must have {grid.dim} components, got shape {g.shape}")
         extra = (terms,) if isinstance(terms, Term) else tuple(terms)

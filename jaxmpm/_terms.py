@@ -27,12 +27,11 @@ from typing import Callable
 
 import equinox as eqx
 import jax.numpy as jnp
-import numpy as np
 
 from ._errors import check
-from ._materials import _leaf, concrete
 from ._registry import Parameter, register_term
 from ._transfer import particle_force_contributions, stress_divergence_contributions
+from ._validate import DAMPING
 
 
 class Term(eqx.Module):
@@ -96,12 +95,8 @@ class Damping(Term):
     particle: jnp.ndarray
 
     def __init__(self, grid=0.0, particle=0.0):
-        self.grid = _leaf(grid, "grid (alpha_g)", "Damping")
-        self.particle = _leaf(particle, "particle (alpha_p)", "Damping")
-        for name, val in (("grid", self.grid), ("particle", self.particle)):
-            c = concrete(val)
-            if c is not None:
-                check(np.all(c >= 0), f"Damping: {name} = {c} must be >= 0 (units 1/time); 0 switches it off")
+        self.grid = DAMPING.leaf("Damping", "grid (alpha_g)", grid)
+        self.particle = DAMPING.leaf("Damping", "particle (alpha_p)", particle)
 
     def acceleration(self, Sv, V):
         return self.grid * Sv + self.particle * V  # 000 eq. (2.77)
@@ -114,8 +109,9 @@ def damping_acceleration(damping: Damping | None, Sv, V):
 
 register_term("stress", StressDivergence, doc="internal force -sum_p V0_p tau_p . G_pi (001 eq. 20)")
 register_term("body_force", BodyForce, doc="gravity and body force sum_p S_pi M_p b_p (001 eq. 20)",
-              parameters=[Parameter("gravity", lambda t: t.gravity, "gravity vector")])
+              parameters=[Parameter("gravity", lambda t: t.gravity, "gravity vector", valid="finite")])
 register_term("damping", Damping, doc="grid and particle damping (000 eq. 2.77)",
-              parameters=[Parameter("alpha_g", lambda t: t.grid, "grid damping alpha_g (1/time)", "positive"),
+              parameters=[Parameter("alpha_g", lambda t: t.grid, "grid damping alpha_g (1/time)", "positive",
+                                    valid=DAMPING),
                           Parameter("alpha_p", lambda t: t.particle, "particle damping alpha_p (1/time)",
-                                    "positive")])
+                                    "positive", valid=DAMPING)])

@@ -1,8 +1,11 @@
 """The ``jaxmpm`` command line (docs/design.md "Public API", last paragraph).
 
-``jaxmpm scenes`` lists the scenes; ``jaxmpm run SCENE [options] --out FILE.h5`` runs one with a
-progress bar, writes HDF5 as it goes (:class:`jaxmpm.H5Writer`) and prints a summary.  Input errors
-and instabilities print one line and exit with status 2.
+``jaxmpm scenes`` lists the scenes with their options and defaults; ``jaxmpm run SCENE [options]
+--out FILE.h5`` runs one with a progress bar, writes HDF5 (plus an XDMF sidecar) as it goes
+(:class:`jaxmpm.H5Writer`) and prints a summary; ``jaxmpm resume FILE.h5`` continues a run that
+Ctrl-C or SIGTERM stopped.  Input errors (bad values, a run too large for the machine) and
+instabilities print one line and exit with status 2; an interrupted run exits with 130 (SIGINT)
+or 143 (SIGTERM) after saving its frames and state.
 """
 
 from __future__ import annotations
@@ -32,64 +35,124 @@ SCENE_OPTIONS = {
 }
 
 EXIT_ERROR = 2
+EXIT_SIGNAL = {"SIGINT": 130, "SIGTERM": 143}
+
+#: the options of ``jaxmpm run`` that are not scene options (kept out of the stored command)
+RUN_ONLY = ("out", "force", "no_progress", "command")
+
+
+class _OneLineErrors(argparse.ArgumentParser):
+    """argparse with its usage errors on one line (status 2), like every other input error."""
+
+    def error(self, message):
+        fail(f"{message} (see `{self.prog} --help`)")
+
+
+def _scene_defaults() -> dict:
+    """{scene: {keyword: default}} from the builders' signatures and the scenes' part defaults."""
+    from jaxmpm.scenes import SCENES
+    from jaxmpm.scenes._common import PART_DEFAULTS
+
+    table = {}
+    for name, (builder, _) in SCENES.items():
+        params = inspect.signature(builder).parameters
+        table[name] = {k: PART_DEFAULTS.get(name, {}).get(k, p.default) for k, p in params.items()}
+    return table
+
+
+def _defaults(keyword: str) -> str:
+    """"(default: bar 16, mms 16; other scenes do not take it)" for a scene keyword."""
+    by_scene = {scene: d[keyword] for scene, d in _scene_defaults().items() if keyword in d}
+    if not by_scene:
+        return ""
+    shown = ", ".join(f"{scene} {_show(value)}" for scene, value in by_scene.items())
+    others = "" if len(by_scene) == len(_scene_defaults()) else "; other scenes do not take it"
+    return f"(default: {shown}{others})"
+
+
+def _show(value) -> str:
+    return "derived" if value is None else f"{value:g}" if isinstance(value, float) else str(value)
 
 
 def build_parser() -> argparse.ArgumentParser:
     import jaxmpm  # noqa: F401  (registers the schemes and shapes)
     from jaxmpm._registry import SCHEMES, SHAPES
+    from jaxmpm.scenes import SCENES
 
-    parser = argparse.ArgumentParser(
+    parser = _OneLineErrors(
         prog="jaxmpm",
         description="Differentiable Material Point Method in JAX: run the benchmark scenes.",
     )
-    sub = parser.add_subparsers(dest="command", metavar="{scenes,run}")
+    sub = parser.add_subparsers(dest="command", metavar="{scenes,run,resume}")
     sub.required = True
-    sub.add_parser("scenes", help="list the scenes", description="List the scenes with a one-line description.")
+    sub.add_parser("scenes", help="list the scenes, their options and defaults",
+                   description="List the scenes: a one-line description, then each one's options and defaults.")
     run = sub.add_parser(
         "run",
         help="run a scene and write HDF5",
         description="Run SCENE with a progress bar, writing HDF5 (plus an XDMF sidecar) as it goes. "
         "Options left out keep the scene's defaults (see `jaxmpm scenes`).",
     )
-    run.add_argument("scene", metavar="SCENE", help="scene name (see `jaxmpm scenes`)")
+    run.add_argument("scene", metavar="SCENE",
+                     help=f"scene name: {', '.join(SCENES)} (see `jaxmpm scenes` for each one's options and defaults)")
     run.add_argument("--scheme", default=None, metavar=SCHEMES.specs().replace(" ", ""),
-                     help="velocity update (default: the scene's, flip for bar and disks)")
+                     help="velocity update " + _defaults("scheme"))
     run.add_argument("--beta", type=float, default=None, metavar="B",
                      help="FLIP fraction of flip/xpic/fmpm (default: 1 for flip, 0 for xpic and fmpm); "
                           "alone it means --scheme flip")
     run.add_argument("--alpha-g", type=float, default=None, metavar="A", help="grid damping alpha_g in 1/time (default 0)")
     run.add_argument("--alpha-p", type=float, default=None, metavar="A",
                      help="particle damping alpha_p in 1/time (default 0)")
-    run.add_argument("--shape", default=None, choices=list(SHAPES.names()),
-                     help="shape function (default: the scene's: linear for bar, ugimp for disks)")
-    run.add_argument("--update", default=None, choices=["USL", "USF", "MUSL"], help="stress update (default: the scene's, USL for bar and disks)")
-    run.add_argument("--cells", type=int, default=None, metavar="N", help="cells along the bar (bar)")
-    run.add_argument("--spacing", type=float, default=None, metavar="H", help="grid spacing (disks)")
-    run.add_argument("--ppc", type=int, default=None, metavar="N", help="particles per cell along each axis")
-    run.add_argument("--cfl", type=float, default=None, metavar="C", help="time step dt = C h / c (bar)")
-    run.add_argument("--dt", type=float, default=None, metavar="DT", help="time step (disks)")
-    run.add_argument("--t-end", type=float, default=None, metavar="T", help="end time")
-    run.add_argument("--frames", type=int, default=None, metavar="F", help="about F saved frames (default 200)")
+    run.add_argument("--shape", default=None, choices=list(SHAPES.names()), help="shape function " + _defaults("shape"))
+    run.add_argument("--update", default=None, choices=["USL", "USF", "MUSL"], help="stress update " + _defaults("update"))
+    run.add_argument("--cells", type=int, default=None, metavar="N", help="cells along each axis " + _defaults("cells"))
+    run.add_argument("--spacing", type=float, default=None, metavar="H", help="grid spacing " + _defaults("spacing"))
+    run.add_argument("--ppc", type=int, default=None, metavar="N",
+                     help="particles per cell along each axis " + _defaults("ppc"))
+    run.add_argument("--cfl", type=float, default=None, metavar="C",
+                     help="time step dt = C h / c " + _defaults("cfl"))
+    run.add_argument("--dt", type=float, default=None, metavar="DT", help="time step " + _defaults("dt"))
+    run.add_argument("--t-end", type=float, default=None, metavar="T", help="end time " + _defaults("t_end"))
+    run.add_argument("--frames", type=int, default=None, metavar="F", help="about F saved frames " + _defaults("frames"))
     run.add_argument("--dtype", default="f64", choices=["f32", "f64"], help="float precision (default f64)")
-    run.add_argument("--out", required=True, metavar="FILE.h5", help="HDF5 output file")
+    run.add_argument("--max-steps", type=int, default=None, metavar="N",
+                     help="refuse a run of more than N steps (default: the step counter's limit 2^31 - 1)")
+    run.add_argument("--out", required=True, metavar="FILE.h5", help="HDF5 output file (an XDMF sidecar goes beside it)")
+    run.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     run.add_argument("--no-progress", action="store_true", help="no progress bar")
+    resume = sub.add_parser(
+        "resume",
+        help="continue an interrupted run",
+        description="Continue the run stored in FILE.h5 (stopped by Ctrl-C or SIGTERM) to its end, appending "
+        "to the same file; the result equals the uninterrupted run.",
+    )
+    resume.add_argument("file", metavar="FILE.h5", help="the --out file of an interrupted `jaxmpm run`")
+    resume.add_argument("--no-progress", action="store_true", help="no progress bar")
     return parser
 
 
 def main(argv=None) -> int:
-    """Entry point of the ``jaxmpm`` console script; returns 0, or exits with status 2 on an error."""
+    """Entry point of the ``jaxmpm`` console script; returns 0, or exits with status 2 on an error
+    (130/143 when a signal interrupts a run)."""
     args = build_parser().parse_args(argv)
     if args.command == "scenes":
         return list_scenes()
+    if args.command == "resume":
+        return resume_run(args)
     return run_scene(args)
 
 
 def list_scenes() -> int:
+    """Each scene's description, then its options (as ``jaxmpm run`` spells them) and defaults."""
     from .scenes import SCENES
 
+    defaults = _scene_defaults()
     width = max(len(name) for name in SCENES)
     for name, (_, description) in SCENES.items():
         print(f"{name:<{width}}  {description}")
+        options = [f"{option} {_show(defaults[name][keyword])}" for option, keyword in SCENE_OPTIONS.items()
+                   if keyword in defaults[name] and option not in ("--beta", "--alpha-g", "--alpha-p", "--dtype")]
+        print(f"{'':<{width}}    " + ", ".join(options))
     return 0
 
 
@@ -98,18 +161,65 @@ def fail(message: str):
     raise SystemExit(EXIT_ERROR)
 
 
-def run_scene(args) -> int:
+def _with_x64(dtype: str):
     import jax
 
-    if args.dtype == "f64":
+    if dtype == "f64":
         jax.config.update("jax_enable_x64", True)  # before any array is built
+
+
+def run_scene(args) -> int:
+    import os
+
+    _with_x64(args.dtype)
     import jaxmpm as jm
 
+    if os.path.exists(args.out) and not args.force:
+        fail(f"--out {args.out} exists; pass --force to overwrite it, or choose another file")
     try:
         setup = build_setup(args)
+        if args.max_steps is not None:
+            jm._errors.check(args.max_steps >= 1, f"--max-steps = {args.max_steps} must be a positive integer")
+            jm._errors.check(setup.steps <= args.max_steps,
+                             f"the run needs {setup.steps} steps, more than --max-steps {args.max_steps}; "
+                             "shorten --t-end or use a larger --dt/--cfl")
     except jm.InputError as err:
         fail(str(err))
-    return run_setup(setup, args)
+    except MemoryError:
+        fail(f"scene {args.scene!r} does not fit in memory; use a coarser --spacing/--cells or fewer --ppc")
+    return run_setup(setup, args, options_of(args))
+
+
+def resume_run(args) -> int:
+    import json
+
+    from jaxmpm._resume import run_info
+
+    try:
+        info = run_info(args.file)
+        if "command" not in info:
+            fail(f"{args.file} was not written by `jaxmpm run`; resume it from Python with jm.resume(path, setup)")
+        options = json.loads(info["command"])
+        _with_x64(options.get("dtype", "f64"))
+        import jaxmpm as jm
+
+        setup = setup_from_options(options)
+    except (ValueError, KeyError) as err:  # InputError is a ValueError
+        fail(str(err))
+    return run_setup(setup, argparse.Namespace(out=args.file, no_progress=args.no_progress), options, resume=True)
+
+
+def options_of(args) -> dict:
+    """The scene options of a parsed ``jaxmpm run`` command line, as stored in the HDF5 file
+    (attribute ``command``) for ``jaxmpm resume``."""
+    return {k: v for k, v in vars(args).items() if k not in RUN_ONLY and v is not None}
+
+
+def setup_from_options(options: dict):
+    """The scene ``Setup`` of stored command-line options (see :func:`options_of`)."""
+    defaults = {k: None for k in ("scheme", "beta", "alpha_g", "alpha_p", "shape", "update", "cells", "spacing",
+                                  "ppc", "cfl", "dt", "t_end", "frames", "max_steps")}
+    return build_setup(argparse.Namespace(**{**defaults, "dtype": "f64", **options}))
 
 
 def given_options(args) -> list[str]:
@@ -137,15 +247,12 @@ def build_setup(args):
             takes = sorted(o for o, k in SCENE_OPTIONS.items() if k in accepted)
             check(False, f"option {option} does not apply to scene {args.scene!r}; it takes "
                          f"{', '.join(takes)}")
-    for option, value in (("--cells", args.cells), ("--ppc", args.ppc), ("--frames", args.frames)):
-        check(value is None or value >= 1, f"{option} = {value} must be a positive integer")
-    for option, value in (("--spacing", args.spacing), ("--cfl", args.cfl), ("--dt", args.dt), ("--t-end", args.t_end)):
-        check(value is None or (math.isfinite(value) and value > 0), f"{option} = {value} must be positive")
-
+    # the values themselves are checked where every caller meets them: the scene builders
+    # (jaxmpm/scenes/_options.py), the damping and the scheme parsers
     kwargs = dict(dtype=args.dtype)
     if args.scheme is not None or args.beta is not None:
         # the scheme's parser rejects a --beta it cannot take (pic, apic, tpic, blend:B)
-        kwargs["scheme"] = scheme_from_name(args.scheme or "flip", args.beta)
+        kwargs["scheme"] = scheme_from_name("flip" if args.scheme is None else args.scheme, args.beta)
     if args.shape is not None:
         check(args.shape != "ugimp" or "ppc" in accepted, f"--shape ugimp needs a scene with ppc; {args.scene!r} has none")
         ppc = args.ppc if args.ppc is not None else accepted["ppc"].default if "ppc" in accepted else None
@@ -166,33 +273,57 @@ def energy_and_momentum(sim, state):
     return float(d["kinetic"] + d["strain"]), np.asarray(d["momentum"], dtype=float)
 
 
-def run_setup(setup, args) -> int:
-    """Run with the HDF5 writer attached, then print the summary."""
+def run_setup(setup, args, options: dict, resume: bool = False) -> int:
+    """Run with the HDF5 writer attached (or continue the run in ``args.out``), then print the
+    summary."""
+    import json
+    import os
+
     import jax
     import numpy as np
 
     import jaxmpm as jm
+    from jaxmpm._io import xdmf_paths
 
     sim, state = setup.sim, setup.state
     n = int(state.x.shape[0])
     e0, p0 = energy_and_momentum(sim, state)
+    first_step = int(state.step)
+    if resume:
+        import h5py
+
+        with h5py.File(args.out, "r") as f:
+            first_step = int(f["state/step"][()]) if "state/step" in f else first_step
     start = time.perf_counter()
     try:
-        with jm.H5Writer(args.out, sim, state, dt=setup.dt, scene=setup.name, params=setup.params,
-                         ppc=setup.params.get("ppc")) as writer:
-            final, _ = setup.run(progress=not args.no_progress, writer=writer)
-            jax.block_until_ready(final)
+        if resume:
+            final = jm.resume(args.out, setup, progress=not args.no_progress)
+        else:
+            with jm.H5Writer(args.out, sim, state, dt=setup.dt, scene=setup.name, params=setup.params,
+                             ppc=setup.params.get("ppc")) as writer:
+                writer.file.attrs["command"] = json.dumps(options)  # for `jaxmpm resume`
+                final, _ = setup.run(progress=not args.no_progress, writer=writer)
+        jax.block_until_ready(final)
     except jm.InstabilityError as err:
         when = f" (t = {err.time:.6g})" if err.time is not None else ""
         fail(f"run went unstable at step {err.step}{when}: {err.cause}; "
              f"the frames before it were kept in {args.out}")
     except jm.InputError as err:
         fail(str(err))
+    except MemoryError:
+        fail(f"the run ran out of memory; save fewer --frames or use a coarser --spacing/--cells")
     except OSError as err:
         fail(f"cannot write --out {args.out}: {err}")
-    except KeyboardInterrupt:
-        print(f"jaxmpm: interrupted; the frames so far were kept in {args.out}", file=sys.stderr)
+    except jm.RunInterrupted as err:
+        print(f"jaxmpm: {err.signal} at step {int(err.state.step)} (t = {float(err.state.time):.6g}): "
+              f"{err.frames} frame{'' if err.frames == 1 else 's'} and the state reached are saved in {args.out}; "
+              f"continue with `jaxmpm resume {args.out}`", file=sys.stderr)
+        raise SystemExit(EXIT_SIGNAL.get(err.signal, 130)) from None
+    except KeyboardInterrupt:  # before the run's first chunk, or a second Ctrl-C
+        print(f"jaxmpm: interrupted; the frames so far were kept in {args.out} (no state to resume from)",
+              file=sys.stderr)
         raise SystemExit(130) from None
+    files = [args.out] + [p for p in xdmf_paths(args.out) if os.path.exists(p)]
     wall = time.perf_counter() - start
     e1, p1 = energy_and_momentum(sim, final)
     scheme = sim.scheme
@@ -211,11 +342,12 @@ def run_setup(setup, args) -> int:
         ("steps", f"{setup.steps} (t_end = {setup.t_end:.6g})"),
         ("dt", f"{setup.dt:.6g}"),
         ("wall time", f"{wall:.3f} s (incl. compilation)"),
-        ("particle-steps/s", f"{n * setup.steps / wall:.4g}"),
+        ("particle-steps/s", f"{n * (int(final.step) - first_step) / wall:.4g}"
+                             + (f" ({int(final.step) - first_step} steps resumed)" if resume else "")),
         ("energy K+U", f"initial {e0:.6g}, final {e1:.6g}, ratio {ratio:.6f}"),
         ("dissipated", f"{float(final.dissipated):.6g}"),
         ("|p - p0|", f"{float(np.linalg.norm(p1 - p0)):.3e} (change of linear momentum)"),
-        ("output", args.out),
+        ("output", ", ".join(files)),
     ]
     width = max(len(k) for k, _ in rows)
     for key, value in rows:

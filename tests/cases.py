@@ -108,3 +108,22 @@ def central_difference(f, x, eps, derivative=1, order=2):
     if (derivative, order) == (2, 4):
         return (-f(x + 2 * eps) + 16 * f(x + eps) - 30 * f(x) + 16 * f(x - eps) - f(x - 2 * eps)) / (12 * eps**2)
     raise ValueError(f"central_difference: derivative {derivative}, order {order}; use 1 or 2, and 2 or 4")
+
+
+def small_simulation(**options):
+    """A 1D elastic body on a 16-cell grid (h = 1), E = 2, rho = 1: c = sqrt(2)."""
+    grid = jm.Grid(lower=(0.0,), upper=(16.0,), cells=(16,))
+    kwargs = dict(grid=grid, shape=jm.Linear(), material=jm.LinearElastic(E=2.0, nu=0.0, density=1.0),
+                  scheme=jm.FLIP())
+    kwargs.update(options)
+    return jm.Simulation(**kwargs)
+
+
+def run_cli(argv):
+    """``jaxmpm.cli.main(argv)`` in-process: its exit status (stdout and stderr via capsys)."""
+    from jaxmpm.cli import main
+
+    try:
+        return main(argv)
+    except SystemExit as exc:
+        return exc.code

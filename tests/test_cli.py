@@ -17,19 +17,12 @@ import numpy as np
 import pytest
 
 import jaxmpm as jm
-from jaxmpm.cli import main
+from cases import run_cli
+from jaxmpm.cli import build_parser
 
 E, RHO, L, V0, CELLS = 100.0, 1.0, 25.0, 0.1, 16
 DT = 0.1 * (L / CELLS) / math.sqrt(E / RHO)  # bar default cfl 0.1
 SHORT = ["--t-end", "2", "--frames", "8"]  # 128 steps, a frame every 16 -> 9 frames
-
-
-def run_cli(argv):
-    """``main(argv)`` in-process: (exit status, stdout, stderr) via capsys by the caller."""
-    try:
-        return main(argv)
-    except SystemExit as exc:
-        return exc.code
 
 
 def summary_value(text, key):
@@ -38,19 +31,47 @@ def summary_value(text, key):
     return rows[key]
 
 
-def test_scenes_lists_bar_and_disks(capsys):
+def test_scenes_lists_each_scene_with_its_options_and_defaults(capsys):
+    """One line per scene (name and description), then its options and their defaults."""
     assert run_cli(["scenes"]) == 0
     lines = capsys.readouterr().out.splitlines()
-    names = [line.split()[0] for line in lines]
-    assert names == list(jm.SCENES) and {"bar", "disks"} <= set(names)
-    for line, (_, description) in zip(lines, jm.SCENES.values()):
+    heads, options = lines[0::2], lines[1::2]
+    assert [line.split()[0] for line in heads] == list(jm.SCENES) and {"bar", "disks"} <= set(jm.SCENES)
+    for line, (_, description) in zip(heads, jm.SCENES.values()):
         assert line.endswith(description)
+    bar = dict(item.split(" ", 1) for item in options[0].strip().split(", "))
+    assert bar["--cells"] == "16" and bar["--cfl"] == "0.1" and bar["--t-end"] == "40"
+    assert bar["--scheme"] == "flip" and bar["--shape"] == "linear" and "--dt" not in bar
+    mpm88 = dict(item.split(" ", 1) for item in options[4].strip().split(", "))
+    assert mpm88["--scheme"] == "apic" and mpm88["--dt"] == "0.0002"
+
+
+@pytest.mark.parametrize("scene", list(jm.SCENES))
+def test_part_defaults_are_what_the_scenes_build(scene):
+    """The scheme and shape `jaxmpm scenes` and --help show are those the builder uses."""
+    from jaxmpm.scenes._common import PART_DEFAULTS
+
+    small = {"bar": dict(cells=4), "disks": dict(spacing=0.25), "spin": dict(spacing=0.25),
+             "rings": dict(spacing=1.0), "mpm88": dict(n_particles=64, n_grid=8), "mms": dict(cells=4),
+             "vortex": dict(spacing=0.25)}[scene]
+    setup = jm.scene(scene, t_end=1e-3, frames=1, **small)
+    assert jm.scheme_from_name(PART_DEFAULTS[scene]["scheme"]).__class__ is type(setup.sim.scheme)
+    ppc = getattr(setup.sim.shape, "ppc", None)
+    shape = jm.shape_from_name(PART_DEFAULTS[scene]["shape"], **({"ppc": ppc} if ppc else {}))
+    assert type(shape) is type(setup.sim.shape)
+
+
+def test_help_shows_each_scenes_default():
+    text = build_parser()._subparsers._group_actions[0].choices["run"].format_help()
+    flat = " ".join(text.split())
+    assert "(default: bar 16, mms 16; other scenes do not take it)" in flat  # --cells
+    assert "mpm88 apic" in flat and "disks ugimp" in flat
 
 
 def test_python_m_jaxmpm_scenes():
     out = subprocess.run([sys.executable, "-m", "jaxmpm", "scenes"], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
-    names = [line.split()[0] for line in out.stdout.splitlines()]
+    names = [line.split()[0] for line in out.stdout.splitlines() if not line.startswith(" ")]
     assert names == list(jm.SCENES) and {"bar", "disks"} <= set(names)
 
 
@@ -74,7 +95,8 @@ def test_run_bar_writes_hdf5_and_summary(tmp_path, capsys):
     assert summary_value(out, "particles") == str(n)
     assert summary_value(out, "steps").startswith("128 ")
     assert float(summary_value(out, "dt")) == DT
-    assert summary_value(out, "output") == str(path)
+    # every file written: the HDF5 file and the XDMF sidecar with its per-frame views
+    assert summary_value(out, "output") == f"{path}, {path.with_suffix('.xdmf')}, {path.with_suffix('.xdmf.h5')}"
     energy = re.fullmatch(r"initial (\S+), final (\S+), ratio (\S+)", summary_value(out, "energy K+U"))
     e0, e1, ratio = map(float, energy.groups())
     assert e0 == pytest.approx(total[0], rel=1e-5) and e1 == pytest.approx(total[-1], rel=1e-5)

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 import jaxmpm as jm
+from cases import small_simulation
 
 # ----------------------------------------------------------------- constructors
 
@@ -57,15 +58,6 @@ def test_bad_input_names_the_parameter(make, name):
     with pytest.raises(jm.InputError) as info:
         make()
     assert name in str(info.value)
-
-
-def small_simulation(**options):
-    """A 1D elastic body on a 16-cell grid (h = 1), E = 2, rho = 1: c = sqrt(2)."""
-    grid = jm.Grid(lower=(0.0,), upper=(16.0,), cells=(16,))
-    kwargs = dict(grid=grid, shape=jm.Linear(), material=jm.LinearElastic(E=2.0, nu=0.0, density=1.0),
-                  scheme=jm.FLIP())
-    kwargs.update(options)
-    return jm.Simulation(**kwargs)
 
 
 BAD_SIMULATIONS = {

@@ -27,10 +27,15 @@ SCENES = {
 
 
 def scene(name: str, **options) -> Setup:
-    """Build scene ``name`` (see ``SCENES``) with keyword ``options`` (scheme, shape, cells, ...)."""
+    """Build scene ``name`` (see ``SCENES``) with keyword ``options`` (scheme, shape, cells, ...).
+
+    The options are checked by the builder itself (``scenes._options.checked_options``, one table
+    for every scene), so ``jm.SCENES[name][0](**options)`` is checked the same way: an unknown
+    option, a count that is not a positive integer, a non-positive or non-finite size, step or
+    time, or a material constant out of range raises :class:`jaxmpm.InputError`."""
     from .._errors import check
 
-    check(name in SCENES, f"unknown scene {name!r}; choose one of {', '.join(SCENES)}")
+    check(isinstance(name, str) and name in SCENES, f"unknown scene {name!r}; choose one of {', '.join(SCENES)}")
     return SCENES[name][0](**options)
 
 

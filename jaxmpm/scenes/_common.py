@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
 from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
 
 from .._errors import check
+from .._limits import require_steps
 
 
 @dataclasses.dataclass
@@ -41,6 +43,19 @@ class Setup:
         return self.sim.run(self.state, self.dt, self.steps, self.save_every, **kwargs)
 
 
+#: the parts each scene builds when ``scheme``/``shape`` are left out, as the CLI spells them
+#: (``jaxmpm scenes``, ``--help``); tests/test_cli.py checks them against the built scenes
+PART_DEFAULTS = {
+    "bar": {"scheme": "flip", "shape": "linear"},
+    "disks": {"scheme": "flip", "shape": "ugimp"},
+    "spin": {"scheme": "flip", "shape": "quadratic"},
+    "rings": {"scheme": "flip", "shape": "quadratic"},
+    "mpm88": {"scheme": "apic", "shape": "quadratic"},
+    "mms": {"scheme": "flip", "shape": "linear"},
+    "vortex": {"scheme": "flip", "shape": "quadratic"},
+}
+
+
 def resolve_dtype(dtype):
     """"f32"/"f64"/None -> a JAX float dtype; f64 requires jax_enable_x64."""
     if dtype is None:
@@ -54,11 +69,20 @@ def resolve_dtype(dtype):
 
 
 def schedule(t_end: float, dt: float, frames: int = 200) -> tuple[int, int]:
-    """(steps, save_every): about ``frames`` saved frames covering at least t_end."""
-    check(t_end > 0, f"t_end = {t_end} must be positive")
-    steps = max(1, int(math.ceil(t_end / dt - 1e-9)))
+    """(steps, save_every): about ``frames`` saved frames covering at least t_end.  Arithmetic, in
+    O(frames) whatever the step count: t_end stays exact when some divisor d of the step count
+    gives between frames/2 and 2 frames (the one nearest steps/frames), else the step count is
+    rounded up to a multiple of round(steps/frames)."""
+    check(math.isfinite(t_end) and t_end > 0, f"t_end = {t_end} must be a positive finite time")
+    check(math.isfinite(dt) and dt > 0, f"dt = {dt} must be a positive finite time step")
+    check(isinstance(frames, numbers.Integral) and not isinstance(frames, bool) and frames >= 1, f"frames = {frames!r} must be a positive integer")
+    ratio = t_end / dt
+    require_steps(ratio, "shorten t_end or use a larger dt (or cfl)")
+    steps = max(1, int(math.ceil(ratio - 1e-9)))
     target = steps / frames
-    divisors = [d for d in range(1, steps + 1) if steps % d == 0 and frames / 2 <= steps / d <= 2 * frames]
+    counts = range(max(1, math.ceil(frames / 2)), min(steps, math.floor(2 * frames)) + 1)  # frame counts
+    divisors = sorted({steps // f for f in counts if steps % f == 0})
+    divisors = [d for d in divisors if frames / 2 <= steps / d <= 2 * frames]
     if divisors:  # keep t_end exact when a divisor gives a sensible frame count
         return steps, min(divisors, key=lambda d: abs(d - target))
     save_every = max(1, int(round(target)))

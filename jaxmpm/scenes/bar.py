@@ -19,10 +19,12 @@ from .._schemes import Damping, FLIP
 from .._shapes import Linear
 from .._simulation import Simulation
 from ._common import Setup, cast_state, resolve_dtype, schedule
+from ._options import checked_options
 
 E, RHO, LENGTH, V0 = 100.0, 1.0, 25.0, 0.1
 
 
+@checked_options
 def bar(
     scheme=None,
     shape=None,

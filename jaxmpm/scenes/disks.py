@@ -22,8 +22,10 @@ from .._schemes import Damping, FLIP
 from .._shapes import UGIMP
 from .._simulation import Simulation
 from ._common import Setup, cast_state, resolve_dtype, schedule
+from ._options import checked_options
 
 
+@checked_options
 def disks(
     scheme=None,
     shape=None,

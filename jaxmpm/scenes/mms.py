@@ -79,6 +79,7 @@ import numpy as np
 
 from .._boundary import Slip
 from .._errors import check
+from .._limits import require_steps
 from .._grid import Grid
 from .._materials import NeoHookean
 from .._particles import Box, Particles, fill
@@ -86,6 +87,7 @@ from .._schemes import FLIP, Damping
 from .._shapes import Linear
 from .._simulation import Simulation
 from ._common import Setup, cast_state, resolve_dtype
+from ._options import checked_options
 
 E, NU, RHO0, AMPLITUDE = 1.0e4, 0.3, 1.0, 0.05
 PHASES = (0.0, 2.0 * math.pi / 3.0, 4.0 * math.pi / 3.0)  # Wallstedt & Guilkey / Uintah "AxisAligned"
@@ -235,7 +237,9 @@ def schedule_exact(t_end: float, dt_max: float, frames: int) -> tuple[float, int
     """(dt, steps, save_every): ``frames`` frames, dt <= dt_max, steps * dt = t_end exactly."""
     check(t_end > 0, f"t_end = {t_end} must be positive")
     check(isinstance(frames, (int, np.integer)) and frames >= 1, f"frames = {frames!r} must be a positive integer")
-    save_every = max(1, int(math.ceil(t_end / (dt_max * frames) - 1e-9)))
+    ratio = t_end / (dt_max * frames)
+    require_steps(ratio * frames, "shorten t_end or use a larger dt (or cfl)")  # before int() of a huge ratio
+    save_every = max(1, int(math.ceil(ratio - 1e-9)))
     steps = save_every * frames
     return t_end / steps, steps, save_every
 
@@ -259,6 +263,7 @@ def start_deformed(sim, particles, motion, X, dtype):
 
 
 # --------------------------------------------------------------------------- the scene
+@checked_options
 def mms(
     dim: int = 1,
     cells: int = 16,

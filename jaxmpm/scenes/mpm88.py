@@ -40,8 +40,10 @@ from .._schemes import Damping
 from .._shapes import QuadraticBSpline
 from .._simulation import Simulation
 from ._common import Setup, cast_state, resolve_dtype, schedule
+from ._options import checked_options
 
 
+@checked_options
 def mpm88(
     scheme=None,
     shape=None,

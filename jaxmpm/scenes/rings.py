@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
+from .._errors import check
 from .._grid import Grid
 from .._materials import NeoHookean
 from .._particles import Ring, fill
@@ -19,10 +20,12 @@ from .._schemes import FLIP, Damping
 from .._shapes import QuadraticBSpline
 from .._simulation import Simulation
 from ._common import Setup, cast_state, resolve_dtype, schedule
+from ._options import checked_options
 
 LOWER, UPPER = (-20.0, -7.5), (20.0, 7.5)
 
 
+@checked_options
 def rings(
     scheme=None,
     shape=None,
@@ -49,6 +52,8 @@ def rings(
     scheme = FLIP() if scheme is None else scheme
     shape = QuadraticBSpline() if shape is None else shape
     cells = tuple(round((hi - lo) / spacing) for lo, hi in zip(LOWER, UPPER))
+    check(min(cells) >= 1, f"rings: spacing = {spacing} is wider than the domain "
+                           f"{UPPER[0] - LOWER[0]:g} x {UPPER[1] - LOWER[1]:g}; use a smaller spacing")
     grid = Grid(LOWER, UPPER, cells)
     half = 0.5 * separation
     a = fill(grid, Ring((-half, 0.0), inner, outer), ppc=ppc, velocity=(speed, 0.0))

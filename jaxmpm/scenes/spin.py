@@ -21,6 +21,7 @@ import math
 import numpy as np
 
 from .._affine import with_velocity_gradient
+from .._errors import check
 from .._grid import Grid
 from .._materials import NeoHookean, NoStress
 from .._particles import Disk, fill
@@ -28,8 +29,10 @@ from .._schemes import FLIP, Damping
 from .._shapes import QuadraticBSpline
 from .._simulation import Simulation
 from ._common import Setup, cast_state, resolve_dtype, schedule
+from ._options import checked_options
 
 
+@checked_options
 def spin(
     scheme=None,
     shape=None,
@@ -69,8 +72,10 @@ def spin(
         state = with_velocity_gradient(sim, state, spin_matrix)
     if dt is None:
         c = float(material.wave_speed(2))
+        check(c + abs(omega) * radius > 0, "spin: omega = 0 without stress sets no time scale; give dt")
         dt = cfl * grid.h / (c + abs(omega) * radius)
     if t_end is None:
+        check(omega != 0 or not stress, "spin: omega = 0 has no period (the default t_end); give t_end")
         t_end = 2.0 * math.pi / abs(omega) if stress else 1.0
     steps, save_every = schedule(t_end, dt, frames)
     params = dict(spacing=spacing, ppc=ppc, radius=radius, omega=omega, centre=list(centre), stress=bool(stress),

@@ -65,6 +65,7 @@ from .._schemes import FLIP, Damping
 from .._shapes import QuadraticBSpline
 from .._simulation import Simulation
 from ._common import Setup, cast_state, resolve_dtype
+from ._options import checked_options
 from .mms import ManufacturedForce, ManufacturedReference, schedule_exact
 
 INNER, OUTER = 0.75, 1.25
@@ -93,6 +94,7 @@ class Vortex:
         return x - X
 
 
+@checked_options
 def vortex(
     scheme=None,
     shape=None,

@@ -1,0 +1,93 @@
+"""Every ```python block of README.md runs on its own (a fresh interpreter, nothing from the other
+blocks) at a reduced size: the explicit substitutions below shrink step counts and end times, and
+each must match the README exactly as often as stated, so the test fails when the README drifts."""
+
+import os
+import re
+import subprocess
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+README = ROOT / "README.md"
+FENCE = re.compile(r"^```\s*(\w*)\s*$")
+
+
+@dataclass
+class Block:
+    substitutions: list = field(default_factory=list)  # (README text, reduced text, times it occurs)
+
+
+SHORT_BAR = ('jm.scene("bar", scheme=jm.FMPM(order=2))', 'jm.scene("bar", scheme=jm.FMPM(order=2), t_end=0.5, frames=4)')
+
+# README section heading -> its python block
+BLOCKS = {
+    "Quickstart (Python)": Block([
+        ("steps=2000, save_every=20", "steps=20, save_every=10", 1),
+        SHORT_BAR + (1,),
+    ]),
+    "Differentiation, calibration, ensembles": Block(
+        [SHORT_BAR + (1,),
+         ("setup.dt, 400, 20", "setup.dt, 20, 10", 2),  # the calibrated rollout and the ensemble
+         ("steps=200", "steps=3", 1),
+         ("linspace(0, 1, 16)", "linspace(0, 1, 2)", 1)],
+    ),
+    "Command line": Block([('jm.scene("bar", t_end=4.0, frames=20)', 'jm.scene("bar", t_end=0.5, frames=2)', 1)]),
+    "Extending jaxmpm": Block(
+        [('scheme="newpic:0.3")', 'scheme="newpic:0.3", t_end=0.5, frames=2); setup.run()', 1)],  # run the new scheme
+    ),
+}
+
+
+def python_blocks(text: str) -> list[tuple[str, str]]:
+    """(the heading above it, code) for every ```python fenced block."""
+    blocks, heading, language, lines = [], None, None, []
+    for line in text.splitlines():
+        fence = FENCE.match(line)
+        if language is None:
+            if fence:
+                language, lines = fence.group(1), []
+            elif line.startswith("#"):
+                heading = line.lstrip("#").strip()
+        elif fence and not fence.group(1):
+            if language in ("python", "py"):
+                blocks.append((heading, "\n".join(lines) + "\n"))
+            language = None
+        else:
+            lines.append(line)
+    return blocks
+
+
+def reduced(code: str, block: Block, heading: str) -> str:
+    for old, new, times in block.substitutions:
+        assert code.count(old) == times, (f"README block under {heading!r}: {old!r} occurs {code.count(old)} times, "
+                                          f"expected {times}; update the substitutions in {Path(__file__).name}")
+        code = code.replace(old, new)
+    return code
+
+
+def run_alone(code: str, cwd: Path) -> subprocess.CompletedProcess:
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT)] + os.environ.get("PYTHONPATH", "").split(os.pathsep)),
+               MPLBACKEND="Agg")
+    return subprocess.run([sys.executable, "-c", code], cwd=cwd, env=env, capture_output=True, text=True, timeout=300)
+
+
+README_BLOCKS = python_blocks(README.read_text())
+
+
+def test_every_block_is_known():
+    headings = [heading for heading, _ in README_BLOCKS]
+    assert len(headings) == len(set(headings)), "two python blocks under one heading: key BLOCKS differently"
+    assert set(headings) == set(BLOCKS), (f"README python blocks are under {headings}; BLOCKS in "
+                                          f"{Path(__file__).name} lists {list(BLOCKS)}")
+
+
+@pytest.mark.parametrize("heading, code", README_BLOCKS, ids=[h for h, _ in README_BLOCKS])
+def test_block_runs_alone(tmp_path, heading, code):
+    block = BLOCKS[heading]
+    code = reduced(code, block, heading)
+    result = run_alone(code, tmp_path)
+    assert result.returncode == 0, f"README block under {heading!r} fails alone:\n{result.stderr[-3000:]}"

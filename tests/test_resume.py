@@ -1,0 +1,169 @@
+"""Interrupt and resume (issue 11, item 4): SIGINT/SIGTERM stop a chunked run at a chunk boundary,
+the file keeps every finished frame and the full state reached, and resuming equals the
+uninterrupted run bitwise on the CPU -- every chunk is a call of one compiled loop whose frame and
+step counts are runtime values, so the chunking does not change the arithmetic.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+
+import h5py
+import numpy as np
+import pytest
+
+import jaxmpm as jm
+
+BAR = dict(cells=8, t_end=2.0, frames=8)  # dt = 0.1 (25/8)/10 = 0.03125: 64 steps, a frame every 8
+
+
+def h5_arrays(path) -> dict:
+    """Every dataset of a file (the /state group included), by path."""
+    out = {}
+    with h5py.File(path, "r") as f:
+        f.visititems(lambda name, obj: out.__setitem__(name, obj[()]) if isinstance(obj, h5py.Dataset) else None)
+    return out
+
+
+def assert_same_files(a, b):
+    x, y = h5_arrays(a), h5_arrays(b)
+    assert sorted(x) == sorted(y)
+    for name in x:
+        np.testing.assert_array_equal(y[name], x[name], err_msg=name)
+
+
+class SignalAfter(jm.H5Writer):
+    """A writer that sends ``signum`` to this process when its ``after``-th append arrives."""
+
+    def __init__(self, *args, signum, after, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.signum, self.after, self.appends = signum, after, 0
+
+    def append(self, history):
+        super().append(history)
+        self.appends += 1
+        if self.appends == self.after:
+            os.kill(os.getpid(), self.signum)
+
+
+def written(setup, path, writer_class=jm.H5Writer, **kwargs):
+    with writer_class(path, setup.sim, setup.state, dt=setup.dt, scene=setup.name, params=setup.params,
+                      **kwargs) as writer:
+        return setup.run(writer=writer)[0]
+
+
+MPM88 = dict(n_particles=64, n_grid=8, t_end=2e-3, frames=2)  # APIC: the scheme state B_p is saved too
+
+
+@pytest.mark.parametrize("scene, options, signum, after", [("bar", BAR, signal.SIGINT, 1),
+                                                           ("bar", BAR, signal.SIGTERM, 2),
+                                                           ("mpm88", MPM88, signal.SIGINT, 1)])
+def test_interrupted_then_resumed_equals_the_uninterrupted_run(tmp_path, scene, options, signum, after):
+    """After the initial frame (SIGINT: the run stops after its first chunk, one step, part-way
+    through frame 1) or once frame 1 is written (SIGTERM); resume from Python with the Setup."""
+    setup = jm.scene(scene, **options)
+    whole = tmp_path / "whole.h5"
+    final = written(setup, whole)
+    cut = tmp_path / "cut.h5"
+    with pytest.raises(jm.RunInterrupted) as stop:
+        written(setup, cut, SignalAfter, signum=signum, after=after)
+    assert stop.value.signal == signal.Signals(signum).name
+    reached = int(stop.value.state.step)
+    assert 0 < reached < setup.steps
+    with h5py.File(cut, "r") as f:  # every finished frame, and the state reached
+        assert f["time"].shape[0] == reached // setup.save_every + 1 == stop.value.frames
+        assert int(f["state/step"][()]) == reached and not f["state"].attrs["complete"]
+        np.testing.assert_array_equal(f["state/x"][()], np.asarray(stop.value.state.x))
+        if scene == "mpm88":
+            np.testing.assert_array_equal(f["state/scheme_state"][()], np.asarray(stop.value.state.scheme_state))
+    resumed = jm.resume(cut, setup)
+    np.testing.assert_array_equal(np.asarray(resumed.x), np.asarray(final.x))
+    assert_same_files(whole, cut)
+    assert jm.resume(cut, setup).step == setup.steps  # a finished run: nothing more to do
+
+
+def test_resume_with_a_simulation_and_its_initial_state(tmp_path):
+    setup = jm.scene("bar", **BAR)
+    cut = tmp_path / "cut.h5"
+    with pytest.raises(jm.RunInterrupted):
+        written(setup, cut, SignalAfter, signum=signal.SIGINT, after=2)
+    final = jm.resume(cut, setup.sim, state=setup.state)
+    reference, _ = setup.run()
+    np.testing.assert_array_equal(np.asarray(final.v), np.asarray(reference.v))
+
+
+def test_resume_errors_name_the_problem(tmp_path):
+    setup = jm.scene("bar", **BAR)
+    with pytest.raises(jm.InputError, match="does not exist"):
+        jm.resume(tmp_path / "nothing.h5", setup)
+    path = tmp_path / "python.h5"
+    jm.save_h5(path, setup.sim, setup.run()[1], state=setup.state, dt=setup.dt)
+    with pytest.raises(jm.InputError, match="not written by `jaxmpm run`"):
+        jm.resume(path)
+    with pytest.raises(jm.InputError, match="no saved state"):
+        jm.resume(path, setup)
+    cut = tmp_path / "cut.h5"
+    with pytest.raises(jm.RunInterrupted):
+        written(setup, cut, SignalAfter, signum=signal.SIGINT, after=1)
+    other = jm.scene("bar", cells=16, t_end=2.0, frames=8)  # another particle count
+    with pytest.raises(jm.InputError, match=r"/state/x is float64\[16, 1\] but the model's state has float64\[32, 1\]"):
+        jm.resume(cut, other)
+
+
+def cli(*args, **popen):
+    env = {**os.environ, "JAX_PLATFORMS": "cpu"}
+    return subprocess.Popen([sys.executable, "-m", "jaxmpm", *args], env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, **popen)
+
+
+def read_now(fd) -> str:
+    try:
+        return os.read(fd, 1 << 16).decode(errors="replace")
+    except BlockingIOError:
+        return ""
+
+
+def test_ctrl_c_then_jaxmpm_resume_equals_the_uninterrupted_run(tmp_path):
+    """The CLI in a subprocess: SIGINT once the progress bar shows steps done, exit status 130
+    with one line naming the file and `jaxmpm resume`; `jaxmpm resume` finishes it; every dataset
+    (frames, energies, the final state) equals an uninterrupted run's, bit for bit."""
+    # PIC damps the bar to rest (stable for ever): 1,024,000 steps of 32 particles, about 5 s here
+    options = ["run", "bar", "--scheme", "pic", "--t-end", "16000", "--frames", "40"]
+    cut, whole = tmp_path / "cut.h5", tmp_path / "whole.h5"
+    proc = cli(*options, "--out", str(cut))
+    seen, deadline = "", time.time() + 120
+    os.set_blocking(proc.stderr.fileno(), False)
+    while time.time() < deadline and proc.poll() is None:
+        seen += read_now(proc.stderr.fileno())
+        done = [int(n) for n in re.findall(r"\| *(\d+)/1024000", seen)]
+        if done and max(done) > 0:
+            break
+        time.sleep(0.05)
+    assert proc.poll() is None, f"the run ended before the signal: {seen[-400:]}"
+    proc.send_signal(signal.SIGINT)
+    sent = time.time()
+    proc.wait(timeout=60)
+    stopped_in = time.time() - sent
+    os.set_blocking(proc.stderr.fileno(), True)
+    err = seen + proc.stderr.read().decode()
+    assert proc.returncode == 130, err[-3000:]
+    last = err.strip().splitlines()[-1]
+    assert re.fullmatch(rf"jaxmpm: SIGINT at step \d+ \(t = \S+\): \d+ frames? and the state reached are saved "
+                        rf"in {re.escape(str(cut))}; continue with `jaxmpm resume {re.escape(str(cut))}`", last), last
+    assert stopped_in < 10, stopped_in  # a chunk is about two seconds of work
+    with h5py.File(cut, "r") as f:
+        step = int(f["state/step"][()])
+        assert 0 < step < 1024000 and f["time"].shape[0] == step // 25600 + 1
+    resumed = cli("resume", str(cut), "--no-progress")
+    out, err = resumed.communicate(timeout=300)
+    assert resumed.returncode == 0, err
+    assert b"steps resumed" in out
+    uninterrupted = cli(*options, "--out", str(whole), "--no-progress")
+    out, err = uninterrupted.communicate(timeout=300)
+    assert uninterrupted.returncode == 0, err
+    assert_same_files(whole, cut)

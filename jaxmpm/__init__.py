@@ -27,6 +27,7 @@ from ._simulation import Simulation
 from ._state import State, with_fields, with_scheme_state
 from ._step import folds_force, grid_solve, g2p, p2g
 from ._terms import BodyForce, Damping, StressDivergence, Term
+from ._contact import Contact
 from ._transfer import Transfer, gather, scatter
 from .scenes import SCENES, scene
 
@@ -36,7 +37,7 @@ __all__ = [
     "CalibrationResult", "PARAMETERS", "calibrate", "ensemble", "get_params", "set_params",
     "MATERIALS", "SCHEMES", "SHAPES", "TERMS", "Parameter", "register_material", "register_scheme",
     "register_shape", "register_term", "scheme_from_name", "shape_from_name",
-    "Ball", "BodyForce", "Box", "Constraint", "CubicBSpline", "Damping", "Disk", "FLIP", "FMPM", "Fixed", "Grid",
+    "Ball", "BodyForce", "Box", "Constraint", "Contact", "CubicBSpline", "Damping", "Disk", "FLIP", "FMPM", "Fixed", "Grid",
     "GridFields", "GridSolution", "H5Writer", "History", "InputError", "InstabilityError", "Linear", "LinearElastic",
     "Material", "NeoHookean", "NodeSet", "PIC", "ParticleField", "ParticleUpdate", "Particles", "Prescribed",
     "QuadraticBSpline", "Region", "Ring", "RunInterrupted", "SCENES", "Scheme", "ShapeFunction", "Simulation", "Slip",

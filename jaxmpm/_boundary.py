@@ -109,6 +109,14 @@ class Constraint(eqx.Module):
         a = jnp.where(hit & (dt > 0), -v / safe_dt, a)  # v_tilde = 0 there: a = (0 - v)/dt
         return v, a, v_tilde
 
+    def tile(self, copies: int) -> "Constraint":
+        """The conditions on ``copies`` stacked copies of the grid (multimaterial mode: every
+        material's velocity field obeys the node's conditions)."""
+        if copies == 1:
+            return self
+        rep = lambda a: None if a is None else jnp.tile(a, (copies, 1))  # noqa: E731
+        return Constraint(rep(self.mask), rep(self.value), rep(self.wall), self.inhomogeneous)
+
     def zero(self, u):
         """Impose the homogeneous conditions: constrained components set to zero."""
         return jnp.where(self.mask, 0.0, u)

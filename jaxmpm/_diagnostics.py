@@ -37,6 +37,20 @@ def angular_momentum(state):
     return jnp.sum(jnp.cross(x, p), axis=0)
 
 
+def by_material(state, material, ids, count: int) -> dict:
+    """Per-material sums (multimaterial mode, ``ids`` the particles' material ids 0..count-1):
+    kinetic and strain energy (count,), linear momentum (count, D) and, when the state carries
+    the contact force field, the contact force on each material (count, D)."""
+    one_hot = (ids.astype(jnp.int32)[:, None] == jnp.arange(count, dtype=jnp.int32)[None, :]).astype(state.x.dtype)
+    kinetic = 0.5 * state.mass * jnp.sum(state.v**2, axis=-1)
+    strain = state.volume0 * material.stored_energy_density(state.F, state.material_state)
+    out = dict(kinetic=kinetic @ one_hot, strain=strain @ one_hot,
+               momentum=one_hot.T @ (state.mass[:, None] * state.v))
+    if "contact_force" in state.fields:
+        out["contact_force"] = one_hot.T @ state.fields["contact_force"]
+    return out
+
+
 def stable_dt(grid, material, velocity, cfl: float = 1.0):
     """dt = CFL h / max_p (c + |V_p|), c the dilatational wave speed (docs/design.md).  A concrete
     ``cfl`` must be a finite number > 0 (a traced one passes unchecked)."""

@@ -29,7 +29,9 @@ class StableTimeStepWarning(UserWarning):
 
 class History(eqx.Module):
     """Saved frames (leading axis T): time, particle x/v (None if not saved), energies, momenta,
-    and the per-particle fields the terms declare (``fields``, empty if particles are not saved)."""
+    the per-particle fields the terms declare (``fields``, empty if particles are not saved) and,
+    in multimaterial mode, per-material sums (``by_material``: kinetic, strain, momentum,
+    contact_force)."""
 
     time: jnp.ndarray
     x: jnp.ndarray | None
@@ -40,6 +42,8 @@ class History(eqx.Module):
     momentum: jnp.ndarray
     angular: jnp.ndarray
     fields: dict = eqx.field(default_factory=dict)  # saved per-particle fields of the terms, (T, N, ...)
+    # multimaterial mode: per-material kinetic, strain (T, M), momentum and contact force (T, M, D)
+    by_material: dict = eqx.field(default_factory=dict)
 
     @property
     def total_energy(self):

@@ -105,15 +105,20 @@ class ParticleField(eqx.Module):
         check(self.name not in CORE_FIELDS,
               f"ParticleField: {self.name!r} is a core particle field; choose another name")
 
+    def shape_in(self, dim: int) -> tuple:
+        """The per-particle shape in ``dim`` dimensions: an entry "D" is the grid's dimension
+        (a vector field such as a force has ``shape=("D",)``)."""
+        return tuple(dim if s == "D" else s for s in self.shape)
+
     def initial_value(self, x):
         """The initial (N, *shape) array for particles at ``x`` (N, D)."""
         n = x.shape[0]
+        shape = self.shape_in(x.shape[1])
         value = self.initial(np.asarray(x)) if callable(self.initial) else self.initial
         value = jnp.asarray(value, x.dtype)
-        check(value.shape in ((), (n,) + tuple(self.shape), tuple(self.shape)),
-              f"ParticleField {self.name!r}: initial value has shape {value.shape}; "
-              f"expected {(n,) + tuple(self.shape)}")
-        return jnp.broadcast_to(value, (n,) + tuple(self.shape))
+        check(value.shape in ((), (n,) + shape, shape),
+              f"ParticleField {self.name!r}: initial value has shape {value.shape}; expected {(n,) + shape}")
+        return jnp.broadcast_to(value, (n,) + shape)
 
 
 # fields every state has (State's own attributes); a declared field may not shadow them

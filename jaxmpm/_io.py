@@ -5,6 +5,8 @@
 /energy/kinetic (T,)  /energy/strain (T,)  /energy/dissipated (T,)
 /momentum/linear (T,D)  /momentum/angular (T,1 or 3)
 /particles/<name> (T,N,...)   every saved per-particle field a physics term declares
+/particles/material (N,)      multimaterial mode: the material id of each particle (int32)
+/materials/<name> (T,M[,D])   multimaterial mode: kinetic, strain, momentum, contact_force per material
 /state/<leaf>                 the state a chunked run reached (H5Writer.write_state; jaxmpm.resume)
 attributes on /: scene, scheme, order, beta, alpha_g, alpha_p, shape, update, dt, cells, ppc,
                  dtype, jaxmpm version, scene parameters (JSON), and every other float
@@ -95,6 +97,8 @@ class H5Writer:
             self.file.attrs[k] = v
         self.file.create_dataset("particles/mass", data=np.asarray(state.mass))
         self.file.create_dataset("particles/volume0", data=np.asarray(state.volume0))
+        if "material" in state.fields:  # multimaterial mode: each particle's material id, once
+            self.file.create_dataset("particles/material", data=np.asarray(state.fields["material"]).astype(np.int32))
         self.frames = 0
         self.n, self.dim = np.asarray(state.x).shape
 
@@ -119,6 +123,7 @@ class H5Writer:
             return
         series = [(getattr(history, field), name) for field, name in _SERIES.items()]
         series += [(value, f"particles/{field}") for field, value in history.fields.items()]
+        series += [(value, f"materials/{name}") for name, value in history.by_material.items()]
         for value, name in series:
             if value is None:
                 continue
@@ -351,7 +356,7 @@ def write_xdmf(h5_path: str, f: h5py.File) -> None:
         frame_items.append((labels.get(name, name), kind_of(ds.shape[2:]), item))
 
     constants = [(name, _xdmf_item(h5_name, f"particles/{name}", (N,), f["particles"][name].dtype))
-                 for name in ("mass", "volume0")
+                 for name in ("mass", "volume0", "material")
                  if isinstance(f["particles"].get(name), h5py.Dataset) and f["particles"][name].shape == (N,)]
     topology = (f'<Topology TopologyType="Polyvertex" NumberOfElements="{N}" NodesPerElement="1">'
                 + _xdmf_item(views_name, "index", (N, 1), np.int64) + "</Topology>")

@@ -92,6 +92,19 @@ def mass_matrix_series(
     return total
 
 
+def contact_series(grid: GridSolution, order: int, transfer: Transfer, constraint: Constraint, boundary: str,
+                   form: str):
+    """(m~_{k-1}^a)^{-1} Dp^a = the order k-1 series of Dv^a = Dp^a / m^a, the contact term XPIC(k)
+    and FMPM(k) subtract in multimaterial mode (003 eqs. 3.16-3.18, 3.22; m~_0^{-1} = 0 by 003
+    eq. 3.15 at k = 1).  None without contact.  Homogeneous: Dv^a is zero on constrained
+    components and stays so (no prescribed-velocity terms, unlike :func:`mass_matrix_series`)."""
+    dv = grid.values.get("contact_dv")
+    if dv is None or order == 1:
+        return None
+    project = constraint.zero if boundary == "iterates" else (lambda w: w)  # noqa: E731
+    return _series(project(dv), order - 1, transfer, project, form)
+
+
 def _series(start, order: int, transfer: Transfer, project, form: str):
     """sum_{r=1}^{m} (-1)^{r+1} C(m, r) (P S+S)^{r-1} start, P the projection on free components."""
     if order == 1:
@@ -154,7 +167,9 @@ class XPIC(Scheme):
         if self.order == 1:
             Svm = Sv  # v(1) = v
         else:
-            Svm = transfer.gather(mass_matrix_series(grid.v, self.order, transfer, constraint, self.boundary, self.series))
+            vm = mass_matrix_series(grid.v, self.order, transfer, constraint, self.boundary, self.series)
+            correction = contact_series(grid, self.order, transfer, constraint, self.boundary, self.series)
+            Svm = transfer.gather(vm if correction is None else vm - correction)  # 003 eq. (3.18)
         beta = self.beta
         V_new = beta * V + (1.0 - beta) * Svm + (Sa - damping_acceleration(damping, Sv, V)) * dt  # 000 eq. (3.28)
         if self.position == "Sv":
@@ -212,6 +227,9 @@ class FMPM(Scheme):
         Sv = transfer.gather(grid.v)
         Sa = transfer.gather(grid.a)
         v_plus = mass_matrix_series(grid.v_tilde, self.order, transfer, constraint, self.boundary, self.series)  # 003 eq. (2.13)
+        correction = contact_series(grid, self.order, transfer, constraint, self.boundary, self.series)
+        if correction is not None:
+            v_plus = v_plus - correction  # 003 eq. (3.22)
         beta = self.beta
         V_new = beta * (V + Sa * dt) + (1.0 - beta) * transfer.gather(v_plus) - damping_acceleration(damping, Sv, V) * dt
         X_new = X + 0.5 * (V_new + V) * dt  # 003 eq. (2.17)

@@ -16,6 +16,7 @@ import numpy as np
 from . import _diagnostics as diag
 from ._backend import POLICIES, use_policy
 from ._boundary import as_conditions, build_constraint
+from ._contact import Contact
 from ._driver import History, StableTimeStepWarning, rollout, run  # noqa: F401  (re-exported)
 from ._errors import check
 from ._limits import require_memory
@@ -107,8 +108,15 @@ class Simulation(eqx.Module):
         self.boundary = as_conditions(boundary, grid)
         self.update = UPDATES[update]
         self.backend = backend
+        self._check_terms()
+
+    def _check_terms(self):
+        """The terms fit together and with the model (also after :meth:`with_term`)."""
         names = [f.name for t in self.terms for f in t.particle_fields()]
         check(len(names) == len(set(names)), f"Simulation: two terms declare the same particle field: {names}")
+        if self.material_fields > 1:
+            check(self.update == "USL", f"Simulation: update = {self.update!r} with contact; multimaterial mode runs "
+                                        "USL (USF and MUSL would need contact on their extra extrapolations)")
 
     # ------------------------------------------------------------- the parts
     def term(self, cls):
@@ -120,8 +128,11 @@ class Simulation(eqx.Module):
 
     def with_term(self, term: Term):
         """A copy with ``term`` added (or replacing the term of the same class)."""
+        check(isinstance(term, Term), f"Simulation.with_term: pass a jm.Term instance, got {term!r}")
         kept = tuple(t for t in self.terms if type(t) is not type(term))
-        return eqx.tree_at(lambda s: s.terms, self, kept + (term,))
+        new = eqx.tree_at(lambda s: s.terms, self, kept + (term,))
+        new._check_terms()
+        return new
 
     def with_backend(self, backend: str):
         """A copy traced under another fusion policy ("auto", "cpu", "gpu"; jaxmpm._backend)."""
@@ -148,8 +159,20 @@ class Simulation(eqx.Module):
         return tuple(f for t in self.terms for f in t.particle_fields())
 
     # ------------------------------------------------------------------ state
+    @property
+    def material_fields(self) -> int:
+        """Velocity fields per node: the contact term's materials (multimaterial mode), else 1."""
+        contact = self.term(Contact)
+        return 1 if contact is None else contact.materials
+
+    @property
+    def field_nodes(self) -> int:
+        """Rows of a nodal field: the grid's nodes times the velocity fields."""
+        return self.grid.num_nodes * self.material_fields
+
     def constraint(self, dtype):
-        return build_constraint(self.grid, self.boundary, dtype)
+        """The velocity conditions on every velocity field's nodes."""
+        return build_constraint(self.grid, self.boundary, dtype).tile(self.material_fields)
 
     def init(self, particles: Particles, fields: dict | None = None) -> State:
         """Initial state from :func:`jaxmpm.fill` output (or any :class:`Particles`); the fields
@@ -191,8 +214,10 @@ class Simulation(eqx.Module):
         unknown = sorted(set(given) - set(declared))
         check(not unknown, f"Simulation.init: fields {unknown} are not declared by any term of this model "
                            f"(declared: {sorted(declared) or 'none'})")
-        values = {name: (jnp.broadcast_to(jnp.asarray(given[name], dtype), (n,) + tuple(f.shape)) if name in given
+        values = {name: (jnp.broadcast_to(jnp.asarray(given[name], dtype), (n,) + f.shape_in(d)) if name in given
                          else f.initial_value(x)) for name, f in declared.items()}
+        for term in self.terms:
+            term.check_fields(values)
         return State(
             x=x,
             v=jnp.asarray(particles.v, dtype),
@@ -255,11 +280,14 @@ class Simulation(eqx.Module):
         """One saved frame of a run: time, diagnostics and (``save_particles``) the particle
         positions, velocities and the saved fields the terms declare."""
         saved = {f.name for f in self.particle_fields() if f.save}
+        materials = self.material_fields
         return History(
             time=state.time,
             x=state.x if save_particles else None,
             v=state.v if save_particles else None,
             fields={k: v for k, v in state.fields.items() if k in saved} if save_particles else {},
+            by_material={} if materials == 1 else
+            diag.by_material(state, self.material, state.fields["material"], materials),
             **self.diagnostics(state),
         )
 

@@ -20,6 +20,7 @@ import equinox as eqx
 import jax.numpy as jnp
 
 from ._boundary import Constraint
+from ._contact import material_stencil
 from ._fields import GridFields, GridSolution
 from ._shapes import StencilBase as Stencil
 from ._transfer import Transfer, safe_divide, scatter_columns
@@ -30,7 +31,8 @@ def folds_force(sim) -> bool:
     per stencil slot instead of 1 + 2D): when nothing downstream needs v and a apart -- a scheme
     that reads only v_tilde (APIC, TPIC), no damping in the model (``damping=False``), and a USL
     or MUSL update (USF needs v before the force)."""
-    return sim.update != "USF" and sim.damping is None and not sim.scheme.uses_lumped_velocity
+    return (sim.update != "USF" and sim.damping is None and not sim.scheme.uses_lumped_velocity
+            and sim.material_fields == 1)  # contact needs p and f apart (003 eqs. 3.19-3.22)
 
 
 def update_deformation(F, grad_v, dt):
@@ -53,7 +55,7 @@ def p2g(sim, state, force: bool = True, dt=None) -> GridFields:
     scheme's affine terms (APIC/TPIC), and (``force=True``) the terms' columns (the nodal force),
     all in one scatter-add.  With ``dt`` (see :func:`folds_force`) momentum and force are
     scattered as one updated momentum p + f dt."""
-    stencil = sim.shape.stencil(sim.grid, state.x)
+    stencil = particle_stencil(sim, state)
 
     def columns(stencil, state, dt):
         out = {"mass": stencil.weight * state.mass,
@@ -64,9 +66,18 @@ def p2g(sim, state, force: bool = True, dt=None) -> GridFields:
             out["updated_momentum"] = out.pop("momentum") + dt * out.pop("force")
         return out
 
-    nodal = scatter_columns(stencil, columns, sim.grid.num_nodes, stencil, state, dt)
-    transfer = Transfer(stencil, state.mass, nodal.pop("mass"), sim.grid.num_nodes)
+    nodal = scatter_columns(stencil, columns, sim.field_nodes, stencil, state, dt)
+    transfer = Transfer(stencil, state.mass, nodal.pop("mass"), sim.field_nodes)
     return GridFields(transfer, nodal)
+
+
+def particle_stencil(sim, state):
+    """S_pi, G_pi at the particles (001 eqs. 16-17); in multimaterial mode each particle's nodes
+    are those of its material's velocity field (jaxmpm._contact)."""
+    stencil = sim.shape.stencil(sim.grid, state.x)
+    if sim.material_fields == 1:
+        return stencil
+    return material_stencil(stencil, state.fields["material"].astype(stencil.index.dtype), sim.grid.num_nodes)
 
 
 def nodal_terms(sim, state, transfer: Transfer) -> dict:

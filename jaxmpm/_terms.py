@@ -53,6 +53,9 @@ class Term(eqx.Module):
         """The new particle state after this term (default: unchanged)."""
         return new
 
+    def check_fields(self, fields: dict) -> None:
+        """Raise :class:`jaxmpm.InputError` when an initial field value is invalid (``sim.init``)."""
+
 
 class StressDivergence(Term):
     """Internal force f_i = -sum_p V0_p tau_p . G_pi (001 eq. 20, 003 eq. 2.10), tau the

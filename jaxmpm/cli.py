@@ -32,6 +32,9 @@ SCENE_OPTIONS = {
     "--alpha-g": "damping",
     "--alpha-p": "damping",
     "--dtype": "dtype",
+    "--contact": "contact",
+    "--friction": "friction",
+    "--separation": "separation",
 }
 
 EXIT_ERROR = 2
@@ -78,6 +81,7 @@ def build_parser() -> argparse.ArgumentParser:
     import jaxmpm  # noqa: F401  (registers the schemes and shapes)
     from jaxmpm._registry import SCHEMES, SHAPES
     from jaxmpm.scenes import SCENES
+    from jaxmpm.scenes._common import CONTACT_OPTIONS
 
     parser = _OneLineErrors(
         prog="jaxmpm",
@@ -114,6 +118,14 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--dt", type=float, default=None, metavar="DT", help="time step " + _defaults("dt"))
     run.add_argument("--t-end", type=float, default=None, metavar="T", help="end time " + _defaults("t_end"))
     run.add_argument("--frames", type=int, default=None, metavar="F", help="about F saved frames " + _defaults("frames"))
+    run.add_argument("--contact", default=None, choices=list(CONTACT_OPTIONS),
+                     help="contact between the bodies: none (one velocity field) or a law, each body its own "
+                          "material " + _defaults("contact"))
+    run.add_argument("--friction", type=float, default=None, metavar="MU",
+                     help="Coulomb friction coefficient mu >= 0, with --contact coulomb " + _defaults("friction"))
+    run.add_argument("--separation", type=float, default=None, metavar="S",
+                     help="contact separation criterion in cells: the bodies touch where their nodal centres of "
+                          "mass are closer than S h along the normal " + _defaults("separation"))
     run.add_argument("--dtype", default="f64", choices=["f32", "f64"], help="float precision (default f64)")
     run.add_argument("--max-steps", type=int, default=None, metavar="N",
                      help="refuse a run of more than N steps (default: the step counter's limit 2^31 - 1)")
@@ -218,7 +230,8 @@ def options_of(args) -> dict:
 def setup_from_options(options: dict):
     """The scene ``Setup`` of stored command-line options (see :func:`options_of`)."""
     defaults = {k: None for k in ("scheme", "beta", "alpha_g", "alpha_p", "shape", "update", "cells", "spacing",
-                                  "ppc", "cfl", "dt", "t_end", "frames", "max_steps")}
+                                  "ppc", "cfl", "dt", "t_end", "frames", "max_steps", "contact", "friction",
+                                  "separation")}
     return build_setup(argparse.Namespace(**{**defaults, "dtype": "f64", **options}))
 
 
@@ -259,7 +272,8 @@ def build_setup(args):
         kwargs["shape"] = shape_from_name(args.shape, ppc=ppc) if args.shape == "ugimp" else shape_from_name(args.shape)
     if args.alpha_g is not None or args.alpha_p is not None:
         kwargs["damping"] = jm.Damping(grid=args.alpha_g or 0.0, particle=args.alpha_p or 0.0)
-    for name in ("cells", "spacing", "ppc", "cfl", "dt", "t_end", "frames", "update"):
+    for name in ("cells", "spacing", "ppc", "cfl", "dt", "t_end", "frames", "update", "contact", "friction",
+                 "separation"):
         if getattr(args, name) is not None:
             kwargs[name] = getattr(args, name)
     return jm.scene(args.scene, **kwargs)

@@ -6,3 +6,16 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_dtype_promotion", "strict")
+
+
+import pytest  # noqa: E402
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _release_compiled_programs():
+    """Drop JAX's compiled programs after each test module.  A single pytest process compiles
+    thousands of programs; XLA's CPU JIT maps memory for each, and past ~65k mappings (Linux's
+    vm.max_map_count) compilation aborts (seen as a segfault in the compiler late in the suite).
+    Modules share few programs, so the recompilation this costs is small."""
+    yield
+    jax.clear_caches()

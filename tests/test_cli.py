@@ -53,7 +53,7 @@ def test_part_defaults_are_what_the_scenes_build(scene):
 
     small = {"bar": dict(cells=4), "disks": dict(spacing=0.25), "spin": dict(spacing=0.25),
              "rings": dict(spacing=1.0), "mpm88": dict(n_particles=64, n_grid=8), "mms": dict(cells=4),
-             "vortex": dict(spacing=0.25)}[scene]
+             "vortex": dict(spacing=0.25), "bars_impact": dict(cells=4), "slide": dict(spacing=0.1)}[scene]
     setup = jm.scene(scene, t_end=1e-3, frames=1, **small)
     assert jm.scheme_from_name(PART_DEFAULTS[scene]["scheme"]).__class__ is type(setup.sim.scheme)
     ppc = getattr(setup.sim.shape, "ppc", None)
@@ -64,8 +64,10 @@ def test_part_defaults_are_what_the_scenes_build(scene):
 def test_help_shows_each_scenes_default():
     text = build_parser()._subparsers._group_actions[0].choices["run"].format_help()
     flat = " ".join(text.split())
-    assert "(default: bar 16, mms 16; other scenes do not take it)" in flat  # --cells
+    assert "(default: bar 16, mms 16, bars_impact 32; other scenes do not take it)" in flat  # --cells
     assert "mpm88 apic" in flat and "disks ugimp" in flat
+    assert "(default: disks none, rings none, bars_impact frictionless, slide coulomb; other scenes" in flat
+    assert "(default: disks 0, rings 0, slide 0.2; other scenes do not take it)" in flat  # --friction
 
 
 def test_python_m_jaxmpm_scenes():
@@ -137,13 +139,46 @@ def test_unknown_scheme_exits_2_naming_it(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("scene, option, value", [("bar", "--spacing", "0.1"), ("disks", "--cells", "8"),
-                                                  ("disks", "--cfl", "0.5"), ("bar", "--dt", "0.01")])
+                                                  ("disks", "--cfl", "0.5"), ("bar", "--dt", "0.01"),
+                                                  ("bar", "--contact", "stick"), ("spin", "--friction", "0.1"),
+                                                  ("bars_impact", "--friction", "0.1")])
 def test_option_the_scene_does_not_take_exits_2(tmp_path, capsys, scene, option, value):
     path = tmp_path / "x.h5"
     assert run_cli(["run", scene, option, value, "--out", str(path)]) == 2
     err = capsys.readouterr().err
     assert f"option {option} does not apply to scene {scene!r}" in err
     assert not path.exists()
+
+
+@pytest.mark.parametrize("options, words", [
+    (["--contact", "glue"], ["--contact", "invalid choice: 'glue'"]),
+    (["--contact", "coulomb", "--friction", "-0.5"], ["friction = -0.5", ">= 0"]),
+    (["--friction", "0.3"], ["friction = 0.3", "contact='coulomb'"]),  # disks' default contact is none
+    (["--contact", "stick", "--friction", "0.3"], ["friction = 0.3", "contact='stick'"]),
+    (["--contact", "frictionless", "--update", "MUSL"], ["update = 'MUSL'"]),
+])
+def test_bad_contact_options_exit_2_naming_them(tmp_path, capsys, options, words):
+    path = tmp_path / "x.h5"
+    assert run_cli(["run", "disks", *options, "--out", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1
+    for word in words:
+        assert word in err, (word, err)
+    assert not path.exists()
+
+
+def test_contact_options_reach_the_scene():
+    """--contact/--friction become the scene's keywords: a two-material model with jm.Contact."""
+    from jaxmpm.cli import build_parser, build_setup
+
+    args = build_parser().parse_args(["run", "disks", "--spacing", "0.25", "--t-end", "0.01", "--contact", "coulomb",
+                                      "--friction", "0.3", "--out", "unused.h5"])
+    setup = build_setup(args)
+    contact = setup.sim.term(jm.Contact)
+    assert contact.law == "coulomb" and float(contact.friction) == 0.3
+    assert setup.params["contact"] == "coulomb" and setup.params["friction"] == 0.3
+    ids = np.asarray(setup.state.fields["material"])
+    assert set(ids.tolist()) == {0.0, 1.0} and ids[:setup.params["n_first"]].max() == 0.0
 
 
 def test_unstable_run_exits_2_naming_the_step(tmp_path, capsys):

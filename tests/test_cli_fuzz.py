@@ -26,6 +26,7 @@ OPTIONS = {
     "--t-end": NUMBERS, "--frames": NUMBERS, "--beta": NUMBERS, "--alpha-g": NUMBERS, "--alpha-p": NUMBERS,
     "--max-steps": NUMBERS, "--scheme": SCHEMES, "--shape": ["linear", "ugimp", "quadratic", "cubic", "hat"],
     "--update": ["USL", "USF", "MUSL", "usl"], "--dtype": ["f32", "f64", "f16"],
+    "--contact": ["none", "stick", "frictionless", "coulomb", "glue", ""], "--friction": NUMBERS,
 }
 SCENES = [*jm.SCENES, "nope"]
 

@@ -164,6 +164,17 @@ def test_float32_state_with_float64_simulation():
     ("mms", dict(dim=2.5), ["dim = 2.5"]),
     ("mms", dict(phases=(0.0, NAN), dim=2), ["phases[1] = nan"]),
     ("vortex", dict(period=0), ["period = 0"]),
+    ("disks", dict(contact="coulomb", friction=-0.1), ["friction = -0.1", ">= 0"]),
+    ("disks", dict(contact="glue"), ["contact = 'glue'", "'frictionless'"]),
+    ("rings", dict(contact=None), ["contact = None", "'coulomb'"]),
+    ("disks", dict(friction=0.2), ["friction = 0.2", "contact='coulomb'", "contact='none'"]),
+    ("slide", dict(contact="stick", friction=0.5), ["friction = 0.5", "contact='stick'"]),
+    ("bar", dict(contact="stick"), ["unknown option 'contact'"]),
+    ("bars_impact", dict(friction=0.1), ["unknown option 'friction'"]),
+    ("bars_impact", dict(cells=0), ["cells = 0"]),
+    ("slide", dict(theta=90), ["theta = 90", "[0, 90)"]),
+    ("slide", dict(normal="mean"), ["normal = 'mean'", "'first'"]),
+    ("slide", dict(spacing=0.2), ["spacing = 0.2", "height"]),
 ])
 def test_scene_options_are_checked(name, options, words):
     assert_input_error(lambda: jm.scene(name, **options), name, *words)

@@ -21,6 +21,8 @@ SMALL = {
     "mpm88": dict(n_particles=64, n_grid=16, dt=2e-4, t_end=8e-4),
     "mms": dict(dim=3, cells=2, t_end=0.01),
     "vortex": dict(spacing=0.25, t_end=0.02),
+    "bars_impact": dict(cells=4, t_end=0.05),
+    "slide": dict(spacing=0.05, t_end=0.005),
 }
 
 

@@ -8,10 +8,12 @@ from __future__ import annotations
 
 from ._common import Setup, cast_state, resolve_dtype
 from .bar import bar
+from .bars_impact import bars_impact
 from .disks import disks
 from .mms import mms
 from .mpm88 import mpm88
 from .rings import rings
+from .slide import slide
 from .spin import spin
 from .vortex import vortex
 
@@ -23,6 +25,9 @@ SCENES = {
     "mpm88": (mpm88, "Taichi's mpm88 fluid (APIC, 8192 particles, 128^2 grid): throughput"),
     "mms": (mms, "Wallstedt & Guilkey 2008 axis-aligned manufactured solution on [0,1]^D: displacement error"),
     "vortex": (vortex, "generalized vortex (Kamojjala & Brannon): ring returns to its start at t = T"),
+    "bars_impact": (bars_impact, "two 1D elastic bars meet at +-v0: contact lasts 2L/c, velocities exchanged"),
+    "slide": (slide, "elastic block slides on a slab under gravity tilted by theta: "
+                     "x = g (sin theta - mu cos theta) t^2 / 2"),
 }
 
 

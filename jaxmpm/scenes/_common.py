@@ -28,6 +28,8 @@ class Setup:
     params: dict
     reference: Callable | None = None
     particles: Any = None  # the filled particles: sim.init(particles) inside a loss makes d/d(density) flow
+    fields: dict | None = None  # the particle fields given to sim.init (material ids in multimaterial scenes):
+    #                             sim.init(setup.particles, fields=setup.fields) rebuilds ``state``
 
     def __post_init__(self):
         # The simulation's float parameters (E, beta, damping, gravity) follow the state's dtype, so a
@@ -53,7 +55,32 @@ PART_DEFAULTS = {
     "mpm88": {"scheme": "apic", "shape": "quadratic"},
     "mms": {"scheme": "flip", "shape": "linear"},
     "vortex": {"scheme": "flip", "shape": "quadratic"},
+    "bars_impact": {"scheme": "flip", "shape": "linear"},
+    "slide": {"scheme": "flip", "shape": "ugimp"},
 }
+
+#: the ``contact`` option of the multimaterial scenes: "none" keeps one velocity field (the model of a
+#: one-material scene), the others give each body its own material and field (jaxmpm/_contact.py)
+CONTACT_OPTIONS = ("none", "stick", "frictionless", "coulomb")
+
+
+def contact_model(contact: str, friction: float, normal: str = "average", separation: float | None = None) -> tuple:
+    """(terms, material_fields): the ``terms=`` of a two-body scene's Simulation and whether its
+    particles need material ids.  contact="none" gives ``()`` -- exactly the single-field model;
+    a law gives ``(jm.Contact(law=contact, friction=...),)``, with the friction passed only to
+    "coulomb" (the option checks reject a friction given with another law); ``normal`` as
+    :class:`jaxmpm.Contact` takes it, and the ``separation`` criterion (cells; None: none)."""
+    if contact == "none":
+        return (), False
+    from .._contact import Contact
+
+    return (Contact(law=contact, friction=friction if contact == "coulomb" else 0.0, normal=normal,
+                    separation=separation),), True
+
+
+def material_ids(counts, dtype=None):
+    """Material ids 0, 1, ... for bodies of ``counts`` particles each, concatenated in that order."""
+    return jnp.concatenate([jnp.full((int(n),), float(k), dtype=dtype) for k, n in enumerate(counts)])
 
 
 def resolve_dtype(dtype):

@@ -14,7 +14,10 @@ raising ZeroDivisionError on ``cfl=0``).  The decorator
 * turns a scheme or shape given as a string (``scheme="xpic:3"``, ``shape="quadratic"``) into the
   part, as the command line does.
 
-Checks that need several options at once (mms: an even cell count for the extended boundary,
+One check spans two options, because only the decorator knows which options the caller gave: a
+``friction`` given with a ``contact`` law other than "coulomb" is an error (the builders use the
+friction only with "coulomb", so slide's default friction 0.2 does not stop ``contact="frictionless"``).
+Other checks that need several options at once (mms: an even cell count for the extended boundary,
 vortex: spacing below the ring width) stay in the builders.  The builders' own constructors
 (``Grid``, ``fill``, the materials, the schemes) check again what they receive.
 """
@@ -24,7 +27,10 @@ from __future__ import annotations
 import functools
 import inspect
 
-from .._validate import FINITE, NON_NEGATIVE, POISSON, POSITIVE, fail, positive_int, sequence
+import numpy as np
+
+from .._validate import FINITE, NON_NEGATIVE, POISSON, POSITIVE, Range, concrete, fail, positive_int, sequence, show
+from ._common import CONTACT_OPTIONS
 
 
 def _count(scene, name, value):
@@ -45,6 +51,22 @@ def _range(rng, fix=None):
 def _finite_list(scene, name, value):
     for i, v in enumerate(sequence(scene, name, value)):
         FINITE.real(scene, f"{name}[{i}]", v)
+    return value
+
+
+def _contact(scene, name, value):
+    if not (isinstance(value, str) and value in CONTACT_OPTIONS):
+        fail(scene, f"{name} = {show(value)}; choose one of {', '.join(map(repr, CONTACT_OPTIONS))}",
+             "'none' keeps one velocity field, a law gives each body its own (jm.Contact)")
+    return value
+
+
+def _normal(scene, name, value):
+    from .._contact import NORMALS
+
+    if not (isinstance(value, str) and value in NORMALS):
+        fail(scene, f"{name} = {show(value)}; choose one of {', '.join(map(repr, NORMALS))}",
+             "the contact normal: 'first' from material 0's mass gradient, 'average' from both")
     return value
 
 
@@ -70,6 +92,13 @@ OPTION_CHECKS = {
     "speed": _range(FINITE), "v0": _range(FINITE), "omega": _range(FINITE), "amplitude": _range(FINITE),
     "gravity": _range(FINITE), "separation": _range(FINITE),
     "phases": _finite_list,
+    "theta": _range(Range(0, 90, high_open=True), "the slope angle in degrees"),
+    # contact between the bodies of a two-body scene (jaxmpm/_contact.py)
+    "contact": _contact,
+    "friction": _range(NON_NEGATIVE, "the Coulomb friction coefficient mu"),
+    "separation": lambda scene, name, value: None if value is None else _range(
+        FINITE, "the contact separation criterion in cells, e.g. 1.0 (None: off)")(scene, name, value),
+    "normal": _normal,
 }
 
 
@@ -110,6 +139,12 @@ def checked_options(builder):
             if check is None or (value is None and signature.parameters[name].default is None):
                 continue  # not a checked option, or None where the builder derives the value
             given[name] = check(scene, name, value)
+        if "friction" in given and "contact" in signature.parameters:
+            contact = given.get("contact", signature.parameters["contact"].default)
+            mu = concrete(given["friction"])
+            if contact != "coulomb" and mu is not None and np.any(mu != 0):
+                fail(scene, f"friction = {show(given['friction'])} applies only to contact='coulomb', "
+                            f"not contact={contact!r}", "pass contact='coulomb', or leave friction out")
         return builder(**_parts(scene, given, signature))
 
     return build

@@ -19,7 +19,7 @@ from .._particles import Ring, fill
 from .._schemes import FLIP, Damping
 from .._shapes import QuadraticBSpline
 from .._simulation import Simulation
-from ._common import Setup, cast_state, resolve_dtype, schedule
+from ._common import Setup, cast_state, contact_model, material_ids, resolve_dtype, schedule
 from ._options import checked_options
 
 LOWER, UPPER = (-20.0, -7.5), (20.0, 7.5)
@@ -45,9 +45,13 @@ def rings(
     inner: float = 3.0,
     outer: float = 4.0,
     separation: float = 10.0,
+    contact: str = "none",
+    friction: float = 0.0,
 ) -> Setup:
     """Two rings ``separation`` apart (centre to centre) approaching at +-``speed``;
-    dt = cfl * h / (c + speed) unless ``dt`` is given."""
+    dt = cfl * h / (c + speed) unless ``dt`` is given.  ``contact``: "none" (one velocity field) or
+    a law ("stick", "frictionless", "coulomb" with ``friction`` mu), each ring its own material
+    (id 0 for the left ring, 1 for the right; jaxmpm/_contact.py)."""
     dtype = resolve_dtype(dtype)
     scheme = FLIP() if scheme is None else scheme
     shape = QuadraticBSpline() if shape is None else shape
@@ -63,12 +67,15 @@ def rings(
         volume=jnp.concatenate([a.volume, b.volume]), mass=None, ppc=ppc,
     )
     material = NeoHookean(E=E, nu=nu, density=density)
-    sim = Simulation(grid=grid, shape=shape, material=material, scheme=scheme, damping=damping, update=update)
-    state = cast_state(sim.init(particles), dtype)
+    terms, multimaterial = contact_model(contact, friction)
+    sim = Simulation(grid=grid, shape=shape, material=material, scheme=scheme, damping=damping, update=update,
+                     terms=terms)
+    fields = {"material": material_ids((a.x.shape[0], b.x.shape[0]))} if multimaterial else None
+    state = cast_state(sim.init(particles, fields=fields), dtype)
     if dt is None:
         dt = float(sim.stable_dt(state, cfl))  # cfl h / (c + max|V|)
     steps, save_every = schedule(t_end, dt, frames)
     params = dict(E=E, nu=nu, density=density, spacing=spacing, ppc=ppc, speed=speed, inner=inner, outer=outer,
                   centres=[[-half, 0.0], [half, 0.0]], n_first=int(a.x.shape[0]), cfl=cfl, dt=dt,
-                  t_end=steps * dt)
-    return Setup("rings", sim, state, dt, steps, save_every, params, None)
+                  t_end=steps * dt, contact=contact, friction=friction if contact == "coulomb" else 0.0)
+    return Setup("rings", sim, state, dt, steps, save_every, params, None, particles, fields)

@@ -1,0 +1,121 @@
+"""``slide``: an elastic block slides on an elastic slab under tilted gravity (issue 12).
+
+2D, plane strain.  A slab [0, 1] x [0, 0.1] whose base nodes (y <= 0) are fixed, and a block
+[0.1, 0.3] x [0.1, 0.2] resting on it, both linear elastic (E = 1e6, nu = 0.3, rho = 1000: stiff,
+so their deformation, ~1e-4, is small against the slide).  Gravity g = 9.8 is tilted by theta
+(degrees, default 30): gravity = g (sin theta, -cos theta), so the slab's top is an incline along
++x.  The slab is material 0, the block material 1, coupled by :class:`jaxmpm.Contact` with the
+law ``contact`` ("coulomb" with ``friction`` mu = 0.2 by default; "frictionless" is mu = 0;
+"stick" and "none" -- the single field -- glue the block to the slab).
+
+Exact block displacement along x (rigid block on a rigid incline, Coulomb friction):
+x(t) = g (sin theta - mu cos theta) t^2 / 2 when tan theta > mu, else 0 (it stays stuck);
+``setup.reference(t)`` gives it and ``params["acceleration"]`` the factor g (sin - mu cos).
+
+h = 0.025, 2x2 particles per cell, dt = cfl h / c (c the P-wave speed, cfl 0.5), t_end = 0.3
+(0.315 after rounding to the 20 frames: the frictionless block slides 0.24, almost 10 cells).
+The grid spans the slab and the block with room for the frictionless slide until t_end.
+
+Defaults chosen from measurements (FLIP, the displacement at t_end against the exact one; tests/
+test_contact_scenes.py):
+
+* uGIMP shape functions: with linear ones every sliding run inverts a block particle (J <= 0) by
+  t = 0.07, about when the block's front column of particles first crosses a node line (FLIP and
+  PIC alike).
+* ``normal="first"``, the slab's (material 0's) mass gradient: the slab is flat, so its normal is
+  the incline's.  mu = 0: -0.00 %, mu = 0.2: +1.1 %; but mu = 0.7 creeps to 6.3 % of the
+  frictionless displacement (PIC: +0.57 % and 0.74 %).  ``normal="average"`` tilts the normals
+  at the block's corners, which then act as obstacles: -12 % (mu = 0) and -24 % (mu = 0.2), while
+  mu = 0.7 stays at 0.53 %.
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax.numpy as jnp
+import numpy as np
+
+from .._boundary import Fixed
+from .._errors import check
+from .._grid import Grid
+from .._materials import LinearElastic
+from .._particles import Box, fill
+from .._schemes import Damping, FLIP
+from .._shapes import UGIMP
+from .._simulation import Simulation
+from ._common import Setup, cast_state, contact_model, material_ids, resolve_dtype, schedule
+from ._options import checked_options
+
+SLAB = ((0.0, 0.0), (1.0, 0.1))
+BLOCK = ((0.1, 0.1), (0.3, 0.2))
+
+
+@checked_options
+def slide(
+    scheme=None,
+    shape=None,
+    spacing: float = 0.025,
+    ppc: int = 2,
+    cfl: float = 0.5,
+    dt: float | None = None,
+    t_end: float = 0.3,
+    update: str = "USL",
+    damping: Damping | None = None,
+    dtype=None,
+    frames: int = 20,
+    E: float = 1e6,
+    nu: float = 0.3,
+    density: float = 1000.0,
+    theta: float = 30.0,
+    gravity: float = 9.8,
+    contact: str = "coulomb",
+    friction: float = 0.2,
+    normal: str = "first",
+) -> Setup:
+    """The block on the slab with gravity ``gravity`` tilted by ``theta`` degrees; ``contact`` and
+    ``friction`` as in the module docstring; ``normal``: the contact normal of jm.Contact
+    ("first": the slab's, "average": both bodies'); dt = cfl * h / c unless ``dt`` is given."""
+    dtype = resolve_dtype(dtype)
+    check(gravity >= 0, f"slide: gravity = {gravity} must be >= 0 (its magnitude g; theta tilts it)")
+    scheme = FLIP() if scheme is None else scheme
+    shape = UGIMP(ppc=ppc) if shape is None else shape
+    slab_height = SLAB[1][1] - SLAB[0][1]
+    check(spacing <= slab_height, f"slide: spacing = {spacing} must be at most the slab's and the block's "
+                                  f"height {slab_height:g}; use a smaller spacing")
+    angle = math.radians(theta)
+    sin, cos = math.sin(angle), math.cos(angle)
+    mu = {"coulomb": friction, "frictionless": 0.0}.get(contact, math.inf)  # stick, none: glued
+    acceleration = gravity * (sin - mu * cos) if sin > mu * cos else 0.0
+    # room on the grid for the frictionless slide until t_end, up to the block's leaving the slab
+    # (beyond that it falls off the slab's end and out of the grid)
+    travel = min(0.5 * gravity * sin * t_end * t_end, SLAB[1][0] - BLOCK[0][0])  # t_end * t_end: inf, no OverflowError
+    upper = (max(SLAB[1][0], BLOCK[1][0] + travel) + 2 * spacing, BLOCK[1][1] + 2 * spacing)
+    grid = Grid.covering(SLAB[0], upper, spacing, shape=shape)
+    slab = fill(grid, Box(*SLAB), ppc=ppc)
+    block = fill(grid, Box(*BLOCK), ppc=ppc)
+    particles = type(slab)(
+        x=jnp.concatenate([slab.x, block.x]), v=jnp.concatenate([slab.v, block.v]),
+        volume=jnp.concatenate([slab.volume, block.volume]), mass=None, ppc=ppc,
+    )
+    base = Fixed(where=lambda x: x[:, 1] <= SLAB[0][1] + 1e-9 * spacing)  # the slab's bottom face (and below)
+    terms, multimaterial = contact_model(contact, friction, normal)
+    sim = Simulation(grid=grid, shape=shape, material=LinearElastic(E=E, nu=nu, density=density),
+                     scheme=scheme, damping=damping, update=update, boundary=base,
+                     gravity=(gravity * sin, -gravity * cos), terms=terms)
+    fields = {"material": material_ids((slab.x.shape[0], block.x.shape[0]))} if multimaterial else None
+    state = cast_state(sim.init(particles, fields=fields), dtype)
+    if dt is None:
+        dt = float(sim.stable_dt(state, cfl))  # cfl h / c (at rest)
+    steps, save_every = schedule(t_end, dt, frames)
+
+    def reference(t):
+        """Exact block displacement along x: (g (sin theta - mu cos theta) t^2 / 2 if sliding, else 0)."""
+        return 0.5 * acceleration * np.asarray(t, dtype=float) ** 2
+
+    params = dict(E=E, nu=nu, density=density, spacing=spacing, ppc=ppc, cfl=cfl, dt=dt, t_end=steps * dt,
+                  theta=theta, gravity=gravity, contact=contact, mu=mu if math.isfinite(mu) else None,
+                  acceleration=acceleration, slides=acceleration > 0, normal=normal,
+                  slab=[list(SLAB[0]), list(SLAB[1])],
+                  block=[list(BLOCK[0]), list(BLOCK[1])], n_first=int(slab.x.shape[0]))
+    return Setup("slide", sim, state, dt, steps, save_every, params, reference, particles, fields)

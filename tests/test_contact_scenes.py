@@ -1,0 +1,215 @@
+"""The contact scenes of issue 12: ``disks``/``rings`` with ``contact=``, ``bars_impact`` and
+``slide`` (float64, default sizes, about 30 s in all).
+
+* ``disks`` with contact="none" is today's single-field model: the same Simulation and bitwise
+  the same steps.
+* ``bars_impact`` (frictionless, FLIP, linear shape functions, 32 cells a bar): the bars part with
+  their velocities exchanged.  Exit velocity = a bar's momentum / mass at t_end = 4L/c (after
+  separation contact is the only force on a bar, so it is constant).  Contact duration = the last
+  time the left bar's momentum changes in a step by more than 1e-3 rho c v0 dt (the exact contact
+  stress is rho c v0 for 2L/c): in multimaterial mode the contact law is the only coupling of the
+  two bars, so that change *is* the interface force times dt.
+* ``slide`` (FLIP, uGIMP, normal="first", h = 0.025, t_end = 0.315): the block's centre-of-mass
+  displacement along x against g (sin theta - mu cos theta) t^2 / 2.
+
+Measured (this file's runs): bars exit velocities -+0.09492 (5.1 % short of v0 = 0.1; uGIMP
+7.8 %; 64 cells 3.4 %, uGIMP 256 cells 1.6 %), contact duration 0.2031 (+1.6 % of 2L/c; uGIMP
++5.5 %).  Slide: mu = 0 0.24279 vs 0.24279 (-0.00 %), mu = 0.2 0.16045 vs 0.15869 (+1.1 %),
+mu = 0.7 0.01518 = 6.3 % of the frictionless 0.24279 (creeps; PIC 0.74 %, normal="average"
+0.53 %, but "average" slides 12 % and 24 % short at mu = 0 and 0.2).
+"""
+
+import math
+
+import equinox as eqx
+import jax
+import numpy as np
+import pytest
+
+import jaxmpm as jm
+
+
+# ------------------------------------------------------------------ disks: contact="none" is today's model
+def test_disks_without_contact_is_the_single_field_model_bitwise():
+    options = dict(t_end=5e-3, frames=5)  # 5 steps of dt = 1e-3
+    none = jm.scene("disks", contact="none", **options)
+    default = jm.scene("disks", **options)
+    # the model disks built before it took a contact option
+    before = jm.Simulation(grid=default.sim.grid, shape=jm.UGIMP(ppc=2),
+                           material=jm.LinearElastic(E=1000.0, nu=0.3, density=1000.0), scheme=jm.FLIP())
+    before_state = jm.scenes.cast_state(before.init(default.particles), default.state.x.dtype)
+    assert bool(eqx.tree_equal(none.sim, default.sim, before))
+    assert none.sim.term(jm.Contact) is None and none.fields is None and "material" not in none.state.fields
+    assert bool(eqx.tree_equal(none.state, default.state, before_state))
+    final, history = none.run()
+    rerun = before.run(before_state, default.dt, default.steps, default.save_every)
+    for other, other_history in (default.run(), rerun):
+        for a, b in zip(jax.tree_util.tree_leaves((final, history)), jax.tree_util.tree_leaves((other, other_history))):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_disks_with_a_law_give_each_disk_its_material():
+    setup = jm.scene("disks", contact="coulomb", friction=0.25, spacing=0.1, t_end=2e-3, frames=2)
+    contact = setup.sim.term(jm.Contact)
+    assert contact.law == "coulomb" and float(contact.friction) == 0.25
+    ids = np.asarray(setup.state.fields["material"])
+    n = setup.params["n_first"]
+    assert np.all(ids[:n] == 0.0) and np.all(ids[n:] == 1.0) and n < ids.size
+    np.testing.assert_array_equal(ids, np.asarray(setup.fields["material"]))
+
+
+# ------------------------------------------------------------------ bars_impact
+def bar_run(**options):
+    """(time, left and right mean velocities, facing-end gap, interface stress / (rho c v0), setup),
+    one frame per step."""
+    setup = jm.scene("bars_impact", **options)
+    _, h = setup.sim.run(setup.state, setup.dt, setup.steps, 1)
+    n = setup.params["n_first"]
+    m = np.asarray(setup.state.mass)
+    v, x, t = np.asarray(h.v)[..., 0], np.asarray(h.x)[..., 0], np.asarray(h.time)
+    left = v[:, :n] @ m[:n] / m[:n].sum()
+    right = v[:, n:] @ m[n:] / m[n:].sum()
+    gap = x[:, n:].min(axis=1) - x[:, :n].max(axis=1)
+    force = -np.diff(left * m[:n].sum()) / np.diff(t) / setup.params["contact_stress"]
+    return t, left, right, gap, force, setup
+
+
+@pytest.fixture(scope="module")
+def frictionless_bars():
+    return bar_run(scheme="flip", contact="frictionless")
+
+
+def test_bars_part_and_conserve_momentum(frictionless_bars):
+    t, left, right, gap, force, setup = frictionless_bars
+    v0, duration = setup.params["v0"], setup.params["contact_duration"]
+    assert left[0] == pytest.approx(v0, rel=1e-14) and right[0] == pytest.approx(-v0, rel=1e-14)
+    np.testing.assert_allclose(left + right, 0.0, atol=1e-14 * v0)  # sum_a Dp^a = 0, identical bars
+    assert left[-1] < -0.9 * v0 and right[-1] > 0.9 * v0  # they leave with the velocities (almost) exchanged
+    after = t > 1.1 * duration
+    assert np.all(np.diff(gap[after]) > 0)  # flying apart
+    assert gap[-1] - gap[after][0] > 0.9 * 2 * v0 * (t[-1] - t[after][0])
+
+
+@pytest.mark.xfail(strict=True, raises=AssertionError,
+                   reason="measured exit velocities -+0.09492: 5.1 % of v0 short of the exchange (FLIP, linear, "
+                          "32 cells; uGIMP 7.8 %, 64 cells 3.4 %, 128 cells ppc 4 2.4 %)")
+def test_bars_exit_velocities_are_exchanged_within_2_percent(frictionless_bars):
+    _, left, right, _, _, setup = frictionless_bars
+    v0 = setup.params["v0"]
+    exit_left, exit_right = setup.params["exit_velocities"]
+    assert abs(left[-1] - exit_left) <= 0.02 * v0 and abs(right[-1] - exit_right) <= 0.02 * v0
+
+
+def test_bars_contact_lasts_2L_over_c(frictionless_bars):
+    """Measured 0.2031 against 2L/c = 0.2 (+1.6 %)."""
+    t, _, _, _, force, setup = frictionless_bars
+    duration = setup.params["contact_duration"]
+    active = np.nonzero(np.abs(force) > 1e-3)[0]
+    assert t[active[0]] <= 2 * setup.dt  # the bars touch at t = 0 (FLIP feels it once stress has built up)
+    end = t[active[-1] + 1]
+    assert abs(end / duration - 1) <= 0.05, end
+    # no force once apart (the fields no longer share nodes): the momentum only rounds off
+    assert np.all(np.abs(force[t[1:] > end]) <= 1e-12)
+
+
+def test_single_field_bars_do_not_part():
+    """contact="none": one velocity field glues the bars (a free-free bar of length 2L)."""
+    t, left, right, gap, _, setup = bar_run(scheme="flip", contact="none")
+    h = setup.params["length"] / setup.params["cells_along_bar"]
+    assert setup.sim.term(jm.Contact) is None
+    assert np.all(gap < h)  # the facing ends never part by a cell
+    assert left[-1] > 0 > right[-1]  # measured +-0.0912 at t = 4L/c: no exchange
+
+
+# ------------------------------------------------------------------ slide
+def block_displacement(setup):
+    _, h = setup.run()
+    n = setup.params["n_first"]
+    m = np.asarray(setup.state.mass)[n:]
+    com = np.asarray(h.x)[:, n:, 0] @ m / m.sum()
+    return float(np.asarray(h.time)[-1]), com[-1] - com[0]
+
+
+def frictionless_slide(setup, t):
+    theta = math.radians(setup.params["theta"])
+    return 0.5 * setup.params["gravity"] * math.sin(theta) * t**2
+
+
+@pytest.mark.parametrize("mu", [0.0, 0.2])
+def test_slide_follows_the_exact_displacement(mu):
+    """Measured: mu = 0 -0.00 %, mu = 0.2 +1.1 % at t = 0.315 (the block slides 9.7 and 6.4 cells)."""
+    setup = jm.scene("slide", friction=mu)
+    assert setup.params["slides"] and setup.params["mu"] == mu
+    t, d = block_displacement(setup)
+    exact = float(setup.reference(t))
+    assert exact == pytest.approx(0.5 * 9.8 * (0.5 - mu * math.sqrt(3) / 2) * t**2, rel=1e-12)
+    assert exact > 4 * setup.params["spacing"]
+    assert abs(d / exact - 1) <= 0.02, (d, exact)
+
+
+@pytest.mark.xfail(strict=True, raises=AssertionError,
+                   reason="measured 0.01518 = 6.3 % of the frictionless 0.24279 at t = 0.315 (FLIP, uGIMP, "
+                          "normal='first'): the block creeps at ~0.05 m/s")
+def test_slide_with_mu_07_stays_stuck():
+    setup = jm.scene("slide", friction=0.7)
+    assert not setup.params["slides"] and setup.reference(1.0) == 0.0
+    t, d = block_displacement(setup)
+    assert abs(d) <= 0.01 * frictionless_slide(setup, t), d
+
+
+def test_slide_with_mu_07_stays_stuck_with_pic():
+    """PIC: measured 0.00180 = 0.74 % of the frictionless displacement."""
+    setup = jm.scene("slide", friction=0.7, scheme="pic")
+    t, d = block_displacement(setup)
+    assert abs(d) <= 0.01 * frictionless_slide(setup, t), d
+
+
+def test_slide_glued_without_contact():
+    """contact="none" (one field) and "stick": the block does not slide (reference 0); measured
+    |d| <= 4.1e-4 (it rocks), 0.17 % of the frictionless displacement."""
+    for contact in ("none", "stick"):
+        setup = jm.scene("slide", contact=contact)
+        assert setup.reference(setup.t_end) == 0.0
+        t, d = block_displacement(setup)
+        assert abs(d) <= 0.01 * frictionless_slide(setup, t), (contact, d)
+
+
+# ------------------------------------------------------------------ disks: the energy through a frictionless impact
+def test_disks_frictionless_contact_keeps_the_energy_through_the_impact():
+    """Sulsky's disks (h = 0.05, uGIMP, FLIP, t = 4) with frictionless contact and the scene's
+    separation criterion (1 cell): the total energy stays >= 0.95 of its initial value through the
+    impact (measured minimum 0.959; single-field 0.898; without the criterion 0.896, because the
+    disks then interact from a cell apart) and the disks part (their centres of mass move apart
+    again after the closest approach)."""
+    setup = jm.scene("disks", contact="frictionless")
+    _, hist = setup.run()
+    energy = np.asarray(hist.total_energy) / float(hist.total_energy[0])
+    assert energy.min() >= 0.95, energy.min()
+    n = setup.params["n_first"]
+    x, m = np.asarray(hist.x), np.asarray(setup.state.mass)
+    gap = np.linalg.norm((x[:, n:] * m[n:, None]).sum(1) / m[n:].sum() - (x[:, :n] * m[:n, None]).sum(1) / m[:n].sum(),
+                         axis=1)
+    closest = int(gap.argmin())
+    assert 0 < closest < len(gap) - 1 and gap[-1] > gap[closest] + 0.3, (gap[closest], gap[-1])
+    momentum = np.asarray(hist.momentum)
+    assert np.abs(momentum - momentum[0]).max() <= 1e-12 * float((m * np.linalg.norm(np.asarray(hist.v[0]), axis=1)).sum())
+
+
+def test_separation_criterion_narrows_the_contact_nodes():
+    """Two materials share a node; their nodal centres of mass are 0.5 h apart along n: in contact
+    for separation >= 0.5, not below (jaxmpm/_contact.py, Contact.touching)."""
+    import jax.numpy as jnp
+
+    h = 1.0
+    contact = jm.Contact(law="stick", separation=0.5)
+    m0, m1 = jnp.array([1.0, 1.0]), jnp.array([1.0, 0.0])
+    moments = jnp.array([[0.0], [0.0], [0.5], [0.0]])  # material 0 at 0, material 1 at 0.5 (node 0)
+
+    class Fields:
+        values = {"mass_moment": moments}
+
+    normal = jnp.array([[1.0], [1.0]])
+    assert bool(contact.touching(Fields, m0, m1, normal, h)[0])
+    assert not bool(jm.Contact(law="stick", separation=0.49).touching(Fields, m0, m1, normal, h)[0])
+    with pytest.raises(jm.InputError, match="separation"):
+        jm.Contact(separation=float("nan"))

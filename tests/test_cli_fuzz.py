@@ -49,7 +49,7 @@ def patched():
         yield
 
 
-@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(scene=st.sampled_from(SCENES),
        options=st.dictionaries(st.sampled_from(list(OPTIONS)), st.just(None), max_size=4).flatmap(
            lambda keys: st.fixed_dictionaries({k: st.sampled_from(OPTIONS[k]) for k in keys})))

@@ -229,17 +229,20 @@ def options_of(args) -> dict:
 
 def setup_from_options(options: dict):
     """The scene ``Setup`` of stored command-line options (see :func:`options_of`)."""
-    defaults = {k: None for k in ("scheme", "beta", "alpha_g", "alpha_p", "shape", "update", "cells", "spacing",
-                                  "ppc", "cfl", "dt", "t_end", "frames", "max_steps", "contact", "friction",
-                                  "separation")}
+    defaults = {_attr(option): None for option in SCENE_OPTIONS} | {"max_steps": None}
     return build_setup(argparse.Namespace(**{**defaults, "dtype": "f64", **options}))
+
+
+def _attr(option: str) -> str:
+    """The argparse attribute of a command-line option: --t-end -> t_end."""
+    return option[2:].replace("-", "_")
 
 
 def given_options(args) -> list[str]:
     """The scene options given on the command line (dtype always applies)."""
     given = ["--dtype"]
     for option in SCENE_OPTIONS:
-        if option not in given and getattr(args, option[2:].replace("-", "_")) is not None:
+        if option not in given and getattr(args, _attr(option)) is not None:
             given.append(option)
     return given
 
@@ -272,8 +275,9 @@ def build_setup(args):
         kwargs["shape"] = shape_from_name(args.shape, ppc=ppc) if args.shape == "ugimp" else shape_from_name(args.shape)
     if args.alpha_g is not None or args.alpha_p is not None:
         kwargs["damping"] = jm.Damping(grid=args.alpha_g or 0.0, particle=args.alpha_p or 0.0)
-    for name in ("cells", "spacing", "ppc", "cfl", "dt", "t_end", "frames", "update", "contact", "friction",
-                 "separation"):
+    # the options passed through as they are: those named as their scene keyword (not the parts and dtype,
+    # built above)
+    for name in (k for o, k in SCENE_OPTIONS.items() if _attr(o) == k and k not in ("scheme", "shape", "dtype")):
         if getattr(args, name) is not None:
             kwargs[name] = getattr(args, name)
     return jm.scene(args.scene, **kwargs)

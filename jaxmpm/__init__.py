@@ -28,6 +28,7 @@ from ._state import State, with_fields, with_scheme_state
 from ._step import folds_force, grid_solve, g2p, p2g
 from ._terms import BodyForce, Damping, StressDivergence, Term
 from ._contact import Contact
+from ._transport import Diffusion, Dirichlet, Heat, Neumann, Transport
 from ._transfer import Transfer, gather, scatter
 from .scenes import SCENES, scene
 
@@ -46,4 +47,5 @@ __all__ = [
     "kinetic_energy", "linear_momentum", "load_h5", "resume", "mass_matrix_series", "p2g", "save_h5", "scatter",
     "scene", "stable_dt", "strain_energy", "with_fields", "with_scheme_state",
     "APIC", "TPIC", "with_velocity_gradient", "Wall", "NoStress", "VolumetricFluid",
+    "Diffusion", "Dirichlet", "Heat", "Neumann", "Transport",
 ]

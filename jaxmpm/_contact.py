@@ -37,6 +37,16 @@ the nodes where the materials' nodal centres of mass x^a_i = sum_p S_pi M_p X_p 
 along the normal than s h: (x^1 - x^0) . n <= s h (a displacement check in the spirit of
 NairnMPM's contact by displacements).
 
+More than two materials (``materials=M``): each material a meets *the rest* on a node -- the
+other materials' mass m - m^a and momentum p - p^a as one body (NairnMPM's multimaterial contact)
+-- with the normal n^a from a into the rest ("average": g^a - sum_{b != a} g^b; "first": the
+gradient of the lowest-numbered material present on the node, +- for that material and the
+others).  The law gives Dp^a for every a; where more than two materials meet, sum_a Dp^a need not
+vanish, and the imbalance r = sum_a Dp^a is taken back in proportion to mass, Dp^a -= m^a r / m:
+the same velocity change r / m for every material, so the relative velocities the law set are
+kept and sum_a Dp^a = 0 (000 eq. 4.12).  With two materials the rest is the other material,
+n^1 = -n^0 and Dp^1 = -Dp^0 exactly; the two-material code path is that special case.
+
 Order with velocity boundary conditions on the same node: contact first, on momenta, then the
 conditions on the velocities (NairnMPM's order, 003 §2.1 "Reimpose velocity boundary
 conditions"): a fixed node stays fixed whatever contact asked.
@@ -45,6 +55,7 @@ conditions"): a fixed node stays fixed whatever contact asked.
 from __future__ import annotations
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -79,10 +90,11 @@ def _safe_norm(u):
 
 
 class Contact(Term):
-    """Two materials, each with its own velocity field, coupled by a contact law on the nodes
-    where both have mass (module docstring).  ``law``: "stick", "frictionless" or "coulomb"
-    (with ``friction`` mu >= 0); ``normal``: "average" or "first".  Particles carry their material
-    id in the field ``material`` (0 or 1; ``sim.init(particles, fields={"material": ids})``)."""
+    """``materials`` (default 2) materials, each with its own velocity field, coupled by a contact
+    law on the nodes where two or more have mass (module docstring).  ``law``: "stick",
+    "frictionless" or "coulomb" (with ``friction`` mu >= 0); ``normal``: "average" or "first".
+    Particles carry their material id in the field ``material`` (0..M-1;
+    ``sim.init(particles, fields={"material": ids})``)."""
 
     law: str = eqx.field(static=True)
     normal: str = eqx.field(static=True)
@@ -96,8 +108,8 @@ class Contact(Term):
         check(law in LAWS, f"Contact: law = {law!r}; choose one of {', '.join(LAWS)}")
         check(normal in NORMALS, f"Contact: normal = {normal!r}; choose one of {', '.join(NORMALS)}")
         materials = positive_int("Contact", "materials", materials)
-        check(materials == 2, f"Contact: materials = {materials}; the contact laws couple exactly two materials "
-                              "(each body its own material id 0 or 1)")
+        check(materials >= 2, f"Contact: materials = {materials}; contact needs at least two materials "
+                              "(each body its own material id 0..M-1)")
         self.law = law
         self.normal = normal
         self.materials = materials
@@ -139,20 +151,35 @@ class Contact(Term):
         return jnp.sum((x1 - x0) * normal, axis=-1) <= self.separation * h
 
     # ------------------------------------------------------------------ the contact law
+    def per_material(self, a):
+        """A stacked nodal array (M n, ...) as (M, n, ...): material a's field is [a]."""
+        return a.reshape((self.materials, a.shape[0] // self.materials) + a.shape[1:])
+
     def split(self, a):
-        """(field of material 0, field of material 1) of a stacked nodal array (2n, ...)."""
-        n = a.shape[0] // 2
-        return a[:n], a[n:]
+        """(field of material 0, field of material 1) of a two-material stacked array (2n, ...)."""
+        return tuple(self.per_material(a))
 
     def contact_normal(self, grad_m):
-        """Unit normal from material 0 into material 1 on every node, (n, D)."""
+        """Two materials: the unit normal from material 0 into material 1 on every node, (n, D)."""
         g0, g1 = self.split(grad_m)
         return _safe_unit(g0 if self.normal == "first" else g0 - g1)
+
+    def material_normals(self, grad_m, m):
+        """M materials: the unit normal n^a from material a into the rest on every node, (M, n, D)
+        (module docstring); for two materials (n^0, -n^0) with n^0 = :meth:`contact_normal`."""
+        g = self.per_material(grad_m)
+        if self.normal == "average":
+            return _safe_unit(2.0 * g - jnp.sum(g, axis=0))  # g^a - sum_{b != a} g^b
+        first = jnp.argmax(self.per_material(m) > 0, axis=0)  # the lowest-numbered material present
+        g_first = jnp.take_along_axis(g, first[None, :, None], axis=0)[0]
+        own = first[None, :] == jnp.arange(self.materials)[:, None]
+        return jnp.where(own[..., None], 1.0, -1.0) * _safe_unit(g_first)[None]
 
     def momentum_change(self, m0, m1, p0, p1, normal, touching=None):
         """Dp of material 0 on every node (Dp of material 1 is -Dp): the law applied to the
         stick change (m0 p1 - m1 p0)/m on contact nodes (003 eqs. 3.9, 3.12); ``touching``
-        (the separation criterion) narrows the contact nodes."""
+        (the separation criterion) narrows the contact nodes.  With more materials, material 1
+        is the rest (module docstring)."""
         m = m0 + m1
         contact = (m0 > 0) & (m1 > 0)
         if touching is not None:
@@ -173,12 +200,32 @@ class Contact(Term):
         return jnp.where(approach[:, None], jnp.where(slides[:, None], sliding, stick), 0.0)
 
     def apply(self, p, m, normal, touching=None):
-        """Stacked momenta (2n, D) after contact, and the change."""
-        m0, m1 = self.split(m)
-        p0, p1 = self.split(p)
-        dp = self.momentum_change(m0, m1, p0, p1, normal, touching)
-        change = jnp.concatenate([dp, -dp])  # 000 eq. (4.12): sum over materials is zero
+        """Stacked momenta (M n, D) after contact, and the change.  ``normal``: (n, D) from
+        :meth:`contact_normal` for two materials, else (M, n, D) from :meth:`material_normals`;
+        ``touching`` likewise (n,) or (M, n)."""
+        if self.materials == 2:
+            m0, m1 = self.split(m)
+            p0, p1 = self.split(p)
+            dp = self.momentum_change(m0, m1, p0, p1, normal, touching)
+            change = jnp.concatenate([dp, -dp])  # 000 eq. (4.12): sum over materials is zero
+            return p + change, change
+        ma, pa = self.per_material(m), self.per_material(p)
+        m_all, p_all = jnp.sum(ma, axis=0), jnp.sum(pa, axis=0)
+        law = jax.vmap(lambda mass, mom, nrm, near: self.momentum_change(mass, m_all - mass, mom, p_all - mom, nrm, near),
+                       in_axes=(0, 0, 0, None if touching is None else 0))
+        dp = law(ma, pa, normal, touching)  # each material against the rest
+        dp = dp - safe_divide(ma[..., None] * jnp.sum(dp, axis=0), m_all)  # sum_a Dp^a = 0 (000 eq. 4.12)
+        change = dp.reshape(p.shape)
         return p + change, change
+
+    def touching_rest(self, fields, m, normals, h):
+        """The separation criterion for M materials, (M, n): material a against the rest's nodal
+        centre of mass, (x^rest - x^a) . n^a <= separation h."""
+        ma, q = self.per_material(m), self.per_material(fields.values["mass_moment"])
+        m_all, q_all = jnp.sum(ma, axis=0), jnp.sum(q, axis=0)
+        x_own = safe_divide(q, ma)
+        x_rest = safe_divide(q_all - q, m_all - ma)
+        return jnp.sum((x_rest - x_own) * normals, axis=-1) <= self.separation * h
 
     def grid_action(self, sim, fields, solution, dt):
         """The grid solution with contact: lumped contact on p and on p + f dt, then the velocity
@@ -186,8 +233,12 @@ class Contact(Term):
         velocity, which XPIC/FMPM need (003 eqs. 3.18, 3.22)."""
         m = fields.transfer.nodal_mass
         constraint = sim.constraint(m.dtype)  # on every material's field
-        normal = self.contact_normal(fields.values["mass_gradient"])
-        touching = None if self.separation is None else self.touching(fields, *self.split(m), normal, sim.grid.h)
+        if self.materials == 2:
+            normal = self.contact_normal(fields.values["mass_gradient"])
+            touching = None if self.separation is None else self.touching(fields, *self.split(m), normal, sim.grid.h)
+        else:
+            normal = self.material_normals(fields.values["mass_gradient"], m)
+            touching = None if self.separation is None else self.touching_rest(fields, m, normal, sim.grid.h)
         p, dp = self.apply(fields.momentum, m, normal, touching)
         p_plus, _ = self.apply(p + fields.force * dt, m, normal, touching)  # Dp^a+ = f^aC dt
         safe_dt = jnp.where(dt > 0, dt, 1.0)
@@ -210,6 +261,6 @@ class Contact(Term):
         return eqx.tree_at(lambda s: s.fields, new, {**new.fields, "contact_force": force})
 
 
-register_term("contact", Contact, doc="two materials with their own velocity fields and a contact law (003 ch. 3)",
+register_term("contact", Contact, doc="materials with their own velocity fields and a contact law (003 ch. 3)",
               parameters=[Parameter("friction", lambda t: t.friction, "Coulomb friction coefficient mu",
                                     "positive", valid="non-negative")])

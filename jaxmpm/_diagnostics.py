@@ -12,9 +12,11 @@ def kinetic_energy(state):
     return 0.5 * jnp.sum(state.mass * jnp.sum(state.v**2, axis=-1))
 
 
-def strain_energy(state, material):
-    """sum_p V0_p W(F_p), W the material's stored-energy density (of F and the material state)."""
-    return jnp.sum(state.volume0 * material.stored_energy_density(state.F, state.material_state))
+def strain_energy(state, material, F=None):
+    """sum_p V0_p W(F_p), W the material's stored-energy density (of F and the material state);
+    ``F`` the elastic part when a term imposes a stretch (``Simulation.elastic_deformation``)."""
+    F = state.F if F is None else F
+    return jnp.sum(state.volume0 * material.stored_energy_density(F, state.material_state))
 
 
 def linear_momentum(state):

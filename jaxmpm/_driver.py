@@ -24,14 +24,14 @@ CAUSES = {
 
 
 class StableTimeStepWarning(UserWarning):
-    """dt exceeds the CFL limit h / max(c + |V|)."""
+    """dt exceeds the CFL limit h / max(c + |V|) or a term's limit (conduction, diffusion)."""
 
 
 class History(eqx.Module):
     """Saved frames (leading axis T): time, particle x/v (None if not saved), energies, momenta,
     the per-particle fields the terms declare (``fields``, empty if particles are not saved) and,
     in multimaterial mode, per-material sums (``by_material``: kinetic, strain, momentum,
-    contact_force)."""
+    contact_force), and the terms' totals (``totals``: thermal energy, solute)."""
 
     time: jnp.ndarray
     x: jnp.ndarray | None
@@ -44,6 +44,8 @@ class History(eqx.Module):
     fields: dict = eqx.field(default_factory=dict)  # saved per-particle fields of the terms, (T, N, ...)
     # multimaterial mode: per-material kinetic, strain (T, M), momentum and contact force (T, M, D)
     by_material: dict = eqx.field(default_factory=dict)
+    # the terms' totals (T,): thermal_energy (jm.Heat), solute (jm.Diffusion)
+    totals: dict = eqx.field(default_factory=dict)
 
     @property
     def total_energy(self):
@@ -174,9 +176,12 @@ def run(
     if not traced:
         dtc = float(np.asarray(dt))
         check(math.isfinite(dtc) and dtc > 0, f"run: dt = {dtc} must be a positive number")
-        limit = float(sim.stable_dt(state))
+        limits = {name: float(value) for name, value in sim.time_step_limits(state).items()}
+        name = min(limits, key=limits.get)
+        limit = limits[name]
         if dtc > limit:
-            warn(f"dt = {dtc:.6g} exceeds the stable limit {limit:.6g} (= h / max(c + |V|)); "
+            what = "h / max(c + |V|)" if name == "CFL" else f"the {name} term's limit h^2 / (2 D k / (rho C_p))"
+            warn(f"dt = {dtc:.6g} exceeds the stable limit {limit:.6g} (= {what}); "
                  f"use dt <= {0.5 * limit:.6g} (CFL 0.5) to stay stable", StableTimeStepWarning)
         first = int(state.step) if start_step is None else int(start_step)
         require_steps(first + steps, "shorten t_end, use a larger dt, or split the run")

@@ -7,6 +7,7 @@
 /particles/<name> (T,N,...)   every saved per-particle field a physics term declares
 /particles/material (N,)      multimaterial mode: the material id of each particle (int32)
 /materials/<name> (T,M[,D])   multimaterial mode: kinetic, strain, momentum, contact_force per material
+/totals/<name> (T,)           the terms' totals: thermal_energy (jm.Heat), solute (jm.Diffusion)
 /state/<leaf>                 the state a chunked run reached (H5Writer.write_state; jaxmpm.resume)
 attributes on /: scene, scheme, order, beta, alpha_g, alpha_p, shape, update, dt, cells, ppc,
                  dtype, jaxmpm version, scene parameters (JSON), and every other float
@@ -124,6 +125,7 @@ class H5Writer:
         series = [(getattr(history, field), name) for field, name in _SERIES.items()]
         series += [(value, f"particles/{field}") for field, value in history.fields.items()]
         series += [(value, f"materials/{name}") for name, value in history.by_material.items()]
+        series += [(value, f"totals/{name}") for name, value in history.totals.items()]
         for value, name in series:
             if value is None:
                 continue

@@ -251,8 +251,31 @@ class Simulation(eqx.Module):
             self)
 
     def stable_dt(self, state: State, cfl: float = 1.0):
-        """CFL time step h / max_p(c + |V_p|) times ``cfl``."""
-        return diag.stable_dt(self.grid, self.in_precision(state.x.dtype).material, state.v, cfl)
+        """The stable time step times ``cfl``: the smallest of the CFL limit h / max_p(c + |V_p|) and
+        the terms' limits (conduction, diffusion: :meth:`time_step_limits`)."""
+        limits = list(self.time_step_limits(state, cfl).values())
+        return limits[0] if len(limits) == 1 else jnp.min(jnp.stack(limits))
+
+    def time_step_limits(self, state: State, cfl: float = 1.0) -> dict:
+        """{name: largest stable dt, times ``cfl``}: "CFL" (h / max_p(c + |V_p|)) and one per term
+        that limits it (e.g. "heat": h^2 / (2 D a), jaxmpm._transport)."""
+        model = self.in_precision(state.x.dtype)
+        limits = {"CFL": diag.stable_dt(self.grid, model.material, state.v, cfl)}
+        for term in model.terms:
+            limit = term.time_step_limit(model, state)
+            if limit is not None:
+                limits[type(term).__name__.lower()] = cfl * limit
+        return limits
+
+    def elastic_deformation(self, state: State):
+        """The deformation gradient the material sees: F, divided by the isotropic stretch of any
+        term that imposes one (thermal / moisture expansion, jaxmpm._transport)."""
+        F = state.F
+        for term in self.terms:
+            stretch = term.stretch(state)
+            if stretch is not None:
+                F = F / stretch[:, None, None]
+        return F
 
     def instability(self, state: State):
         """(cause code, particle index) for the first problem found in ``state``; code 0 = fine."""
@@ -270,7 +293,7 @@ class Simulation(eqx.Module):
     def diagnostics(self, state: State) -> dict:
         return dict(
             kinetic=diag.kinetic_energy(state),
-            strain=diag.strain_energy(state, self.material),
+            strain=diag.strain_energy(state, self.material, self.elastic_deformation(state)),
             dissipated=state.dissipated,
             momentum=diag.linear_momentum(state),
             angular=self.scheme.angular_momentum(state),
@@ -288,6 +311,7 @@ class Simulation(eqx.Module):
             fields={k: v for k, v in state.fields.items() if k in saved} if save_particles else {},
             by_material={} if materials == 1 else
             diag.by_material(state, self.material, state.fields["material"], materials),
+            totals={name: value for term in self.terms for name, value in term.totals(self, state).items()},
             **self.diagnostics(state),
         )
 

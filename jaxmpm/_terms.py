@@ -10,9 +10,13 @@ A term contributes up to three things to the step of 003 §2.1 (see ``jaxmpm._st
   state after the scheme's update (default: none);
 
 and it may declare per-particle fields (``particle_fields()``, :class:`jaxmpm.ParticleField`) that
-the state then carries and runs save.  The terms of today's single-field engine:
+the state then carries and runs save.  Three hooks couple a term to the rest of the model:
+``stretch(state)`` (an isotropic stretch the material sees removed from F: thermal expansion),
+``time_step_limit(sim, state)`` (read by ``Simulation.stable_dt``) and ``totals(sim, state)``
+(sums saved with every frame, ``History.totals``).  The terms of today's single-field engine:
 
-* :class:`StressDivergence`  f_i += -sum_p V0_p tau_p . G_pi          (001 eq. 20, 003 eq. 2.10)
+* :class:`StressDivergence`  f_i += -sum_p V0_p tau_p . G_pi          (001 eq. 20, 003 eq. 2.10);
+                             ``xpic=m``: of the XPIC(m)-smoothed stress (000 §3.7)
 * :class:`BodyForce`         f_i += sum_p S_pi M_p b_p, b = g + b(x, t) (001 eq. 20)
 * :class:`Damping`           A_damp = alpha_g S v + alpha_p V^n        (000 eq. 2.77, 001 §5.1.2);
                              the scheme places it in its update (000 eq. 3.28, 003 eq. 2.17)
@@ -56,14 +60,56 @@ class Term(eqx.Module):
     def check_fields(self, fields: dict) -> None:
         """Raise :class:`jaxmpm.InputError` when an initial field value is invalid (``sim.init``)."""
 
+    def stretch(self, state):
+        """An isotropic stretch (N,) the term imposes on the particles (thermal or moisture
+        expansion), or None: the material then sees F_e = F / stretch."""
+        return None
+
+    def time_step_limit(self, sim, state):
+        """The largest stable dt this term allows (e.g. conduction), or None: no limit."""
+        return None
+
+    def totals(self, sim, state) -> dict:
+        """{name: scalar} sums over the particles saved with every frame (``History.totals``)."""
+        return {}
+
 
 class StressDivergence(Term):
     """Internal force f_i = -sum_p V0_p tau_p . G_pi (001 eq. 20, 003 eq. 2.10), tau the
-    material's Kirchhoff stress."""
+    material's Kirchhoff stress.
+
+    ``xpic=m`` (default 0: off) forms the force from the XPIC(m)-smoothed stress of 000 §3.7,
+    tau~ = m S (sigma - sigma*) = S sigma(m), sigma = S+ tau the mass-weighted nodal stress and
+    sigma(m) the XPIC series sum_k (-1)^(k+1) C(m,k) (S+S)^(k-1) sigma (000 eqs. 3.67-3.75; the
+    seed's three nodal tensors prev/next/tilde are the recursion's term, next term and sum).  It
+    removes the stress's null-space part (000 eq. 3.64) before the force extrapolation (the seed's
+    eq. 3.76 variant: the particles keep their own stress, which a total-strain law recomputes
+    from F every step anyway).  Cost: one more scatter (D^2 columns), m - 1 S+S and one gather."""
+
+    xpic: int = eqx.field(static=True, default=0)
+
+    def __init__(self, xpic: int = 0):
+        check(isinstance(xpic, int) and not isinstance(xpic, bool) and xpic >= 0,
+              f"StressDivergence: xpic = {xpic!r}; give the XPIC order m >= 1 of the stress smoothing, or 0 (off)")
+        self.xpic = xpic
 
     def p2g_columns(self, sim, state, stencil):
-        tau = sim.material.particle_stress(state.F, state.material_state)
+        tau = sim.material.particle_stress(sim.elastic_deformation(state), state.material_state)
+        if self.xpic:
+            tau = xpic_stress(stencil, state.mass, tau, self.xpic, sim.field_nodes)
         return {"force": stress_divergence_contributions(stencil, state.volume0[:, None, None] * tau)}
+
+
+def xpic_stress(stencil, mass, tau, order: int, num_nodes: int):
+    """tau~_p = (S sigma(m))_p, the XPIC(m)-smoothed particle stress (000 eqs. 3.67-3.75)."""
+    from ._schemes import _series
+    from ._transfer import Transfer
+
+    transfer = Transfer.build(stencil, mass, num_nodes)
+    n, d = tau.shape[0], tau.shape[-1]
+    sigma = transfer.s_plus(tau.reshape(n, d * d))  # 000 eq. (3.70)/(3.72): sigma_1 = S+ Sigma
+    smoothed = _series(sigma, order, transfer, lambda w: w, "binomial")  # 000 eqs. (3.73)-(3.74)
+    return transfer.gather(smoothed).reshape(n, d, d)  # 000 eq. (3.75)
 
 
 class BodyForce(Term):

@@ -6,7 +6,7 @@ With S_pi the shape function of node i at particle p (000 ch. 1):
 * ``scatter``       (S^T q)_i = sum_p S_pi q_p                      particle -> grid
 * ``s_plus``        (S+ U)_i  = sum_p S_pi M_p U_p / m_i            000 eq. (1.10)
 * ``s_plus_s``      S+ S u    = s_plus(gather(u))                   the XPIC / FMPM kernel
-* ``velocity_gradient``  (grad v)_p = sum_i v_i (x) G_pi
+* ``velocity_gradient``  (grad v)_p = sum_i v_i (x) G_pi;  ``gradient`` of a scalar, sum_i u_i G_pi
 * ``divergence``         f_i = - sum_p V0_p tau_p . G_pi             (003 eq. 2.10)
 
 Every scheme uses these; none writes its own scatter.
@@ -124,6 +124,13 @@ def velocity_gradient(stencil: Stencil, v):
     return to_particle_major(planar)
 
 
+def scalar_gradient(stencil: Stencil, u):
+    """(grad u)_p[b] = sum_i u_i G_pi[b] of a nodal scalar ``u`` (n,) (001 eq. 137), shape (N, D)."""
+    values = nodal_values(stencil, u)  # (K, N)
+    g = stencil.gradient
+    return to_particle_major(jnp.stack([sum_over_stencil(values * g[b]) for b in range(g.shape[0])]))
+
+
 def stress_divergence_contributions(stencil: Stencil, weighted_stress):
     """Per-slot internal force -(V0_p tau_p) . G_pi (001 eq. 20, 003 eq. 2.10), planar (D, K, N)."""
     g = stencil.gradient
@@ -191,6 +198,10 @@ class Transfer(eqx.Module):
 
     def velocity_gradient(self, v):
         return velocity_gradient(self.stencil, v)
+
+    def gradient(self, u):
+        """(grad u)_p = sum_i u_i G_pi of a nodal scalar, (N, D)."""
+        return scalar_gradient(self.stencil, u)
 
     def divergence(self, weighted_stress, particle_force=None):
         return divergence(self.stencil, weighted_stress, self.num_nodes, particle_force)

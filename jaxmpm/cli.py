@@ -35,6 +35,9 @@ SCENE_OPTIONS = {
     "--contact": "contact",
     "--friction": "friction",
     "--separation": "separation",
+    "--conductivity": "conductivity",
+    "--diffusivity": "diffusivity",
+    "--transport-xpic": "transport",
 }
 
 EXIT_ERROR = 2
@@ -126,6 +129,12 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--separation", type=float, default=None, metavar="S",
                      help="contact separation criterion in cells: the bodies touch where their nodal centres of "
                           "mass are closer than S h along the normal " + _defaults("separation"))
+    run.add_argument("--conductivity", type=float, default=None, metavar="K",
+                     help="thermal conductivity k >= 0 of a transport scene " + _defaults("conductivity"))
+    run.add_argument("--diffusivity", type=float, default=None, metavar="D",
+                     help="diffusivity D >= 0 of a diffusion scene " + _defaults("diffusivity"))
+    run.add_argument("--transport-xpic", type=int, default=None, metavar="M",
+                     help="update the transported field by XPIC(M) (000 §3.6) instead of FLIP; 1 is PIC")
     run.add_argument("--dtype", default="f64", choices=["f32", "f64"], help="float precision (default f64)")
     run.add_argument("--max-steps", type=int, default=None, metavar="N",
                      help="refuse a run of more than N steps (default: the step counter's limit 2^31 - 1)")
@@ -163,7 +172,8 @@ def list_scenes() -> int:
     for name, (_, description) in SCENES.items():
         print(f"{name:<{width}}  {description}")
         options = [f"{option} {_show(defaults[name][keyword])}" for option, keyword in SCENE_OPTIONS.items()
-                   if keyword in defaults[name] and option not in ("--beta", "--alpha-g", "--alpha-p", "--dtype")]
+                   if keyword in defaults[name]
+                   and option not in ("--beta", "--alpha-g", "--alpha-p", "--dtype", "--transport-xpic")]
         print(f"{'':<{width}}    " + ", ".join(options))
     return 0
 
@@ -275,12 +285,19 @@ def build_setup(args):
         kwargs["shape"] = shape_from_name(args.shape, ppc=ppc) if args.shape == "ugimp" else shape_from_name(args.shape)
     if args.alpha_g is not None or args.alpha_p is not None:
         kwargs["damping"] = jm.Damping(grid=args.alpha_g or 0.0, particle=args.alpha_p or 0.0)
+    if args.transport_xpic is not None:
+        kwargs["transport"] = f"xpic:{args.transport_xpic}"  # checked by the scene (jaxmpm/_transport.py)
     # the options passed through as they are: those named as their scene keyword (not the parts and dtype,
     # built above)
     for name in (k for o, k in SCENE_OPTIONS.items() if _attr(o) == k and k not in ("scheme", "shape", "dtype")):
         if getattr(args, name) is not None:
             kwargs[name] = getattr(args, name)
     return jm.scene(args.scene, **kwargs)
+
+
+def totals(sim, state) -> dict:
+    """The model's terms' totals of a state (thermal energy, solute), as floats."""
+    return {name: float(value) for term in sim.terms for name, value in term.totals(sim, state).items()}
 
 
 def energy_and_momentum(sim, state):
@@ -362,7 +379,9 @@ def run_setup(setup, args, options: dict, resume: bool = False) -> int:
         ("wall time", f"{wall:.3f} s (incl. compilation)"),
         ("particle-steps/s", f"{n * (int(final.step) - first_step) / wall:.4g}"
                              + (f" ({int(final.step) - first_step} steps resumed)" if resume else "")),
-        ("energy K+U", f"initial {e0:.6g}, final {e1:.6g}, ratio {ratio:.6f}"),
+        ("energy K+U", f"initial {e0:.6g}, final {e1:.6g}" + ("" if e0 == 0 else f", ratio {ratio:.6f}")),
+        *[(name.replace("_", " "), f"initial {value:.6g}, final {totals(sim, final)[name]:.6g}")
+          for name, value in totals(sim, state).items()],
         ("dissipated", f"{float(final.dissipated):.6g}"),
         ("|p - p0|", f"{float(np.linalg.norm(p1 - p0)):.3e} (change of linear momentum)"),
         ("output", ", ".join(files)),

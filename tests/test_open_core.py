@@ -181,7 +181,7 @@ def test_new_material_with_state_yields():
 @pytest.mark.parametrize("name", ["bar", "spin", "rings"])
 def test_backend_policies_give_the_same_numbers(name):
     options = dict(bar=dict(t_end=1.0, frames=4), spin=dict(scheme=jm.APIC(), t_end=0.2, frames=2),
-                   rings=dict(spacing=0.1, t_end=0.05, frames=2))[name]
+                   rings=dict(spacing=0.2, t_end=0.1, frames=2))[name]  # rings: 228 steps of 4392 particles
     setup = jm.scene(name, **options)
     results = {}
     for backend in ("cpu", "gpu"):

@@ -38,6 +38,7 @@ BLOCKS = {
     "Contact (multimaterial mode)": Block([('t_end=0.5, frames=10)', 't_end=0.01, frames=2)', 1),
                                            ("final, hist = sim.run(state, 1e-3, 100, 10)",
                                             "final, hist = sim.run(state, 1e-3, 10, 5)", 1)]),
+    "Transport (heat conduction and diffusion)": Block([("sim.run(state, dt, 800, 80)", "sim.run(state, dt, 8, 4)", 1)]),
     "Command line": Block([('jm.scene("bar", t_end=4.0, frames=20)', 'jm.scene("bar", t_end=0.5, frames=2)', 1)]),
     "Extending jaxmpm": Block(
         [('scheme="newpic:0.3")', 'scheme="newpic:0.3", t_end=0.5, frames=2); setup.run()', 1)],  # run the new scheme

@@ -128,13 +128,16 @@ def read_now(fd) -> str:
         return ""
 
 
-def test_ctrl_c_then_jaxmpm_resume_equals_the_uninterrupted_run(tmp_path):
+def test_ctrl_c_then_jaxmpm_resume_equals_the_uninterrupted_run(tmp_path, request):
     """The CLI in a subprocess: SIGINT once the progress bar shows steps done, exit status 130
     with one line naming the file and `jaxmpm resume`; `jaxmpm resume` finishes it; every dataset
     (frames, energies, the final state) equals an uninterrupted run's, bit for bit."""
     # PIC damps the bar to rest (stable for ever): 1,024,000 steps of 32 particles, about 5 s here
     options = ["run", "bar", "--scheme", "pic", "--t-end", "16000", "--frames", "40"]
     cut, whole = tmp_path / "cut.h5", tmp_path / "whole.h5"
+    # the uninterrupted run is independent of the other two processes: it runs alongside them (suite time)
+    uninterrupted = cli(*options, "--out", str(whole), "--no-progress")
+    request.addfinalizer(uninterrupted.kill)  # a no-op once it has finished
     proc = cli(*options, "--out", str(cut))
     seen, deadline = "", time.time() + 120
     os.set_blocking(proc.stderr.fileno(), False)
@@ -163,7 +166,6 @@ def test_ctrl_c_then_jaxmpm_resume_equals_the_uninterrupted_run(tmp_path):
     out, err = resumed.communicate(timeout=300)
     assert resumed.returncode == 0, err
     assert b"steps resumed" in out
-    uninterrupted = cli(*options, "--out", str(whole), "--no-progress")
     out, err = uninterrupted.communicate(timeout=300)
     assert uninterrupted.returncode == 0, err
     assert_same_files(whole, cut)

@@ -23,6 +23,10 @@ SMALL = {
     "vortex": dict(spacing=0.25, t_end=0.02),
     "bars_impact": dict(cells=4, t_end=0.05),
     "slide": dict(spacing=0.05, t_end=0.005),
+    "heat1d": dict(cells=4, t_end=0.01),
+    "heat_step": dict(cells=4, t_end=0.01),
+    "diffusion2d": dict(cells=4, t_end=0.01),
+    "thermal_bar": dict(cells=4, t_end=0.01),
 }
 
 

@@ -15,6 +15,7 @@ from .mpm88 import mpm88
 from .rings import rings
 from .slide import slide
 from .spin import spin
+from .transport import diffusion2d, heat1d, heat_step, thermal_bar
 from .vortex import vortex
 
 SCENES = {
@@ -28,6 +29,10 @@ SCENES = {
     "bars_impact": (bars_impact, "two 1D elastic bars meet at +-v0: contact lasts 2L/c, velocities exchanged"),
     "slide": (slide, "elastic block slides on a slab under gravity tilted by theta: "
                      "x = g (sin theta - mu cos theta) t^2 / 2"),
+    "heat1d": (heat1d, "rod with held ends, T0 = sin(pi x/L): T = exp(-a pi^2 t/L^2) sin(pi x/L)"),
+    "heat_step": (heat_step, "rod whose end is held hot from t = 0: T = T_s erfc(x / (2 sqrt(a t)))"),
+    "diffusion2d": (diffusion2d, "unit square, boundary held at mu = 1: double sine series (001 §9)"),
+    "thermal_bar": (thermal_bar, "free bar heated by dT expands by alpha_T dT L"),
 }
 
 

@@ -57,6 +57,10 @@ PART_DEFAULTS = {
     "vortex": {"scheme": "flip", "shape": "quadratic"},
     "bars_impact": {"scheme": "flip", "shape": "linear"},
     "slide": {"scheme": "flip", "shape": "ugimp"},
+    "heat1d": {"scheme": "flip", "shape": "linear"},
+    "heat_step": {"scheme": "flip", "shape": "linear"},
+    "diffusion2d": {"scheme": "flip", "shape": "linear"},
+    "thermal_bar": {"scheme": "flip", "shape": "ugimp"},
 }
 
 #: the ``contact`` option of the multimaterial scenes: "none" keeps one velocity field (the model of a

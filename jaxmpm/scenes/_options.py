@@ -70,6 +70,13 @@ def _normal(scene, name, value):
     return value
 
 
+def _transport(scene, name, value):
+    from .._transport import _parse_update
+
+    _parse_update(scene, value if isinstance(value, str) else repr(value), name)
+    return value
+
+
 # option name -> check(scene, name, value) returning the value to pass on (a count as an int)
 OPTION_CHECKS = {
     # counts
@@ -86,6 +93,7 @@ OPTION_CHECKS = {
     "inner": _range(NON_NEGATIVE),
     "outer": _range(POSITIVE),
     "pad": _range(NON_NEGATIVE, "room around the body, in length units"),
+    "ramp": _range(NON_NEGATIVE, "the time over which the load rises from 0 (0: at once)"),
     # material constants
     "E": _range(POSITIVE), "density": _range(POSITIVE), "nu": _range(POISSON, POISSON.fix),
     # motions and loads (any sign)
@@ -99,6 +107,13 @@ OPTION_CHECKS = {
     "separation": lambda scene, name, value: None if value is None else _range(
         FINITE, "the contact separation criterion in cells, e.g. 1.0 (None: off)")(scene, name, value),
     "normal": _normal,
+    # transport (jaxmpm/_transport.py)
+    "conductivity": _range(NON_NEGATIVE, "the thermal conductivity k >= 0"),
+    "heat_capacity": _range(POSITIVE, "the heat capacity per unit mass"),
+    "diffusivity": _range(NON_NEGATIVE, "the diffusivity D >= 0"),
+    "expansion": _range(FINITE, "the thermal expansion coefficient alpha_T"),
+    "heating": _range(FINITE, "the temperature rise dT"),
+    "transport": _transport,
 }
 
 

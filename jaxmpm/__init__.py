@@ -15,7 +15,7 @@ from ._errors import InputError, InstabilityError
 from ._fields import GridFields, GridSolution, ParticleField
 from ._grid import Grid
 from ._io import H5Writer, load_h5, save_h5
-from ._materials import LinearElastic, Material, NeoHookean, NoStress, VolumetricFluid
+from ._materials import HypoElastic, LinearElastic, Material, NeoHookean, NoStress, VolumetricFluid
 from ._particles import Ball, Box, Disk, Particles, Region, Ring, fill
 from ._scheme_base import ParticleUpdate, Scheme
 from ._schemes import FLIP, FMPM, PIC, XPIC, mass_matrix_series
@@ -28,6 +28,8 @@ from ._state import State, with_fields, with_scheme_state
 from ._step import folds_force, grid_solve, g2p, p2g
 from ._terms import BodyForce, Damping, StressDivergence, Term
 from ._contact import Contact
+from ._loads import ParticleForce, Traction
+from ._reaction import Reaction
 from ._transport import Diffusion, Dirichlet, Heat, Neumann, Transport
 from ._transfer import Transfer, gather, scatter
 from .scenes import SCENES, scene
@@ -47,5 +49,5 @@ __all__ = [
     "kinetic_energy", "linear_momentum", "load_h5", "resume", "mass_matrix_series", "p2g", "save_h5", "scatter",
     "scene", "stable_dt", "strain_energy", "with_fields", "with_scheme_state",
     "APIC", "TPIC", "with_velocity_gradient", "Wall", "NoStress", "VolumetricFluid",
-    "Diffusion", "Dirichlet", "Heat", "Neumann", "Transport",
+    "Diffusion", "Dirichlet", "Heat", "Neumann", "Transport", "HypoElastic", "ParticleForce", "Traction", "Reaction",
 ]

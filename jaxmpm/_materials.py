@@ -2,7 +2,9 @@
 gradient F, so the internal force is f_i = -sum_p V0_p tau_p . G_pi (001 eq. 20, 003 eq. 2.10),
 and a stored-energy density W(F) per reference volume for the strain-energy diagnostic.
 
-Dimensions: 1D is uniaxial stress for :class:`LinearElastic`, 2D is plane strain, 3D is full.
+Dimensions: 1D is uniaxial stress for :class:`LinearElastic` and :class:`HypoElastic`, 2D is plane
+strain, 3D is full.  :class:`HypoElastic` keeps its Cauchy stress as per-particle state (an
+objective rate update); the others are functions of F.
 """
 
 from __future__ import annotations
@@ -60,7 +62,7 @@ class Material(eqx.Module):
 
     def wave_speed(self, dim: int):
         """Dilatational wave speed: sqrt(E/rho) in 1D, sqrt((lambda + 2 mu)/rho) otherwise."""
-        if dim == 1 and isinstance(self, LinearElastic):
+        if dim == 1 and isinstance(self, (LinearElastic, HypoElastic)):
             return jnp.sqrt(self.E / self.density)
         lam, mu = self.lame()
         return jnp.sqrt((lam + 2.0 * mu) / self.density)
@@ -93,6 +95,67 @@ class LinearElastic(Material):
     def energy_density(self, F):
         eps = self.strain(F)
         return 0.5 * jnp.sum(self.kirchhoff_stress(F) * eps, axis=(-1, -2))
+
+
+class HypoElastic(Material):
+    """Hypoelastic (rate form) linear elasticity with an objective update; the Cauchy stress sigma
+    is the particle's state and tau = J sigma (stress on the current volume).
+
+    Each step, from the increment dF = F F_prev^-1 (F_prev, the previous F, is state too):
+
+        d_eps = (dF^T dF - I) / 2                              the strain increment
+        Q     = (I - W/2)^-1 (I + W/2),  W = skew(dF - I)      the increment's rotation (Hughes-Winget)
+        sigma <- Q sigma Q^T + lambda tr(d_eps) I + 2 mu d_eps  (1D: + E d_eps)
+
+    d_eps vanishes for a rotation increment, so a rigidly rotating body builds no stress: exactly
+    with ``Simulation(kinematics="exponential")`` (dF = exp(W dt) is a rotation), to O(dt^2) per
+    step with the default dF = I + grad v dt.  :class:`LinearElastic`'s total strain sym F - I is
+    not objective: a rotation by theta gives eps = (cos theta - 1) I.  For small strains the two
+    laws agree to O(eps^2).  The thermal stretch of a transport term (jaxmpm._transport) is not
+    applied to this law."""
+
+    E: jnp.ndarray
+    nu: jnp.ndarray
+
+    def __init__(self, E, nu=0.0, density=1.0):
+        self.E = POSITIVE.leaf("HypoElastic", "E", E)
+        self.nu = POISSON.leaf("HypoElastic", "nu", nu)
+        self.density = POSITIVE.leaf("HypoElastic", "density", density)
+
+    def initial_state(self, particles):
+        n, d = jnp.shape(particles.x)
+        dtype = jnp.result_type(float)
+        return {"stress": jnp.zeros((n, d, d), dtype), "F": jnp.broadcast_to(jnp.eye(d, dtype=dtype), (n, d, d))}
+
+    def particle_stress(self, F, material_state):
+        return jnp.linalg.det(F)[..., None, None] * material_state["stress"]  # tau = J sigma
+
+    def _stiffness(self, strain):
+        """C : strain (1D: E strain, uniaxial stress)."""
+        if strain.shape[-1] == 1:
+            return self.E * strain
+        lam, mu = self.lame()
+        return lam * _trace(strain)[..., None, None] * _identity(strain) + 2.0 * mu * strain
+
+    def update_state(self, F, material_state, dt):
+        dF = F @ jnp.linalg.inv(material_state["F"])
+        eye = _identity(F)
+        d_eps = 0.5 * (jnp.swapaxes(dF, -1, -2) @ dF - eye)
+        W = 0.5 * ((dF - eye) - jnp.swapaxes(dF - eye, -1, -2))
+        Q = jnp.linalg.solve(eye - 0.5 * W, eye + 0.5 * W)  # orthogonal for skew W
+        sigma = Q @ material_state["stress"] @ jnp.swapaxes(Q, -1, -2) + self._stiffness(d_eps)
+        return {"stress": sigma, "F": F}
+
+    def stored_energy_density(self, F, material_state):
+        """J sigma : C^-1 sigma / 2, the complementary energy per reference volume."""
+        sigma = material_state["stress"]
+        d = sigma.shape[-1]
+        if d == 1:
+            strain = sigma / self.E
+        else:
+            lam, mu = self.lame()
+            strain = (sigma - lam / (d * lam + 2.0 * mu) * _trace(sigma)[..., None, None] * _identity(sigma)) / (2 * mu)
+        return 0.5 * jnp.linalg.det(F) * jnp.sum(sigma * strain, axis=(-1, -2))
 
 
 class NeoHookean(Material):
@@ -182,6 +245,7 @@ NU = Parameter("nu", lambda m: m.nu, "Poisson's ratio", (-1.0, 0.5), valid=POISS
 DENSITY = Parameter("density", lambda m: m.density, "reference density (re-run sim.init for particle masses)",
                     "positive", valid=POSITIVE)
 register_material("linear", LinearElastic, parameters=[E, NU, DENSITY])
+register_material("hypoelastic", HypoElastic, parameters=[E, NU, DENSITY])
 register_material("neohookean", NeoHookean, parameters=[E, NU, DENSITY])
 register_material("fluid", VolumetricFluid, parameters=[E, DENSITY])
 register_material("nostress", NoStress, parameters=[DENSITY])

@@ -32,6 +32,7 @@ from ._terms import BodyForce, Damping, StressDivergence, Term
 from ._validate import FINITE, concrete
 
 UPDATES = {"USF": "USF", "USL": "USL", "USL-": "USL", "MUSL": "MUSL", "USL+": "MUSL"}
+KINEMATICS = ("linear", "exponential")  # the deformation-gradient increment dF (jaxmpm._step.update_deformation)
 
 
 class Simulation(eqx.Module):
@@ -42,7 +43,8 @@ class Simulation(eqx.Module):
     ``terms`` holds the physics terms of the step in order: the stress divergence, the body
     force (``gravity``, ``body_force``), damping (unless ``damping=False``), then any ``terms=``
     given.  ``backend`` picks the fusion policy ("auto", "cpu", "gpu"; see ``jaxmpm._backend``):
-    it changes speed, never results."""
+    it changes speed, never results.  ``kinematics`` is the strain increment: "linear" (default,
+    dF = I + grad v dt) or "exponential" (dF = exp(grad v dt), 001 eq. 26)."""
 
     grid: Grid
     shape: ShapeFunction
@@ -52,6 +54,7 @@ class Simulation(eqx.Module):
     boundary: tuple  # velocity conditions, callable selectors resolved to node sets
     update: str = eqx.field(static=True)
     backend: str = eqx.field(static=True)
+    kinematics: str = eqx.field(static=True, default="linear")
 
     def __init__(
         self,
@@ -66,6 +69,7 @@ class Simulation(eqx.Module):
         body_force: Callable | None = None,
         terms=(),
         backend: str = "auto",
+        kinematics: str = "linear",
     ):
         check(isinstance(grid, Grid), f"Simulation: grid must be a jm.Grid, got {type(grid).__name__}")
         # a step holds a few nodal fields of 1 + D (mass, momentum) up to D^2 columns per node
@@ -108,6 +112,9 @@ class Simulation(eqx.Module):
         self.boundary = as_conditions(boundary, grid)
         self.update = UPDATES[update]
         self.backend = backend
+        check(kinematics in KINEMATICS, f"Simulation: kinematics = {kinematics!r}; choose 'linear' (dF = I + grad v "
+                                        "dt) or 'exponential' (dF = exp(grad v dt), 001 eq. 26)")
+        self.kinematics = kinematics
         self._check_terms()
 
     def _check_terms(self):

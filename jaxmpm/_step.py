@@ -35,8 +35,14 @@ def folds_force(sim) -> bool:
             and sim.material_fields == 1)  # contact needs p and f apart (003 eqs. 3.19-3.22)
 
 
-def update_deformation(F, grad_v, dt):
-    """F <- (I + grad v dt) F."""
+def update_deformation(F, grad_v, dt, kinematics: str = "linear"):
+    """F <- dF F with dF = I + grad v dt (``kinematics="linear"``, the first-order increment) or
+    dF = exp(grad v dt) (``"exponential"``, 001 eq. 26: exact for a velocity gradient constant over
+    the step, so a pure spin gives an exact rotation, det dF = 1)."""
+    if kinematics == "exponential":
+        from jax.scipy.linalg import expm
+
+        return expm(grad_v * dt) @ F  # 001 eq. (26)
     eye = jnp.eye(F.shape[-1], dtype=F.dtype)
     return (eye + grad_v * dt) @ F
 
@@ -67,8 +73,22 @@ def p2g(sim, state, force: bool = True, dt=None) -> GridFields:
         return out
 
     nodal = scatter_columns(stencil, columns, sim.field_nodes, stencil, state, dt)
+    if force or dt is not None:
+        nodal = with_surface_forces(sim, state, nodal, nodal["mass"], dt)
     transfer = Transfer(stencil, state.mass, nodal.pop("mass"), sim.field_nodes)
     return GridFields(transfer, nodal)
+
+
+def with_surface_forces(sim, state, nodal: dict, nodal_mass, dt=None) -> dict:
+    """The nodal fields with the terms' own nodal forces (``Term.nodal_force``: tractions, 001
+    eq. 21) added to the force, or dt times them to a folded updated momentum."""
+    extra = [f for f in (term.nodal_force(sim, state, nodal_mass) for term in sim.terms) if f is not None]
+    if not extra:
+        return nodal
+    total = sum(extra[1:], extra[0])
+    if "updated_momentum" in nodal:
+        return {**nodal, "updated_momentum": nodal["updated_momentum"] + dt * total}
+    return {**nodal, "force": nodal["force"] + total}
 
 
 def particle_stencil(sim, state):
@@ -82,8 +102,9 @@ def particle_stencil(sim, state):
 
 def nodal_terms(sim, state, transfer: Transfer) -> dict:
     """The terms' nodal fields alone (USF: after the strain update), in one scatter-add."""
-    return scatter_columns(transfer.stencil, lambda s: term_columns(sim, s, transfer.stencil), transfer.num_nodes,
-                           state)
+    nodal = scatter_columns(transfer.stencil, lambda s: term_columns(sim, s, transfer.stencil), transfer.num_nodes,
+                            state)
+    return with_surface_forces(sim, state, nodal, transfer.nodal_mass)
 
 
 def grid_solve(fields: GridFields, force, dt, constraint: Constraint) -> GridSolution:
@@ -111,7 +132,7 @@ def step(sim, state, dt):
         transfer = fields.transfer
         v0 = constraint.apply(safe_divide(fields.momentum, transfer.nodal_mass))
         v_strain = sim.scheme.strain_grid_velocity(v0, transfer, constraint)
-        F = update_deformation(state.F, transfer.velocity_gradient(v_strain), dt)
+        F = update_deformation(state.F, transfer.velocity_gradient(v_strain), dt, sim.kinematics)
         material_state = sim.material.update_state(F, state.material_state, dt)
         state = eqx.tree_at(lambda s: (s.F, s.material_state), state, (F, material_state),
                             is_leaf=lambda x: x is None)
@@ -133,13 +154,13 @@ def g2p(sim, state, transfer: Transfer, constraint: Constraint, grid: GridSoluti
     scheme_state = sim.scheme.next_state(state, upd, transfer, grid)
     F = state.F
     if sim.update == "USL":  # USL-: the velocity the update just used
-        F = update_deformation(F, transfer.velocity_gradient(upd.strain_velocity), dt)
+        F = update_deformation(F, transfer.velocity_gradient(upd.strain_velocity), dt, sim.kinematics)
     elif sim.update == "MUSL":  # USL+: re-extrapolate p = S^T M V^{n+1} (003 §2.1.6), affine terms included
         updated = eqx.tree_at(lambda s: (s.v, s.scheme_state), state, (upd.velocity, scheme_state),
                               is_leaf=lambda x: x is None)
         v_new = constraint.apply(safe_divide(sim.scheme.momentum(transfer, updated), transfer.nodal_mass))
         v_strain = sim.scheme.strain_grid_velocity(v_new, transfer, constraint)
-        F = update_deformation(F, transfer.velocity_gradient(v_strain), dt)
+        F = update_deformation(F, transfer.velocity_gradient(v_strain), dt, sim.kinematics)
     material_state = state.material_state
     if sim.update != "USF":  # (USF updated the material state before the forces)
         material_state = sim.material.update_state(F, material_state, dt)

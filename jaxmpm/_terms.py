@@ -10,7 +10,8 @@ A term contributes up to three things to the step of 003 §2.1 (see ``jaxmpm._st
   state after the scheme's update (default: none);
 
 and it may declare per-particle fields (``particle_fields()``, :class:`jaxmpm.ParticleField`) that
-the state then carries and runs save.  Three hooks couple a term to the rest of the model:
+the state then carries and runs save.  ``nodal_force(sim, state, nodal_mass)`` adds a nodal force the term
+assembles itself (a surface traction).  Three hooks couple a term to the rest of the model:
 ``stretch(state)`` (an isotropic stretch the material sees removed from F: thermal expansion),
 ``time_step_limit(sim, state)`` (read by ``Simulation.stable_dt``) and ``totals(sim, state)``
 (sums saved with every frame, ``History.totals``).  The terms of today's single-field engine:
@@ -59,6 +60,12 @@ class Term(eqx.Module):
 
     def check_fields(self, fields: dict) -> None:
         """Raise :class:`jaxmpm.InputError` when an initial field value is invalid (``sim.init``)."""
+
+    def nodal_force(self, sim, state, nodal_mass):
+        """A nodal force (field_nodes, D) the term assembles by its own means (a surface integral:
+        jm.Traction), added to the scattered force; ``nodal_mass`` the step's lumped mass.  None:
+        none."""
+        return None
 
     def stretch(self, state):
         """An isotropic stretch (N,) the term imposes on the particles (thermal or moisture

@@ -80,4 +80,4 @@ def spin(
     steps, save_every = schedule(t_end, dt, frames)
     params = dict(spacing=spacing, ppc=ppc, radius=radius, omega=omega, centre=list(centre), stress=bool(stress),
                   E=E if stress else 0.0, nu=nu, density=density, cfl=cfl, dt=dt, t_end=steps * dt)
-    return Setup("spin", sim, state, dt, steps, save_every, params, None)
+    return Setup("spin", sim, state, dt, steps, save_every, params, None, particles)

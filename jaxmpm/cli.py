@@ -346,7 +346,7 @@ def run_setup(setup, args, options: dict, resume: bool = False) -> int:
     except jm.InputError as err:
         fail(str(err))
     except MemoryError:
-        fail(f"the run ran out of memory; save fewer --frames or use a coarser --spacing/--cells")
+        fail("the run ran out of memory; save fewer --frames or use a coarser --spacing/--cells")
     except OSError as err:
         fail(f"cannot write --out {args.out}: {err}")
     except jm.RunInterrupted as err:

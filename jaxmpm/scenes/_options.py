@@ -98,7 +98,7 @@ OPTION_CHECKS = {
     "E": _range(POSITIVE), "density": _range(POSITIVE), "nu": _range(POISSON, POISSON.fix),
     # motions and loads (any sign)
     "speed": _range(FINITE), "v0": _range(FINITE), "omega": _range(FINITE), "amplitude": _range(FINITE),
-    "gravity": _range(FINITE), "separation": _range(FINITE),
+    "gravity": _range(FINITE),
     "phases": _finite_list,
     "theta": _range(Range(0, 90, high_open=True), "the slope angle in degrees"),
     # contact between the bodies of a two-body scene (jaxmpm/_contact.py)

@@ -257,7 +257,7 @@ class Contact(Term):
 
     def particle_action(self, sim, old, new, transfer, solution, dt):
         """Record each particle's share of the contact force, M_p S (Dp^a+ / (m^a dt))."""
-        force = old.mass[:, None] * transfer.gather(solution.values["contact_acceleration"])
+        force = transfer.particle_share(solution.values["contact_acceleration"])
         return eqx.tree_at(lambda s: s.fields, new, {**new.fields, "contact_force": force})
 
 

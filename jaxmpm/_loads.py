@@ -25,11 +25,11 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from ._contact import material_stencil
 from ._errors import check
 from ._fields import ParticleField
 from ._grid import parse_face
 from ._registry import register_term
+from ._step import particle_stencil
 from ._terms import Term
 from ._transfer import particle_force_contributions, scatter_planar
 from ._validate import FINITE
@@ -98,10 +98,7 @@ class Traction(Term):
         area = jnp.linalg.det(state.F) * state.volume0 / (2.0 * half0 * stretch)  # A_p = V_p / (2 l_p)
         load = _at(self.traction, state.time, dim, state.x.dtype)
         forces = (state.fields[self.name] * area)[:, None] * load[None, :]
-        stencil = sim.shape.stencil(sim.grid, edge)
-        if sim.material_fields > 1:  # onto the particle's own material's field (jaxmpm._contact)
-            stencil = material_stencil(stencil, state.fields["material"].astype(stencil.index.dtype),
-                                       sim.grid.num_nodes)
+        stencil = particle_stencil(sim, state, edge)  # on the particle's own material's field
         carried = jnp.where(nodal_mass[stencil.index] > 0, stencil.weight, 0.0)  # (K, N)
         total = jnp.sum(carried, axis=0)
         weight = carried / jnp.where(total > 0, total, 1.0)

@@ -24,6 +24,15 @@ def _trace(A):
     return jnp.trace(A, axis1=-2, axis2=-1)
 
 
+def _hooke(material, strain):
+    """Isotropic Hooke's law C : strain = lambda tr(strain) I + 2 mu strain (2D plane strain, 3D);
+    E strain in 1D (uniaxial stress).  ``material`` has E and nu."""
+    if strain.shape[-1] == 1:
+        return material.E * strain
+    lam, mu = material.lame()
+    return lam * _trace(strain)[..., None, None] * _identity(strain) + 2.0 * mu * strain
+
+
 class Material(eqx.Module):
     """Base class: ``density`` (reference), ``kirchhoff_stress(F)``, ``energy_density(F)``; a
     material with per-particle state overrides :meth:`initial_state`, :meth:`particle_stress` and
@@ -86,11 +95,7 @@ class LinearElastic(Material):
         return 0.5 * (F + jnp.swapaxes(F, -1, -2)) - _identity(F)
 
     def kirchhoff_stress(self, F):
-        eps = self.strain(F)
-        if F.shape[-1] == 1:
-            return self.E * eps
-        lam, mu = self.lame()
-        return lam * _trace(eps)[..., None, None] * _identity(F) + 2.0 * mu * eps
+        return _hooke(self, self.strain(F))
 
     def energy_density(self, F):
         eps = self.strain(F)
@@ -130,20 +135,13 @@ class HypoElastic(Material):
     def particle_stress(self, F, material_state):
         return jnp.linalg.det(F)[..., None, None] * material_state["stress"]  # tau = J sigma
 
-    def _stiffness(self, strain):
-        """C : strain (1D: E strain, uniaxial stress)."""
-        if strain.shape[-1] == 1:
-            return self.E * strain
-        lam, mu = self.lame()
-        return lam * _trace(strain)[..., None, None] * _identity(strain) + 2.0 * mu * strain
-
     def update_state(self, F, material_state, dt):
         dF = F @ jnp.linalg.inv(material_state["F"])
         eye = _identity(F)
         d_eps = 0.5 * (jnp.swapaxes(dF, -1, -2) @ dF - eye)
         W = 0.5 * ((dF - eye) - jnp.swapaxes(dF - eye, -1, -2))
         Q = jnp.linalg.solve(eye - 0.5 * W, eye + 0.5 * W)  # orthogonal for skew W
-        sigma = Q @ material_state["stress"] @ jnp.swapaxes(Q, -1, -2) + self._stiffness(d_eps)
+        sigma = Q @ material_state["stress"] @ jnp.swapaxes(Q, -1, -2) + _hooke(self, d_eps)
         return {"stress": sigma, "F": F}
 
     def stored_energy_density(self, F, material_state):

@@ -40,7 +40,7 @@ class Reaction(Term):
         return type(solution)({**solution.values, "reaction_acceleration": safe_divide(impulse, m) / safe_dt})
 
     def particle_action(self, sim, old, new, transfer, solution, dt):
-        share = old.mass[:, None] * transfer.gather(solution.values["reaction_acceleration"])
+        share = transfer.particle_share(solution.values["reaction_acceleration"])
         return eqx.tree_at(lambda s: s.fields, new, {**new.fields, "reaction_force": share})
 
     def totals(self, sim, state) -> dict:

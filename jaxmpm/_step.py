@@ -91,10 +91,11 @@ def with_surface_forces(sim, state, nodal: dict, nodal_mass, dt=None) -> dict:
     return {**nodal, "force": nodal["force"] + total}
 
 
-def particle_stencil(sim, state):
-    """S_pi, G_pi at the particles (001 eqs. 16-17); in multimaterial mode each particle's nodes
-    are those of its material's velocity field (jaxmpm._contact)."""
-    stencil = sim.shape.stencil(sim.grid, state.x)
+def particle_stencil(sim, state, x=None):
+    """S_pi, G_pi at the particles (001 eqs. 16-17), or at points ``x`` (N, D) that stand for them
+    (a traction's edge points); in multimaterial mode each particle's nodes are those of its
+    material's velocity field (jaxmpm._contact)."""
+    stencil = sim.shape.stencil(sim.grid, state.x if x is None else x)
     if sim.material_fields == 1:
         return stencil
     return material_stencil(stencil, state.fields["material"].astype(stencil.index.dtype), sim.grid.num_nodes)

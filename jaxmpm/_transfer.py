@@ -188,6 +188,11 @@ class Transfer(eqx.Module):
         return scatter_planar(self.stencil.index, momentum_contributions(self.stencil, self.particle_mass, velocity),
                               self.num_nodes)
 
+    def particle_share(self, a):
+        """M_p (S a)_p: each particle's share of the nodal force m_i a_i (a nodal force per mass);
+        summed over the particles it is sum_i m_i a_i over the nodes with mass."""
+        return self.particle_mass[:, None] * self.gather(a)
+
     def s_plus(self, U):
         """(S+ U)_i = sum_p S_pi M_p U_p / m_i  (000 eq. 1.10)."""
         return safe_divide(self.momentum(U), self.nodal_mass)

@@ -15,6 +15,16 @@ log h.  Choices that matter (see ``jaxmpm/scenes/mms.py``):
   [-1/2, 3/2], so the walls X = 0, 1 are interior symmetry planes and B-splines are not truncated
   there.  With plain walls (``boundary="walls"``, nodes on and beyond the wall zeroed) B-splines
   and uGIMP lose an O(h) error next to the wall; that study is run for FLIP only (``--walls``).
+  ``boundary="mirror"``: the body is [0, 1] and the walls are symmetry planes in the core
+  (``jm.Mirror``: the particles' images folded onto the grid) -- the extension without extra
+  material; run for FLIP (``--mirror``).
+
+``--mirror-study`` runs only the mirror rows, for the B-splines: the mms rows (walls, mirror,
+extended; FLIP) and the ``bar`` scene (fixed-free bar, x = 0 held by ``jm.Fixed`` on the nodes
+x <= 0 or by ``jm.Mirror``), whose error is the relative L2 error of the centre-of-mass velocity
+against the exact first mode over t in [0, 40], at the scene's v0 = 0.1 ("large": the free end
+swings 0.16, up to a cell at 128 cells) and at v0 = 1e-4 ("small"); cfl = 0.1 * 16 / cells
+(dt ~ h^2).  Writes ``convergence_mirror.csv`` and ``convergence_mirror.md``.
 * dt shrinks like h^2 (cfl = 0.2 * 8 / cells, ``--dt-scaling h2``): USL's particle velocities and
   FLIP/XPIC/FMPM's positions lag the exact solution by half a step, an O(dt) error; at a fixed CFL
   (``--dt-scaling h``) it would cap every observed order at 1 once the grid is fine.
@@ -25,6 +35,7 @@ table of observed orders (also written to ``convergence.md``).
 
     python experiments/convergence.py            # cells 8..128, ~10 min on 2 CPU cores
     python experiments/convergence.py --quick    # cells 8, 16, 32; FLIP and APIC only
+    python experiments/convergence.py --mirror-study   # B-spline mirror rows (mms and bar), ~10 min
 """
 
 from __future__ import annotations
@@ -88,6 +99,85 @@ def run_one(amplitude, boundary, shape, scheme, cells, scaling, frames) -> dict:
     row["disp_error"] = float(ex.max() / amplitude)
     row["vel_error"] = float(ev.max() / (amplitude * c * math.pi))
     return row
+
+
+BAR_V0 = {"small": 1e-4, "large": 0.1}
+BAR_CELLS = (16, 32, 64)
+
+
+def run_bar(v0, boundary, shape, cells) -> dict:
+    """The fixed-free ``bar`` to t = 40 (four periods) at cfl = 0.1 * 16 / cells; the relative L2
+    error of v_cm(t) against v0/(beta1 L) cos(omega t) over the saved frames."""
+    setup = jm.scene("bar", cells=cells, shape=shape, scheme=jm.FLIP(), boundary=boundary, v0=v0,
+                     cfl=0.1 * BAR_CELLS[0] / cells, frames=200)
+    start = time.perf_counter()
+    _, history = setup.run()
+    mass = np.asarray(setup.state.mass)
+    v_cm = np.asarray(history.v)[..., 0] @ mass / mass.sum()
+    exact = setup.reference(np.asarray(history.time))
+    error = float(np.linalg.norm(v_cm - exact) / np.linalg.norm(exact))
+    return dict(v0=v0, boundary=boundary, cells=cells, h=setup.params["length"] / cells, dt=setup.dt,
+                steps=setup.steps, error=error, wall_s=time.perf_counter() - start)
+
+
+def mirror_study(out: Path, frames: int, mms_cells=(8, 16, 32), parts=("mms", "bar"),
+                 boundaries=("walls", "mirror", "extended")):
+    """The B-spline rows of the mirror boundary: mms (``boundaries``) and bar (fixed / mirror)."""
+    rows, bar_rows = [], []
+    start = time.perf_counter()
+    for size, amplitude in (AMPLITUDES.items() if "mms" in parts else ()):
+        for shape_name in ("Quadratic", "Cubic"):
+            for boundary in boundaries:
+                for n in mms_cells:
+                    row = run_one(amplitude, boundary, shapes()[shape_name], jm.FLIP(), n, "h2", frames)
+                    row.update(shape=shape_name, scheme="FLIP")
+                    rows.append(row)
+                errs = " ".join(fmt(r["disp_error"], "{:.2e}") for r in rows[-len(mms_cells):])
+                print(f"[{time.perf_counter() - start:6.0f} s] mms {size:5s} {boundary:8s} {shape_name:9s} e_x: {errs}",
+                      flush=True)
+    for size, v0 in (BAR_V0.items() if "bar" in parts else ()):
+        for shape_name in ("Quadratic", "Cubic"):
+            for boundary in ("fixed", "mirror"):
+                for n in BAR_CELLS:
+                    row = run_bar(v0, boundary, shapes()[shape_name], n)
+                    row.update(shape=shape_name, size=size)
+                    bar_rows.append(row)
+                errs = " ".join(f"{r['error']:.3e}" for r in bar_rows[-len(BAR_CELLS):])
+                print(f"[{time.perf_counter() - start:6.0f} s] bar {size:5s} {boundary:8s} {shape_name:9s} e: {errs}",
+                      flush=True)
+    suffix = "" if len(parts) == 2 else f"_{parts[0]}"
+    lines = []
+    if "mms" in parts:
+        write_csv(out / "convergence_mirror_mms.csv", rows)
+        lines += [markdown(summarise(rows), list(mms_cells), "h2"), ""]
+    if "bar" in parts:
+        with (out / "convergence_mirror_bar.csv").open("w", newline="") as f:
+            fields = ["size", "v0", "boundary", "shape", "cells", "h", "dt", "steps", "error", "wall_s"]
+            w = csv.DictWriter(f, fieldnames=fields)
+            w.writeheader()
+            for r in bar_rows:
+                w.writerow({k: (f"{r[k]:.10g}" if isinstance(r[k], float) else r[k]) for k in fields})
+        lines += ["| scene | boundary | shape | small: errors | small: order | large: errors | large: order |",
+                  "|---|---|---|---|---|---|---|"]
+    for shape_name in (("Quadratic", "Cubic") if "bar" in parts else ()):
+        for boundary in ("fixed", "mirror"):
+            cells_of = {size: [r for r in bar_rows if (r["shape"], r["boundary"], r["size"])
+                               == (shape_name, boundary, size)] for size in BAR_V0}
+            cols = []
+            for size in BAR_V0:
+                sel = cells_of[size]
+                cols += [", ".join(f"{r['error']:.2e}" for r in sel),
+                         fmt(observed_order([r["h"] for r in sel], [r["error"] for r in sel]))]
+            lines.append(f"| bar | {boundary} | {shape_name} | " + " | ".join(cols) + " |")
+    if "bar" in parts:
+        lines.append(f"\nbar: FLIP, USL, 2 particles per cell, cells {', '.join(map(str, BAR_CELLS))} along the bar, "
+                     "cfl = 0.1 * 16/cells; error = relative L2 error of v_cm over t in [0, 40]; small v0 = 1e-4, "
+                     "large v0 = 0.1 (the scene's).  Orders: least-squares slopes over all cell counts.")
+    table = "\n".join(lines)
+    (out / f"convergence_mirror{suffix}.md").write_text(table + "\n")
+    print()
+    print(table)
+    print(f"\nwrote {out / f'convergence_mirror{suffix}.md'} ({time.perf_counter() - start:.0f} s)")
 
 
 def observed_order(h, err) -> float:
@@ -182,8 +272,8 @@ def plot(path: Path, rows, amplitude, label):
         for boundary, scheme in sorted({(r["boundary"], r["scheme"]) for r in sel}):
             pts = sorted((r for r in sel if (r["boundary"], r["scheme"]) == (boundary, scheme)), key=lambda r: r["h"])
             h = np.array([r["h"] for r in pts])
-            style = ":" if boundary == "walls" else "-"
-            name = scheme if boundary == "extended" else f"{scheme}, walls"
+            style = {"walls": ":", "mirror": "--"}.get(boundary, "-")
+            name = scheme if boundary == "extended" else f"{scheme}, {boundary}"
             line, = ax.loglog(h, [r["disp_error"] for r in pts], style, marker="o", ms=3, label=f"{name}: e_x")
             ax.loglog(h, [r["vel_error"] for r in pts], style, marker="x", ms=4, color=line.get_color(), alpha=0.45)
         h_ref = np.array(sorted({r["h"] for r in sel}))
@@ -209,11 +299,23 @@ def main(argv=None):
                         help="h2: cfl = 0.2*8/cells (default); h: fixed cfl = 0.2")
     parser.add_argument("--walls", choices=["flip", "all", "none"], default="flip",
                         help="also run boundary='walls' for FLIP (default), every scheme, or none")
+    parser.add_argument("--mirror", choices=["flip", "all", "none"], default="flip",
+                        help="also run boundary='mirror' (jm.Mirror) for FLIP (default), every scheme, or none")
+    parser.add_argument("--mirror-study", action="store_true",
+                        help="only the B-spline mirror rows: mms (walls/mirror/extended) and bar (fixed/mirror)")
+    parser.add_argument("--part", nargs="+", choices=["mms", "bar"], default=["mms", "bar"],
+                        help="with --mirror-study: the scenes to run (each part alone writes *_mms / *_bar files)")
+    parser.add_argument("--mms-boundaries", nargs="+", choices=["walls", "mirror", "extended"],
+                        default=["walls", "mirror", "extended"], help="with --mirror-study: the mms boundaries")
     parser.add_argument("--frames", type=int, default=40, help="saved frames per period (the max over time uses them)")
     parser.add_argument("--out", type=Path, default=RESULTS, help="results folder")
     args = parser.parse_args(argv)
     cells = args.cells or ([8, 16, 32] if args.quick else [8, 16, 32, 64, 128])
     args.out.mkdir(parents=True, exist_ok=True)
+    if args.mirror_study:
+        mirror_study(args.out, args.frames, tuple(args.cells or (8, 16, 32)), tuple(args.part),
+                     tuple(args.mms_boundaries))
+        return
 
     rows = []
     start = time.perf_counter()
@@ -223,6 +325,8 @@ def main(argv=None):
                 boundaries = ["extended"]
                 if args.walls == "all" or (args.walls == "flip" and scheme_name == "FLIP"):
                     boundaries.append("walls")
+                if args.mirror == "all" or (args.mirror == "flip" and scheme_name == "FLIP"):
+                    boundaries.append("mirror")
                 for boundary in boundaries:
                     for n in cells:
                         row = run_one(amplitude, boundary, shape, scheme, n, args.dt_scaling, args.frames)

@@ -9,7 +9,7 @@ from ._params import PARAMETERS, get_params, set_params
 from ._schemes import FLIP, FMPM, PIC, XPIC, mass_matrix_series  # noqa: I001  (flip first in the registry)
 from ._registry import (MATERIALS, SCHEMES, SHAPES, TERMS, Parameter, register_material, register_scheme,
                         register_shape, register_term, scheme_from_name, shape_from_name)
-from ._boundary import Constraint, Fixed, NodeSet, Prescribed, Slip, Wall
+from ._boundary import Constraint, Fixed, Mirror, NodeSet, Prescribed, Slip, Wall
 from ._diagnostics import angular_momentum, kinetic_energy, linear_momentum, stable_dt, strain_energy
 from ._errors import InputError, InstabilityError
 from ._fields import GridFields, GridSolution, ParticleField
@@ -19,8 +19,9 @@ from ._materials import HypoElastic, LinearElastic, Material, NeoHookean, NoStre
 from ._particles import Ball, Box, Disk, Particles, Region, Ring, fill
 from ._scheme_base import ParticleUpdate, Scheme
 from ._schemes import FLIP, FMPM, PIC, XPIC, mass_matrix_series
-from ._affine import APIC, TPIC, with_velocity_gradient
-from ._shapes import CubicBSpline, Linear, QuadraticBSpline, ShapeFunction, Stencil, StencilBase, TensorStencil, UGIMP
+from ._affine import APIC, RPIC, TPIC, with_velocity_gradient
+from ._shapes import (AxisymmetricStencil, CubicBSpline, Linear, QuadraticBSpline, ShapeFunction, Stencil, StencilBase,
+                      TensorStencil, UGIMP)
 from ._driver import History, RunInterrupted, StableTimeStepWarning
 from ._resume import resume
 from ._simulation import Simulation
@@ -45,9 +46,11 @@ __all__ = [
     "Material", "NeoHookean", "NodeSet", "PIC", "ParticleField", "ParticleUpdate", "Particles", "Prescribed",
     "QuadraticBSpline", "Region", "Ring", "RunInterrupted", "SCENES", "Scheme", "ShapeFunction", "Simulation", "Slip",
     "StableTimeStepWarning", "State", "Stencil", "StencilBase", "StressDivergence", "TensorStencil", "Term",
+    "AxisymmetricStencil",
     "Transfer", "UGIMP", "XPIC", "angular_momentum", "fill", "folds_force", "g2p", "gather", "grid_solve",
     "kinetic_energy", "linear_momentum", "load_h5", "resume", "mass_matrix_series", "p2g", "save_h5", "scatter",
     "scene", "stable_dt", "strain_energy", "with_fields", "with_scheme_state",
-    "APIC", "TPIC", "with_velocity_gradient", "Wall", "NoStress", "VolumetricFluid",
+    "APIC", "RPIC", "TPIC", "with_velocity_gradient", "Wall", "NoStress", "VolumetricFluid",
     "Diffusion", "Dirichlet", "Heat", "Neumann", "Transport", "HypoElastic", "ParticleForce", "Traction", "Reaction",
+    "Mirror",
 ]

@@ -250,7 +250,8 @@ class Contact(Term):
         else:  # one-sided walls act on v_tilde (jm.Wall, Constraint.contact)
             v, a, v_tilde = constraint.contact(constraint.apply_two_sided(safe_divide(p, m)), constraint.zero(a), dt)
         out = {**solution.values, "v": v, "a": a, "v_tilde": v_tilde,
-               "contact_acceleration": safe_divide(p_plus - p - fields.force * dt, m) / safe_dt}
+               "contact_acceleration": safe_divide(p_plus - p - fields.force * dt, m) / safe_dt,
+               "v_tilde_unconstrained": safe_divide(p_plus, m)}  # after contact, before the conditions
         if self.series_correction:  # XPIC/FMPM's Dv term (003 eqs. 3.18, 3.22); else their series of v alone
             out["contact_dv"] = constraint.zero(safe_divide(dp, m))
         return type(solution)(out)

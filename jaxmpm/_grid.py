@@ -27,13 +27,22 @@ class Grid(eqx.Module):
 
     ``Grid(lower=(0.0,), upper=(25.0,), cells=(16,))``: ``lower``/``upper`` are the corner
     coordinates, ``cells`` the number of cells per axis (1, 2 or 3 axes).
+
+    ``axisymmetric=True`` (2D only) makes the grid the r-z half-plane of a body of revolution
+    (001 §7): axis x is the radius r, axis y the axial coordinate z.  Particle masses and volumes
+    are then per radian (:func:`jaxmpm.fill`), the shape functions the r-weighted ones of 001 eqs.
+    112 and 115 with the hoop shape function T_ip of eq. 116, the internal force carries the hoop
+    term -V0_p tau_thth T_ip e_r (001 eq. 120) and F is 3x3 in (r, z, theta) order, F_thth the hoop
+    stretch (updated with the hoop rate v_r/r = sum_i v_ri T_ip, 001 eq. 113).
     """
 
     lower: tuple = eqx.field(static=True)
     upper: tuple = eqx.field(static=True)
     cells: tuple = eqx.field(static=True)
+    axisymmetric: bool = eqx.field(static=True, default=False)
 
-    def __init__(self, lower: Sequence[float], upper: Sequence[float], cells: Sequence[int]):
+    def __init__(self, lower: Sequence[float], upper: Sequence[float], cells: Sequence[int],
+                 axisymmetric: bool = False):
         lower = finite_vector("Grid", "lower", lower)
         upper = finite_vector("Grid", "upper", upper)
         cells_in = _as_tuple(cells, "cells")
@@ -53,9 +62,15 @@ class Grid(eqx.Module):
             check(math.isfinite(hi - lo) and math.isfinite((hi - lo) / cells_out[a]) and (hi - lo) / cells_out[a] > 0,
                   f"Grid: the box [{lo}, {hi}] along axis {_AXES[a]} with {cells_out[a]} cells has no finite "
                   "positive cell size; use a smaller box or fewer cells")
+        check(isinstance(axisymmetric, (bool, np.bool_)),
+              f"Grid: axisymmetric = {show(axisymmetric)} must be True (an r-z grid, 001 §7) or False")
+        check(not axisymmetric or len(lower) == 2,
+              f"Grid: axisymmetric=True needs a 2D grid (axis x = r, axis y = z), got {len(lower)} axes; "
+              "give lower, upper and cells with two entries")
         self.lower = lower
         self.upper = upper
         self.cells = cells_out
+        self.axisymmetric = bool(axisymmetric)
 
     # ----------------------------------------------------------------- geometry
     @property
@@ -116,6 +131,7 @@ class Grid(eqx.Module):
         spacing: float | Sequence[float],
         shape=None,
         pad: float | Sequence[float] = 0.0,
+        axisymmetric: bool = False,
     ) -> "Grid":
         """Smallest grid with cell size ``spacing`` that covers the box [lower, upper].
 
@@ -158,7 +174,7 @@ class Grid(eqx.Module):
             lo_out.append(lo_g)
             hi_out.append(lo_g + n * h)
             cells.append(n)
-        return cls(tuple(lo_out), tuple(hi_out), tuple(cells))
+        return cls(tuple(lo_out), tuple(hi_out), tuple(cells), axisymmetric=axisymmetric)
 
 
 def parse_face(face: str, dim: int) -> tuple[int, int]:

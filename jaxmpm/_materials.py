@@ -3,7 +3,8 @@ gradient F, so the internal force is f_i = -sum_p V0_p tau_p . G_pi (001 eq. 20,
 and a stored-energy density W(F) per reference volume for the strain-energy diagnostic.
 
 Dimensions: 1D is uniaxial stress for :class:`LinearElastic` and :class:`HypoElastic`, 2D is plane
-strain, 3D is full.  :class:`HypoElastic` keeps its Cauchy stress as per-particle state (an
+strain, 3D is full; on an axisymmetric grid (001 §7) F is 3x3 in (r, z, theta) and every law is
+its 3D form.  :class:`HypoElastic` keeps its Cauchy stress as per-particle state (an
 objective rate update); the others are functions of F.
 """
 
@@ -129,6 +130,7 @@ class HypoElastic(Material):
 
     def initial_state(self, particles):
         n, d = jnp.shape(particles.x)
+        d = d + getattr(particles, "axisymmetric", False)  # axisymmetric: 3x3 in (r, z, theta), 001 §7
         dtype = jnp.result_type(float)
         return {"stress": jnp.zeros((n, d, d), dtype), "F": jnp.broadcast_to(jnp.eye(d, dtype=dtype), (n, d, d))}
 

@@ -90,13 +90,15 @@ class Ring(Region):
 class Particles(eqx.Module):
     """Material points: positions ``x`` (N, D), velocities ``v`` (N, D), reference volumes
     ``volume`` (N,), masses ``mass`` (N,) or None (then the material's density sets them) and the
-    number of particles per cell per axis ``ppc``."""
+    number of particles per cell per axis ``ppc``.  ``axisymmetric``: x = (r, z) on an axisymmetric
+    grid, ``volume`` and ``mass`` per radian (001 §7: V_p = A_p r_p, m_p = rho A_p r_p)."""
 
     x: jnp.ndarray
     v: jnp.ndarray
     volume: jnp.ndarray
     mass: jnp.ndarray | None = None
     ppc: int = eqx.field(static=True, default=1)
+    axisymmetric: bool = eqx.field(static=True, default=False)
 
     @property
     def num(self) -> int:
@@ -115,6 +117,9 @@ def fill(
 
     Each particle gets volume h^D / ppc^D and, if ``density`` is given, mass density * volume;
     ``velocity`` is a constant (scalar or D-vector) or a function of position ``f(x) -> (N, D)``.
+    On an axisymmetric grid (``Grid(..., axisymmetric=True)``) volume and mass are per radian:
+    V_p = A_p r_p, A_p = h_r h_z / ppc^2 the particle's area in the r-z plane (001 eq. 111), and
+    the region must lie at r > 0.
     """
     check(isinstance(grid, Grid), f"fill: grid must be a jm.Grid, got {type(grid).__name__}")
     ppc = positive_int("fill", "ppc", ppc, fix="particles per cell per axis")
@@ -158,6 +163,10 @@ def fill(
         x = x[np.asarray(contains(x), dtype=bool)]
     check(x.shape[0] > 0, "fill: the region contains no lattice point; check it lies on the grid or raise ppc")
     volume = np.full(x.shape[0], np.prod(h) / ppc**dim)
+    if grid.axisymmetric:  # per radian: A_p <r_p> with <r_p> = r_p for the rectangle (001 eq. 111)
+        check(np.all(x[:, 0] > 0), f"fill: an axisymmetric grid needs the region at r > 0 (axis x is the radius); "
+                                   f"{int(np.sum(x[:, 0] <= 0))} lattice points lie at r <= 0")
+        volume = volume * x[:, 0]
     if callable(velocity):
         v = np.asarray(velocity(x), dtype=float)
         check(np.all(np.isfinite(v)), "fill: velocity(x) returned non-finite values (NaN or inf)")
@@ -170,4 +179,5 @@ def fill(
     check(density is None or np.shape(density) in ((), (x.shape[0],)),
           f"fill: density has shape {np.shape(density)}; give one number (or one per particle, {x.shape[0]})")
     mass = None if density is None else jnp.asarray(np.asarray(density) * volume)
-    return Particles(x=jnp.asarray(x), v=jnp.asarray(np.array(v)), volume=jnp.asarray(volume), mass=mass, ppc=int(ppc))
+    return Particles(x=jnp.asarray(x), v=jnp.asarray(np.array(v)), volume=jnp.asarray(volume), mass=mass, ppc=int(ppc),
+                     axisymmetric=grid.axisymmetric)

@@ -4,10 +4,10 @@ Every scheme is the generic update of 000 §2.3 / 003 §2.3,
 
     V^{n+1} = V^n + A dt,      X^{n+1} = X^n + VV dt + 1/2 A dt^2,
 
-written in its own module (``_schemes``: XPIC/FLIP/PIC and FMPM; ``_affine``: APIC and TPIC) and
-registered with :func:`jaxmpm.register_scheme`.  A scheme owns its per-particle state
-(``State.scheme_state``: APIC's B_p, TPIC's grad v_p) through :meth:`Scheme.initial_state` and
-:meth:`Scheme.next_state`.
+written in its own module (``_schemes``: XPIC/FLIP/PIC and FMPM; ``_affine``: APIC, TPIC and
+RPIC) and registered with :func:`jaxmpm.register_scheme`.  A scheme owns its per-particle state
+(``State.scheme_state``: APIC's B_p, TPIC's grad v_p, RPIC's L_p) through
+:meth:`Scheme.initial_state` and :meth:`Scheme.next_state`.
 """
 
 from __future__ import annotations

@@ -8,6 +8,10 @@ the tensor product, ``K = K1**D`` nodes:
 
 uGIMP (001 eqs. 16-17) is the tent function averaged over a particle domain of half-width
 l_p = h / (2 ppc), ppc = particles per cell per axis.
+
+On an axisymmetric grid (``Grid(..., axisymmetric=True)``, 001 §7) the radial factors are
+r-weighted (001 eqs. 112, 115) and the stencil carries the hoop shape function T_ip (eq. 116):
+:class:`AxisymmetricStencil`.
 """
 
 from __future__ import annotations
@@ -148,6 +152,32 @@ class TensorStencil(StencilBase):
         return jnp.stack([_tensor([self.dx[b] if b == a else zero for b in range(d)], jnp.add) for a in range(d)])
 
 
+class AxisymmetricStencil(TensorStencil):
+    """The stencil of an axisymmetric (r-z) grid (001 §7): the per-axis factors of
+    :class:`TensorStencil`, with the radial ones r-weighted (001 eqs. 112, 115),
+
+        S_ip = (1/(A_p r_p)) int chi_p N_i r dA,   G_ip = (1/(A_p r_p)) int chi_p grad N_i r dA,
+
+    plus ``t_r`` (K1, N), the radial factor of the hoop shape function of 001 eq. 116,
+
+        T_ip = (1/(A_p r_p)) int chi_p N_i dA = t_r * w_z,   t_r = (Cartesian radial factor) / r_p,
+
+    (for a rectangle <r_p> = r_p).  Point particles (Linear, B-splines): S = N_i(X_p),
+    G = grad N_i(X_p), T = N_i(X_p) / r_p."""
+
+    t_r: jnp.ndarray
+
+    @property
+    def hoop(self):
+        """T_ip (K, N), 001 eq. 116."""
+        return _tensor([self.t_r, self.w[1]], jnp.multiply)
+
+    def hoop_view(self) -> TensorStencil:
+        """A stencil whose weight is T_ip: the transfer layer's gather and scatter with it give
+        sum_i u_i T_ip and sum_p T_ip q_p."""
+        return TensorStencil(self.index, jnp.stack([self.t_r, self.w[1]]), self.dw, self.dx)
+
+
 class ShapeFunction(eqx.Module):
     """Base class: subclasses define ``nodes_per_axis``, ``margin``, ``_base`` and ``_kernel``."""
 
@@ -161,6 +191,16 @@ class ShapeFunction(eqx.Module):
 
     def _kernel(self, r):  # (N(r), dN/dr), r = particle minus node, in cells
         raise NotImplementedError
+
+    def grid_basis(self) -> "ShapeFunction":
+        """The grid basis N_i(x) itself, evaluated at a point (001 eq. 21's int N_i T dS): the
+        shape function for point particles; the tent (:class:`Linear`) for uGIMP."""
+        return self
+
+    def _radial_moment(self, r):
+        """(M1(r), dM1/dr), the first moment over the particle domain (1/(2 l_p)) int N(r + q) q dq
+        (cells), that the r-weighting of 001 eqs. 112 and 115 adds; None for point particles."""
+        return None
 
     # ----------------------------------------------------------------- public
     def stencil(self, grid, x) -> "TensorStencil":
@@ -184,11 +224,15 @@ class ShapeFunction(eqx.Module):
             first = jnp.clip(self._base(xi[a]), 0, grid.cells[a] + 1 - k1)  # (N,)
             nodes = first + k  # (K1, N)
             w, dw = self._kernel(xi[a] - nodes.astype(x.dtype))  # r = particle minus node, in cells
+            if a == 0 and grid.axisymmetric:
+                w, dw, t_r = _radial_factors(self, xi[a] - nodes.astype(x.dtype), w, dw, x[:, 0], h[a])
             nodes_per_axis.append(nodes * jnp.int32(grid.strides[a]))
             ws.append(w)
             dws.append(dw / h[a])
             dxs.append(nodes.astype(x.dtype) * h[a] + lower[a] - x[:, a])  # x_i - X_p
         index = _tensor(nodes_per_axis, jnp.add)
+        if grid.axisymmetric:
+            return AxisymmetricStencil(index, jnp.stack(ws), jnp.stack(dws), jnp.stack(dxs), t_r)
         return TensorStencil(index, jnp.stack(ws), jnp.stack(dws), jnp.stack(dxs))
 
     def inside(self, grid, x):
@@ -200,6 +244,20 @@ class ShapeFunction(eqx.Module):
         top = base + self.nodes_per_axis - 1
         cells = jnp.asarray(grid.cells, jnp.int32)
         return jnp.all((base >= 0) & (top <= cells) & jnp.isfinite(xi), axis=-1)
+
+
+def _radial_factors(shape, r, w, dw, radius, h):
+    """The radial factors on an axisymmetric grid (001 §7), r = particle minus node in cells,
+    ``radius`` r_p (N,): with u = x - X_p, int N (r_p + u) du / (2 l_p r_p) = w + (h / r_p) M1, and
+    likewise for dN/dr (001 eqs. 112, 115); the hoop factor is w / r_p (001 eq. 116).  Point
+    particles have M1 = 0."""
+    t_r = w / radius  # 001 eq. (116): (1/(2 l_p r_p)) int N dr
+    moment = shape._radial_moment(r)
+    if moment is not None:
+        m1, dm1 = moment
+        w = w + (h / radius) * m1  # 001 eq. (112)
+        dw = dw + (h / radius) * dm1  # 001 eq. (115)
+    return w, dw, t_r
 
 
 def _tensor(factors, combine):
@@ -273,6 +331,24 @@ class UGIMP(ShapeFunction):
         w = jnp.where(a < lp, w_in, jnp.where(a < 1.0 - lp, w_mid, jnp.where(a < 1.0 + lp, w_out, 0.0)))
         d = jnp.where(a < lp, d_in, jnp.where(a < 1.0 - lp, d_mid, jnp.where(a < 1.0 + lp, d_out, 0.0)))
         return w, d
+
+    def grid_basis(self) -> "ShapeFunction":
+        """The tent N_i that uGIMP averages over the particle domain (001 eqs. 16-17)."""
+        return Linear()
+
+    def _radial_moment(self, r):
+        """M1(r) = (1/(2 l_p)) int_{-l_p}^{l_p} N(r + q) q dq of the tent N (odd in r), and dM1/dr
+        (even): the r-weighting of 001 eqs. 112 and 115 on the uGIMP domain of half-width l_p."""
+        lp = self.half_width
+        a = jnp.abs(r)
+        s = jnp.sign(r)
+        e = 1.0 + lp - a  # the domain's overlap with the tent's edge
+        m_in, dm_in = (a**3 / 3.0 - a * lp * lp) / (2.0 * lp), (a * a - lp * lp) / (2.0 * lp)  # |r| < l_p
+        m_mid, dm_mid = -lp * lp / 3.0, 0.0  # inside one element: the tent's slope times l_p^2/3
+        m_out, dm_out = e * e * (e - 3.0 * lp) / (12.0 * lp), e * (2.0 * lp - e) / (4.0 * lp)  # the edge
+        m = jnp.where(a < lp, m_in, jnp.where(a < 1.0 - lp, m_mid, jnp.where(a < 1.0 + lp, m_out, 0.0)))
+        dm = jnp.where(a < lp, dm_in, jnp.where(a < 1.0 - lp, dm_mid, jnp.where(a < 1.0 + lp, dm_out, 0.0)))
+        return s * m, dm
 
 
 class QuadraticBSpline(ShapeFunction):

@@ -31,7 +31,8 @@ from ._step import step as _step
 from ._terms import BodyForce, Damping, StressDivergence, Term
 from ._validate import FINITE, concrete
 
-UPDATES = {"USF": "USF", "USL": "USL", "USL-": "USL", "MUSL": "MUSL", "USL+": "MUSL"}
+UPDATES = {"USF": "USF", "USL": "USL", "USL-": "USL", "MUSL": "MUSL", "USL+": "MUSL",
+           "USAVG-": "USAVG-", "USAVG+": "USAVG+", "usavg-": "USAVG-", "usavg+": "USAVG+"}  # 003 §2.2
 KINEMATICS = ("linear", "exponential")  # the deformation-gradient increment dF (jaxmpm._step.update_deformation)
 
 
@@ -87,7 +88,7 @@ class Simulation(eqx.Module):
         check(isinstance(material, Material),
               f"Simulation: material must be a jm.Material ({', '.join(MATERIALS.names())}), "
               f"got {type(material).__name__}")
-        check(update in UPDATES, f"Simulation: update = {update!r}; choose USF, USL (USL-) or MUSL (USL+)")
+        check(update in UPDATES, f"Simulation: update = {update!r}; choose USF, USL (USL-), MUSL (USL+), USAVG- or USAVG+")
         check(backend in POLICIES, f"Simulation: backend = {backend!r}; choose one of {', '.join(POLICIES)}")
         # None: zero damping, still a differentiable parameter; False: no damping in the model at
         # all (nothing compiled for it -- "model no more than a scene needs")
@@ -188,6 +189,9 @@ class Simulation(eqx.Module):
         x = jnp.asarray(particles.x)
         d = self.grid.dim
         check(x.ndim == 2 and x.shape[1] == d, f"Simulation.init: particles have shape {x.shape}; the grid is {d}D")
+        check(particles.axisymmetric == self.grid.axisymmetric,  # 001 §7: masses and volumes per radian
+              f"Simulation.init: the grid has axisymmetric={self.grid.axisymmetric} but the particles "
+              f"axisymmetric={particles.axisymmetric}; fill them on this grid (jm.fill(grid, ...))")
         xc = concrete(x)
         if xc is not None:
             with jax.ensure_compile_time_eval():  # concrete positions: check even inside jit
@@ -225,10 +229,11 @@ class Simulation(eqx.Module):
                          else f.initial_value(x)) for name, f in declared.items()}
         for term in self.terms:
             term.check_fields(values)
+        dF = d + self.grid.axisymmetric  # axisymmetric: F is 3x3 in (r, z, theta), 001 §7
         return State(
             x=x,
             v=jnp.asarray(particles.v, dtype),
-            F=jnp.broadcast_to(jnp.eye(d, dtype=dtype), (n, d, d)),
+            F=jnp.broadcast_to(jnp.eye(dF, dtype=dtype), (n, dF, dF)),
             mass=mass.astype(dtype),
             volume0=volume.astype(dtype),
             time=jnp.zeros((), dtype),

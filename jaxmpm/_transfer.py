@@ -171,6 +171,7 @@ class Transfer(eqx.Module):
     particle_mass: jnp.ndarray  # M_p, (N,)
     nodal_mass: jnp.ndarray  # m_i = sum_p S_pi M_p, (n,)
     num_nodes: int = eqx.field(static=True)
+    images: object = None  # mirror planes (jaxmpm._boundary.MirrorMap): nodal sums fold in the particles' images
 
     @classmethod
     def build(cls, stencil: Stencil, particle_mass, num_nodes: int) -> "Transfer":
@@ -194,8 +195,13 @@ class Transfer(eqx.Module):
         return self.particle_mass[:, None] * self.gather(a)
 
     def s_plus(self, U):
-        """(S+ U)_i = sum_p S_pi M_p U_p / m_i  (000 eq. 1.10)."""
-        return safe_divide(self.momentum(U), self.nodal_mass)
+        """(S+ U)_i = sum_p S_pi M_p U_p / m_i  (000 eq. 1.10); with mirror planes the sum includes
+        the particles' images (m_i is then the folded mass too)."""
+        return safe_divide(self.fold(self.momentum(U)), self.nodal_mass)
+
+    def fold(self, q):
+        """A nodal sum of the particles plus that of their mirror images (jm.Mirror), or ``q``."""
+        return q if self.images is None else self.images.fold(q)
 
     def s_plus_s(self, u):
         """S+ S u: gather to the particles, then mass-weighted scatter back (000 eq. 3.19)."""

@@ -56,7 +56,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from ._boundary import NodeSet, _select
+from ._boundary import NodeSet, _select, mirror_nodes, node_plane
 from ._errors import check
 from ._fields import ParticleField
 from ._registry import Parameter, register_term
@@ -236,20 +236,12 @@ class Transport(Term):
         for c in self.boundary:
             if not (isinstance(c, Dirichlet) and c.mirror is not None):
                 continue
-            axis, position = c.mirror
-            check(axis < grid.dim, f"Dirichlet: mirror axis {axis} on a {grid.dim}D grid")
-            plane = (position - grid.lower[axis]) / grid.spacing[axis]
-            check(abs(plane - round(plane)) < 1e-9, f"Dirichlet: mirror position {position} is not a node plane "
-                                                    f"of axis {axis} (nodes every {grid.spacing[axis]:g})")
-            plane = int(round(plane))
-            selected = _select(grid, c.where, c.layers)
-            beyond = selected & (index[:, axis] != plane)
-            reflected = index[beyond].copy()
-            reflected[:, axis] = 2 * plane - reflected[:, axis]
-            check(np.all((reflected[:, axis] >= 0) & (reflected[:, axis] < grid.node_shape[axis])),
-                  "Dirichlet: a mirrored node falls off the grid; select fewer node layers beyond the plane")
-            ghosts.append(np.nonzero(beyond)[0])
-            mirrors.append(np.ravel_multi_index(tuple(reflected.T), grid.node_shape))
+            axis, position = c.mirror  # the index map of jm.Mirror's images (jaxmpm._boundary)
+            plane = node_plane(grid, axis, position, "Dirichlet")
+            beyond = _select(grid, c.where, c.layers) & (index[:, axis] != plane)
+            ghost, mirror = mirror_nodes(grid, axis, plane, beyond, "Dirichlet")
+            ghosts.append(ghost)
+            mirrors.append(mirror)
         if not ghosts:
             return np.zeros(0, int), np.zeros(0, int)
         n = grid.num_nodes

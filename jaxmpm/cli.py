@@ -111,7 +111,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--alpha-p", type=float, default=None, metavar="A",
                      help="particle damping alpha_p in 1/time (default 0)")
     run.add_argument("--shape", default=None, choices=list(SHAPES.names()), help="shape function " + _defaults("shape"))
-    run.add_argument("--update", default=None, choices=["USL", "USF", "MUSL"], help="stress update " + _defaults("update"))
+    run.add_argument("--update", default=None, choices=["USL", "USF", "MUSL", "USAVG-", "USAVG+"], help="stress update " + _defaults("update"))
     run.add_argument("--cells", type=int, default=None, metavar="N", help="cells along each axis " + _defaults("cells"))
     run.add_argument("--spacing", type=float, default=None, metavar="H", help="grid spacing " + _defaults("spacing"))
     run.add_argument("--ppc", type=int, default=None, metavar="N",

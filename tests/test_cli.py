@@ -55,7 +55,7 @@ def test_part_defaults_are_what_the_scenes_build(scene):
              "rings": dict(spacing=1.0), "mpm88": dict(n_particles=64, n_grid=8), "mms": dict(cells=4),
              "vortex": dict(spacing=0.25), "bars_impact": dict(cells=4), "slide": dict(spacing=0.1),
              "heat1d": dict(cells=4), "heat_step": dict(cells=4), "diffusion2d": dict(cells=4),
-             "thermal_bar": dict(cells=4)}[scene]
+             "thermal_bar": dict(cells=4), "cylinder": dict(cells=4)}[scene]
     setup = jm.scene(scene, t_end=1e-3, frames=1, **small)
     assert jm.scheme_from_name(PART_DEFAULTS[scene]["scheme"]).__class__ is type(setup.sim.scheme)
     ppc = getattr(setup.sim.shape, "ppc", None)
@@ -66,7 +66,8 @@ def test_part_defaults_are_what_the_scenes_build(scene):
 def test_help_shows_each_scenes_default():
     text = build_parser()._subparsers._group_actions[0].choices["run"].format_help()
     flat = " ".join(text.split())
-    assert ("(default: bar 16, mms 16, bars_impact 32, heat1d 32, heat_step 64, diffusion2d 16, thermal_bar 32; "
+    assert ("(default: bar 16, mms 16, bars_impact 32, heat1d 32, heat_step 64, diffusion2d 16, thermal_bar 32, "
+            "cylinder 32; "
             "other scenes do not take it)") in flat  # --cells
     assert "(default: heat1d 1, heat_step 1; other scenes do not take it)" in flat  # --conductivity
     assert "mpm88 apic" in flat and "disks ugimp" in flat

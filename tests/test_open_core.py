@@ -80,7 +80,7 @@ def test_new_scheme_runs_through_scene_params_calibrate_and_hdf5(tmp_path):
 def test_scheme_specs_are_parsed_strictly():
     assert isinstance(jm.scheme_from_name("xpic:5"), jm.XPIC) and jm.scheme_from_name("xpic:5").order == 5
     for spec, words in [("pic:3", "takes no ':' argument"), ("flip:0.5", "takes no ':' argument"),
-                        ("", "give one of"), ("fmpm:1.5", "order must be a positive integer"), ("xpic:two", "order must be a positive integer"), ("blend:x", "must be a number"),
+                        ("", "give one of"), ("fmpm:1.5", "order must be a non-negative integer"), ("xpic:two", "order must be a non-negative integer"), ("blend:x", "must be a number"),
                         ("foo", "unknown scheme")]:
         with pytest.raises(jm.InputError, match=words):
             jm.scheme_from_name(spec)

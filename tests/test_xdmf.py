@@ -27,6 +27,7 @@ SMALL = {
     "heat_step": dict(cells=4, t_end=0.01),
     "diffusion2d": dict(cells=4, t_end=0.01),
     "thermal_bar": dict(cells=4, t_end=0.01),
+    "cylinder": dict(cells=4, t_end=0.01),
 }
 
 

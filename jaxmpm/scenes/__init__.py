@@ -9,6 +9,7 @@ from __future__ import annotations
 from ._common import Setup, cast_state, resolve_dtype
 from .bar import bar
 from .bars_impact import bars_impact
+from .cylinder import cylinder
 from .disks import disks
 from .mms import mms
 from .mpm88 import mpm88
@@ -24,7 +25,8 @@ SCENES = {
     "spin": (spin, "force-free (or elastic) spinning disk: angular momentum and kinetic energy"),
     "rings": (rings, "two neo-Hookean rings collide at +-30: total energy per scheme"),
     "mpm88": (mpm88, "Taichi's mpm88 fluid (APIC, 8192 particles, 128^2 grid): throughput"),
-    "mms": (mms, "Wallstedt & Guilkey 2008 axis-aligned manufactured solution on [0,1]^D: displacement error"),
+    "mms": (mms, "Wallstedt & Guilkey 2008 axis-aligned manufactured solution on [0,1]^D: displacement error "
+                 "(velocity='linear': 1D uniform stretch, velocity linear in X)"),
     "vortex": (vortex, "generalized vortex (Kamojjala & Brannon): ring returns to its start at t = T"),
     "bars_impact": (bars_impact, "two 1D elastic bars meet at +-v0: contact lasts 2L/c, velocities exchanged"),
     "slide": (slide, "elastic block slides on a slab under gravity tilted by theta: "
@@ -33,6 +35,8 @@ SCENES = {
     "heat_step": (heat_step, "rod whose end is held hot from t = 0: T = T_s erfc(x / (2 sqrt(a t)))"),
     "diffusion2d": (diffusion2d, "unit square, boundary held at mu = 1: double sine series (001 §9)"),
     "thermal_bar": (thermal_bar, "free bar heated by dT expands by alpha_T dT L"),
+    "cylinder": (cylinder, "axisymmetric thick-walled cylinder under internal pressure, damped to Lame's "
+                           "u_r(r) and sigma_tt(r) (001 §7)"),
 }
 
 

@@ -61,6 +61,7 @@ PART_DEFAULTS = {
     "heat_step": {"scheme": "flip", "shape": "linear"},
     "diffusion2d": {"scheme": "flip", "shape": "linear"},
     "thermal_bar": {"scheme": "flip", "shape": "ugimp"},
+    "cylinder": {"scheme": "flip", "shape": "ugimp"},
 }
 
 #: the ``contact`` option of the multimaterial scenes: "none" keeps one velocity field (the model of a

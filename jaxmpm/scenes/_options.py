@@ -99,6 +99,7 @@ OPTION_CHECKS = {
     # motions and loads (any sign)
     "speed": _range(FINITE), "v0": _range(FINITE), "omega": _range(FINITE), "amplitude": _range(FINITE),
     "gravity": _range(FINITE),
+    "pressure": _range(FINITE, "the pressure, force per area"),
     "phases": _finite_list,
     "theta": _range(Range(0, 90, high_open=True), "the slope angle in degrees"),
     # contact between the bodies of a two-body scene (jaxmpm/_contact.py)

@@ -3,6 +3,12 @@
 E = 100, rho = 1, L = 25, v0 = 0.1, beta1 = pi/(2L), omega = beta1 sqrt(E/rho),
 V(x, 0) = v0 sin(beta1 x), x = 0 fixed.  Exact centre-of-mass velocity (modal solution of the
 1D wave equation): v_cm(t) = v0 / (beta1 L) cos(omega t).
+
+The fixed end (``boundary``): ``"fixed"`` (default) zeroes the velocity on the nodes at and below
+x = 0 (:class:`jaxmpm.Fixed`), exact for linear shapes; B-splines reach the node beyond the end,
+whose zero velocity is not the odd continuation of the solution (u(-x) = -u(x)), and lose an
+O(h) error there.  ``"mirror"`` makes x = 0 a symmetry plane (:class:`jaxmpm.Mirror`): the bar's
+mirror image continues it oddly, so B-splines see the exact solution's symmetry.
 """
 
 from __future__ import annotations
@@ -11,7 +17,8 @@ import math
 
 import numpy as np
 
-from .._boundary import Fixed
+from .._boundary import Fixed, Mirror
+from .._errors import check
 from .._grid import Grid
 from .._materials import LinearElastic
 from .._particles import Box, fill
@@ -40,9 +47,12 @@ def bar(
     density: float = RHO,
     v0: float = V0,
     length: float = LENGTH,
+    boundary: str = "fixed",
 ) -> Setup:
     """The fixed-free bar with ``cells`` cells along its length and ``ppc`` particles per cell;
-    dt = cfl * h / c."""
+    dt = cfl * h / c; ``boundary`` "fixed" or "mirror" (module docstring)."""
+    check(boundary in ("fixed", "mirror"), f"bar: boundary = {boundary!r}; use 'fixed' (jm.Fixed on x <= 0) or "
+                                           "'mirror' (x = 0 a symmetry plane, jm.Mirror: for B-splines)")
     dtype = resolve_dtype(dtype)
     scheme = FLIP() if scheme is None else scheme
     shape = Linear() if shape is None else shape
@@ -54,7 +64,7 @@ def bar(
     grid = Grid.covering((0.0,), (length + h + 2.0 * v0 / omega,), h, shape=shape)
     particles = fill(grid, Box((0.0,), (length,)), ppc=ppc, velocity=lambda x: v0 * np.sin(beta1 * x))
     tol = 1e-9 * length
-    fixed = Fixed(where=lambda x: x[:, 0] <= tol)  # resolved to its nodes by the Simulation
+    fixed = Fixed(where=lambda x: x[:, 0] <= tol) if boundary == "fixed" else Mirror("x-", 0.0)
     sim = Simulation(grid=grid, shape=shape, material=LinearElastic(E=E, nu=0.0, density=density),
                      scheme=scheme, damping=damping, update=update, boundary=fixed)
     state = cast_state(sim.init(particles), dtype)
@@ -66,5 +76,5 @@ def bar(
         return v0 / (beta1 * length) * np.cos(omega * np.asarray(t))
 
     params = dict(E=E, density=density, length=length, v0=v0, beta1=beta1, omega=omega, cells_along_bar=cells,
-                  ppc=ppc, cfl=cfl, t_end=steps * dt)
+                  ppc=ppc, cfl=cfl, t_end=steps * dt, boundary=boundary)
     return Setup("bar", sim, state, dt, steps, save_every, params, reference, particles)

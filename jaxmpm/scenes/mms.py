@@ -39,7 +39,7 @@ no change to the core, and is a plain static callable (hashable by value, so equ
 compiled code).  The alternative -- inverting x = X + u(X, t) by Newton's method -- would
 evaluate b at the numerically perturbed X and only works while the map is invertible.
 
-Boundary: u = 0 on X_i = 0 and X_i = 1.  Two treatments (``boundary``):
+Boundary: u = 0 on X_i = 0 and X_i = 1.  Three treatments (``boundary``):
 
 * ``"walls"`` (default): the body is [0, 1]^D and the grid nodes on and beyond the planes X_a = 0, 1
   get zero normal velocity (:class:`jaxmpm.Slip` with a plane selector, like the ``bar`` scene's
@@ -57,6 +57,10 @@ Boundary: u = 0 on X_i = 0 and X_i = 1.  Two treatments (``boundary``):
   stress vanishes only if the axes do not couple: F_ii = 1 there, but P_ii carries lambda ln J from
   the other axes, so this mode needs dim = 1 or nu = 0.  The errors (``reference.errors``) are then
   measured on the particles inside [0, 1]^D only.  Needs an even number of cells (a node on X = 0).
+* ``"mirror"``: the body is [0, 1]^D and the planes X_a = 0, 1 are symmetry planes
+  (:class:`jaxmpm.Mirror`): the particles' mirror images are folded onto the grid, so the nodes
+  beyond a wall carry the odd (normal) / even (tangential) reflection of the exact solution's
+  symmetry -- the extension done in the core, for any dim and nu (no outer free faces).
 
 Time step: dt = cfl h / (c_d + A c pi) with c_d = sqrt((lambda + 2 mu)/rho0), then shortened so
 that a whole number of steps lands exactly on t_end (default: one period 2/c).  Note for error
@@ -77,7 +81,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._boundary import Slip
+from .._boundary import Mirror, Slip
 from .._errors import check
 from .._limits import require_steps
 from .._grid import Grid
@@ -232,6 +236,11 @@ def walls(dim: int, h: float, outside: bool = False) -> tuple:
     return tuple(Slip(_plane(a, v, outside, tol), axis=a) for a in range(dim) for v in (0.0, 1.0))
 
 
+def mirrors(dim: int) -> tuple:
+    """Symmetry planes X_a = 0 and X_a = 1 of every axis a (the body between them)."""
+    return tuple(Mirror(f"{'xyz'[a]}{side}", v) for a in range(dim) for side, v in (("-", 0.0), ("+", 1.0)))
+
+
 # --------------------------------------------------------------------------- helpers
 def schedule_exact(t_end: float, dt_max: float, frames: int) -> tuple[float, int, int]:
     """(dt, steps, save_every): ``frames`` frames, dt <= dt_max, steps * dt = t_end exactly."""
@@ -283,15 +292,26 @@ def mms(
     E: float = E,
     nu: float = NU,
     density: float = RHO0,
+    velocity: str = "sine",
 ) -> Setup:
     """The axis-aligned MMS on [0, 1]^dim with ``cells`` cells per unit length and ``ppc``
     particles per cell per axis; ``phases`` default to (0, 2 pi/3, 4 pi/3)[:dim]; ``t_end`` to one
-    period 2/c; ``boundary`` is ``"walls"`` or ``"extended"`` (see the module docstring).
+    period 2/c; ``boundary`` is ``"walls"``, ``"extended"`` or ``"mirror"`` (see the module docstring).
     ``setup.reference(X, t) -> (u, v)`` is the exact solution (``setup.reference.X`` the particles'
-    reference positions, ``setup.reference.errors`` the RMS particle errors)."""
+    reference positions, ``setup.reference.errors`` the RMS particle errors).  ``velocity="linear"``
+    builds instead the 1D uniform-stretch MMS u = A X sin(c pi t) (velocity linear in space, X = 0
+    held, X = 1 loaded by the exact traction; :mod:`jaxmpm.scenes.mms_linear`)."""
     check(dim in (1, 2, 3), f"mms: dim = {dim!r}; use 1, 2 or 3")
+    check(velocity in ("sine", "linear"), f"mms: velocity = {velocity!r}; use 'sine' (Wallstedt & Guilkey) or "
+                                          "'linear' (a uniform stretch, jaxmpm/scenes/mms_linear.py)")
+    if velocity == "linear":  # 003 §2.3.4's "MMS with linear velocities"
+        from .mms_linear import linear_mms
+
+        return linear_mms(dim, cells, ppc, shape, scheme, amplitude, phases, t_end, cfl, dt, update, damping,
+                          boundary, dtype, frames, E, nu, density)
     check(isinstance(cells, (int, np.integer)) and cells >= 1, f"mms: cells = {cells!r} must be a positive integer")
-    check(boundary in ("walls", "extended"), f"mms: boundary = {boundary!r}; use 'walls' or 'extended'")
+    check(boundary in ("walls", "extended", "mirror"),
+          f"mms: boundary = {boundary!r}; use 'walls', 'extended' or 'mirror'")
     check(0 <= amplitude < 1.0 / math.pi,
           f"mms: amplitude = {amplitude} must lie in [0, 1/pi) so that F = 1 + A pi cos(pi X) sin(...) stays > 0")
     extended = boundary == "extended"
@@ -316,7 +336,8 @@ def mms(
     X = np.asarray(particles.x, dtype=np.float64)
     force = ManufacturedForce(motion, material, X)
     sim = Simulation(grid=grid, shape=shape, material=material, scheme=scheme, damping=damping, update=update,
-                     boundary=walls(dim, h, outside=not extended), body_force=force)
+                     boundary=mirrors(dim) if boundary == "mirror" else walls(dim, h, outside=not extended),
+                     body_force=force)
     state = start_deformed(sim, particles, motion, X, dtype)
     if t_end is None:
         t_end = 2.0 / c

@@ -27,6 +27,12 @@ class ParticleUpdate(eqx.Module):
     dissipated: jnp.ndarray  # energy dissipated by the update this step (scalar)
 
 
+def flip_energy_increment(Sa, Sv, dt):
+    """(S a dt) . (S v + S a dt / 2) per particle: the FLIP update's energy change per unit mass
+    (000 eq. 2.42), the reference :func:`dissipated_energy` measures against."""
+    return jnp.sum((Sa * dt) * (Sv + 0.5 * Sa * dt), axis=-1)
+
+
 def dissipated_energy(mass, Sa, Sv, dV, dX, dt):
     """Energy removed by a particle update relative to the non-dissipative FLIP update.
 
@@ -37,7 +43,7 @@ def dissipated_energy(mass, Sa, Sv, dV, dX, dt):
     including FMPM's VV = V^n (003 eq. 2.26).
     """
     safe_dt = jnp.where(dt > 0, dt, 1.0)
-    flip = jnp.sum((Sa * dt) * (Sv + 0.5 * Sa * dt), axis=-1)
+    flip = flip_energy_increment(Sa, Sv, dt)
     actual = jnp.sum(dV * dX, axis=-1) / safe_dt
     return jnp.sum(mass * (flip - actual))
 

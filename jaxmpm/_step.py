@@ -134,8 +134,8 @@ def nodal_terms(sim, state, transfer: Transfer) -> dict:
     """The terms' nodal fields alone (USF: after the strain update), in one scatter-add."""
     nodal = scatter_columns(transfer.stencil, lambda s: term_columns(sim, s, transfer.stencil), transfer.num_nodes,
                             state)
-    return {k: transfer.fold(v) if k == "force" else v
-            for k, v in with_surface_forces(sim, state, nodal, transfer.nodal_mass).items()}
+    nodal = with_surface_forces(sim, state, nodal, transfer.nodal_mass)
+    return nodal if transfer.images is None else transfer.images.fold_columns(nodal)  # as in p2g
 
 
 def grid_solve(fields: GridFields, force, dt, constraint: Constraint) -> GridSolution:
@@ -145,14 +145,14 @@ def grid_solve(fields: GridFields, force, dt, constraint: Constraint) -> GridSol
     m = fields.transfer.nodal_mass
     if fields.updated_momentum is not None:
         return GridSolution(v=None, a=None, v_tilde=constraint.apply(safe_divide(fields.updated_momentum, m)))
+    v_lumped, a_lumped = safe_divide(fields.momentum, m), safe_divide(force, m)
     # p+/m before any condition: FMPM's unlumped boundary variants start from it (003 §2.4)
-    unconstrained = safe_divide(fields.momentum, m) + safe_divide(force, m) * dt
+    unconstrained = v_lumped + a_lumped * dt
     if constraint.wall is not None:  # one-sided walls act on v_tilde, as contact (jm.Wall)
-        v, a, v_tilde = constraint.contact(constraint.apply_two_sided(safe_divide(fields.momentum, m)),
-                                           constraint.zero(safe_divide(force, m)), dt)
+        v, a, v_tilde = constraint.contact(constraint.apply_two_sided(v_lumped), constraint.zero(a_lumped), dt)
         return GridSolution(v=v, a=a, v_tilde=v_tilde, v_tilde_unconstrained=unconstrained)
-    v = constraint.apply(safe_divide(fields.momentum, m))
-    a = constraint.zero(safe_divide(force, m))
+    v = constraint.apply(v_lumped)
+    a = constraint.zero(a_lumped)
     return GridSolution(v=v, a=a, v_tilde=constraint.apply(v + a * dt), v_tilde_unconstrained=unconstrained)
 
 

@@ -39,6 +39,7 @@ import numpy as np
 from ._errors import check
 from ._fields import GridSolution
 from ._registry import Parameter, register_term
+from ._scheme_base import flip_energy_increment
 from ._transfer import particle_force_contributions, safe_divide, stress_divergence_contributions
 from ._validate import DAMPING, concrete
 
@@ -304,7 +305,7 @@ class Damping(Term):
         Sa = Sa_damped + transfer.gather(solution["grid_damping"])  # undamped S a
 
         def flip(A):  # M_p (S a dt) . (S v + S a dt / 2), 000 eq. (2.42)
-            return jnp.sum(transfer.particle_mass * jnp.sum((A * dt) * (Sv + 0.5 * A * dt), axis=-1))
+            return jnp.sum(transfer.particle_mass * flip_energy_increment(A, Sv, dt))
 
         return eqx.tree_at(lambda s: s.dissipated, new, new.dissipated + flip(Sa) - flip(Sa_damped))
 

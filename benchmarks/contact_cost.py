@@ -19,11 +19,12 @@ the best of ``--repeats`` interleaved rounds after a compiling call; compile tim
 from __future__ import annotations
 
 import argparse
-import csv
 import os
 import platform
 import time
 from pathlib import Path
+
+from _results import write_csv
 
 import jax
 
@@ -115,12 +116,7 @@ def main(argv=None):
     print(f"jax {jax.__version__} on {jax.default_backend()} ({platform.processor() or platform.machine()}, "
           f"{os.cpu_count()} CPUs)")
     rows = [r for case in args.cases for r in measure(case, args.quick, 2 if args.quick else args.repeats)]
-    args.csv.parent.mkdir(parents=True, exist_ok=True)
-    with open(args.csv, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=FIELDS)
-        writer.writeheader()
-        writer.writerows(rows)
-    print(f"wrote {args.csv}")
+    print(f"wrote {write_csv(args.csv, FIELDS, rows)}")
 
 
 if __name__ == "__main__":

@@ -16,12 +16,13 @@ the single compiled run's.  One saved frame per run, no particle frames.
 from __future__ import annotations
 
 import argparse
-import csv
 import os
 import platform
 import sys
 import time
 from pathlib import Path
+
+from _results import write_csv
 
 import jax
 
@@ -112,13 +113,7 @@ def main(argv=None) -> int:
         scene_rows = measure(scene, steps, BATCHES)
         print_rows(scene_rows)
         rows += scene_rows
-    path = Path(args.csv)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=FIELDS)
-        writer.writeheader()
-        writer.writerows(rows)
-    print(f"wrote {path}; load after: {os.getloadavg()}")
+    print(f"wrote {write_csv(args.csv, FIELDS, rows)}; load after: {os.getloadavg()}")
     return 0
 
 

@@ -2,6 +2,8 @@
 
 The gradient is d(final kinetic energy)/d(alpha_g) of the ``bar`` scene (FMPM(2) by default, 128 cells =
 256 particles so that the per-step state is not trivially small, v0 = 0.01) for 1k, 4k and 16k steps,
+or (``--scene disks`` / ``--scene mpm88``, ``--particles`` for mpm88) the derivative of the final kinetic
+energy with respect to a factor on the initial velocities,
 with ``sim.run(..., checkpoint=False)`` (every intermediate of every step is kept for the backward pass)
 and ``checkpoint=True`` (segments of about sqrt(steps) steps are recomputed: O(sqrt T) memory).
 
@@ -18,12 +20,12 @@ Each configuration runs in a fresh subprocess, which reports
     python benchmarks/gradient_memory.py            # 1k, 4k, 16k steps (about 2 minutes on 2 CPU cores)
     python benchmarks/gradient_memory.py --quick    # 1k and 4k steps
     python benchmarks/gradient_memory.py --scheme flip --cells 256 --csv /tmp/g.csv
+    python benchmarks/gradient_memory.py --scene mpm88 --scheme apic --particles 8192 --steps 1000
 """
 
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import os
 import platform
@@ -33,9 +35,12 @@ import sys
 import time
 from pathlib import Path
 
+from _results import write_csv
+
 DEFAULT_CSV = Path(__file__).resolve().parent / "results" / "gradient_memory.csv"
-SCHEMES = ("fmpm2", "flip")
-FIELDS = ["scheme", "cells", "particles", "steps", "checkpoint", "temp_MiB", "forward_temp_MiB", "rss_compile_MiB",
+SCHEMES = ("fmpm2", "flip", "xpic2", "apic")
+SCENES = ("bar", "disks", "mpm88")
+FIELDS = ["scene", "scheme", "cells", "particles", "steps", "checkpoint", "temp_MiB", "forward_temp_MiB", "rss_compile_MiB",
           "rss_peak_MiB", "baseline_rss_MiB", "compile_s", "grad_s", "forward_s", "ratio", "gradient", "load_1min"]
 
 
@@ -44,28 +49,38 @@ def peak_rss_mib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
-def build(scheme: str, cells: int):
-    """The bar scene and the loss of alpha_g; imports jax here so the parent process stays light."""
+def build(scene: str, scheme: str, size: int):
+    """The scene (``size``: the bar's cells, mpm88's particles; unused for disks) and the name and
+    value of the parameter differentiated ("amplitude": a factor on the initial velocities); imports
+    jax here so the parent process stays light."""
     import jax
 
     jax.config.update("jax_enable_x64", True)
     import jaxmpm as jm
 
-    chosen = {"fmpm2": jm.FMPM(order=2), "flip": jm.FLIP()}[scheme]
-    return jax, jm, jm.scene("bar", scheme=chosen, cells=cells, v0=0.01)
+    chosen = {"fmpm2": jm.FMPM(order=2), "flip": jm.FLIP(), "xpic2": jm.XPIC(order=2), "apic": jm.APIC()}[scheme]
+    if scene == "bar":
+        return jax, jm, jm.scene("bar", scheme=chosen, cells=size, v0=0.01), ("alpha_g", 0.01)
+    options = {"n_particles": size} if scene == "mpm88" else {}
+    return jax, jm, jm.scene(scene, scheme=chosen, **options), ("amplitude", 1.0)
 
 
-def child(scheme: str, cells: int, steps: int, checkpoint: bool) -> dict:
+def child(scene: str, scheme: str, size: int, steps: int, checkpoint: bool) -> dict:
     """One configuration, measured in this (fresh) process."""
-    jax, jm, setup = build(scheme, cells)
+    jax, jm, setup, (name, value) = build(scene, scheme, size)
+    import equinox as eqx
     import jax.numpy as jnp
 
-    def loss(alpha_g):
-        sim = jm.set_params(setup.sim, alpha_g=alpha_g)
-        final, _ = sim.run(setup.state, setup.dt, steps, steps, save_particles=False, checkpoint=checkpoint)
+    def loss(p):
+        state = setup.state
+        if name == "amplitude":
+            sim, state = setup.sim, eqx.tree_at(lambda s: s.v, state, p * state.v)
+        else:
+            sim = jm.set_params(setup.sim, **{name: p})
+        final, _ = sim.run(state, setup.dt, steps, steps, save_particles=False, checkpoint=checkpoint)
         return jm.kinetic_energy(final)
 
-    x = jnp.asarray(0.01)
+    x = jnp.asarray(value)
     start = time.perf_counter()
     grad = jax.jit(jax.grad(loss)).lower(x).compile()
     compile_s = time.perf_counter() - start
@@ -83,7 +98,8 @@ def child(scheme: str, cells: int, steps: int, checkpoint: bool) -> dict:
 
     grad_s, forward_s = best(grad), best(forward)
     return dict(
-        scheme=scheme, cells=cells, particles=int(setup.state.x.shape[0]), steps=steps, checkpoint=checkpoint,
+        scene=scene, scheme=scheme, cells=size if scene == "bar" else None, particles=int(setup.state.x.shape[0]),
+        steps=steps, checkpoint=checkpoint,
         temp_MiB=grad.memory_analysis().temp_size_in_bytes / 2**20,
         forward_temp_MiB=forward.memory_analysis().temp_size_in_bytes / 2**20,
         rss_compile_MiB=rss_compile, rss_peak_MiB=peak_rss_mib(), compile_s=compile_s, grad_s=grad_s,
@@ -91,9 +107,9 @@ def child(scheme: str, cells: int, steps: int, checkpoint: bool) -> dict:
     )
 
 
-def baseline(scheme: str, cells: int) -> dict:
+def baseline(scene: str, scheme: str, size: int) -> dict:
     """Imports and the scene, nothing compiled: the memory every child starts from."""
-    build(scheme, cells)
+    build(scene, scheme, size)
     return dict(rss_peak_MiB=peak_rss_mib())
 
 
@@ -117,7 +133,9 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="1k and 4k steps only")
     parser.add_argument("--steps", type=int, nargs="+", default=None, help="step counts (default 1000 4000 16000)")
+    parser.add_argument("--scene", choices=SCENES, default="bar")
     parser.add_argument("--cells", type=int, default=128, help="cells along the bar (2 particles each)")
+    parser.add_argument("--particles", type=int, default=8192, help="mpm88's particles")
     parser.add_argument("--scheme", choices=SCHEMES, default="fmpm2")
     parser.add_argument("--csv", default=str(DEFAULT_CSV))
     parser.add_argument("--child", nargs="+", help=argparse.SUPPRESS)
@@ -125,22 +143,24 @@ def main(argv=None) -> int:
 
     if args.child:  # internal: one measurement, printed as JSON
         if args.child[0] == "baseline":
-            result = baseline(args.child[1], int(args.child[2]))
+            result = baseline(args.child[1], args.child[2], int(args.child[3]))
         else:
-            scheme, cells, steps, checkpoint = args.child
-            result = child(scheme, int(cells), int(steps), checkpoint == "True")
+            scene, scheme, size, steps, checkpoint = args.child
+            result = child(scene, scheme, int(size), int(steps), checkpoint == "True")
         print(json.dumps(result))
         return 0
 
     steps_list = args.steps or ([1000, 4000] if args.quick else [1000, 4000, 16000])
-    print(f"bar, {args.scheme}, {args.cells} cells, float64; python {platform.python_version()}, "
+    size = args.cells if args.scene == "bar" else args.particles
+    what = f"{args.cells} cells" if args.scene == "bar" else f"{args.particles} particles" if args.scene == "mpm88" else ""
+    print(f"{args.scene}, {args.scheme}, {what}, float64; python {platform.python_version()}, "
           f"{os.cpu_count()} CPUs; load {os.getloadavg()}")
-    base = in_subprocess("baseline", args.scheme, args.cells)["rss_peak_MiB"]
+    base = in_subprocess("baseline", args.scene, args.scheme, size)["rss_peak_MiB"]
     print(f"baseline process (imports + scene, nothing compiled): peak RSS {base:.1f} MiB")
     rows = []
     for steps in steps_list:
         for checkpoint in (False, True):
-            row = in_subprocess(args.scheme, args.cells, steps, checkpoint)
+            row = in_subprocess(args.scene, args.scheme, size, steps, checkpoint)
             row["rss_compile_MiB"] -= base
             row["rss_peak_MiB"] -= base
             row["baseline_rss_MiB"] = base
@@ -152,13 +172,7 @@ def main(argv=None) -> int:
         print(f"{steps:6d} steps: checkpointing keeps {remat['temp_MiB'] / plain['temp_MiB']:.4f} of the temporaries, "
               f"costs {remat['grad_s'] / plain['grad_s']:.2f}x the time; same gradient: "
               f"{abs(remat['gradient'] - plain['gradient']) <= 1e-10 * abs(plain['gradient'])}")
-    path = Path(args.csv)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=FIELDS)
-        writer.writeheader()
-        writer.writerows(rows)
-    print(f"wrote {path}; load after: {os.getloadavg()}")
+    print(f"wrote {write_csv(args.csv, FIELDS, rows)}; load after: {os.getloadavg()}")
     return 0
 
 

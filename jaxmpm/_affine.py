@@ -33,8 +33,9 @@ from ._errors import check
 from ._registry import register_scheme
 from ._scheme_base import ParticleUpdate, Scheme
 from ._shapes import StencilBase as Stencil
+from ._shapes import rows
 from ._state import with_scheme_state
-from ._transfer import Transfer, nodal_values, sum_over_stencil, to_particle_major
+from ._transfer import Transfer, nodal_values, per_slot, sum_over_stencil, to_particle_major
 
 
 # Per-particle (D, D) matrices are handled "planar" here, as (D, D, N) (see Stencil): every entry
@@ -81,7 +82,8 @@ def _planar_matmul(A, B):
 def _planar_matvec(A, x):
     """A_p x_pk for planar A (D, D, N) and slot vectors x (D, K, N): (D, K, N)."""
     d = A.shape[0]
-    return jnp.stack([sum(A[i, j][None] * x[j] for j in range(d)) for i in range(d)])
+    A, x = [rows(r) for r in rows(A)], rows(x)
+    return jnp.stack([sum(A[i][j][None] * x[j] for j in range(d)) for i in range(d)])
 
 
 def _inertia_planar(stencil: Stencil):
@@ -106,7 +108,7 @@ def affine_weights(stencil: Stencil):
     0/0 when a particle sits on a grid line (see the module docstring)."""
     if stencil.nodes_per_axis == 2:
         return stencil.gradient
-    return stencil.weight * _planar_matvec(_planar_inverse(_inertia_planar(stencil)), stencil.offset)
+    return per_slot(stencil.weight, _planar_matvec(_planar_inverse(_inertia_planar(stencil)), stencil.offset))
 
 
 def apic_node_velocity(stencil: Stencil, B):
@@ -115,17 +117,17 @@ def apic_node_velocity(stencil: Stencil, B):
     if stencil.nodes_per_axis == 2:
         return _planar_matvec(B, stencil.gradient)  # S_pi D_p^-1 (x_i - X_p) = G_pi
     C = materialise(_planar_matmul(B, _planar_inverse(_inertia_planar(stencil))))  # B_p D_p^-1, once per particle
-    return stencil.weight * _planar_matvec(C, stencil.offset)
+    return per_slot(stencil.weight, _planar_matvec(C, stencil.offset))
 
 
 def taylor_node_velocity(stencil: Stencil, C):
     """c_pi = S_pi C_p (x_i - X_p), planar (D, K, N)."""
-    return stencil.weight * _planar_matvec(materialise(to_planar(C)), stencil.offset)
+    return per_slot(stencil.weight, _planar_matvec(materialise(to_planar(C)), stencil.offset))
 
 
 def affine_momentum_contributions(stencil: Stencil, mass, velocity, per_node_velocity):
     """M_p (S_pi V_p + c_pi) per slot, planar (D, K, N), with c_pi the affine part at node i."""
-    return mass * (stencil.weight * materialise(velocity.T)[:, None, :] + per_node_velocity)
+    return mass * (per_slot(stencil.weight, materialise(velocity.T)) + per_node_velocity)
 
 
 def affine_velocity_moment(stencil: Stencil, v):

@@ -18,12 +18,22 @@ policy's business:
 ``Simulation(..., backend="auto" | "cpu" | "gpu")`` picks the policy; ``"auto"`` resolves from
 ``jax.default_backend()`` when the step is traced.  Both policies give the same numbers: a
 boundary changes where values are computed, not how (tests/test_open_core.py, 1e-12).
+
+The *adjoint* (``Simulation(..., adjoint=...)``) picks how reverse mode differentiates the
+transfer layer; it too changes speed, never results (tests/test_adjoint.py, 1e-10):
+
+* ``"structured"`` (default): the transfer layer's building blocks carry their own JVP rules
+  (:func:`derivative_rule`), written so that their transposes are the cheap adjoint operations --
+  a broadcast for a sum over the stencil, row products and adds for the tensor-product shape
+  functions, and boundaries that hold only primal values.  JAX transposes the rest as usual.
+* ``"autodiff"``: JAX differentiates the forward code as written (the reference path).
 """
 
 from __future__ import annotations
 
 import contextlib
 import contextvars
+from functools import partial, wraps
 
 import jax
 import jax.numpy as jnp
@@ -63,9 +73,7 @@ def materialise(arrays):
     consumers under the CPU policy; the identity under the GPU policy."""
     if active() != "cpu":
         return arrays
-    leaves = jax.tree_util.tree_leaves(arrays)
-    always = _always_true(leaves[0])
-    return jax.lax.cond(always, lambda a: a, lambda a: jax.tree_util.tree_map(jnp.zeros_like, a), arrays)
+    return _held(arrays) if structured() else _barrier(lambda a: a, arrays)
 
 
 def evaluate_once(fn, *args):
@@ -74,13 +82,81 @@ def evaluate_once(fn, *args):
     under the GPU policy."""
     if active() != "cpu":
         return fn(*args)
-    leaves = jax.tree_util.tree_leaves(args)
-    x = next(leaf for leaf in leaves if jnp.issubdtype(leaf.dtype, jnp.floating))
-    out = jax.eval_shape(fn, *args)
-    return jax.lax.cond(_always_true(x), fn,
-                        lambda *a: jax.tree_util.tree_map(lambda o: jnp.zeros(o.shape, o.dtype), out), *args)
+    if not structured():
+        return _barrier(lambda a: fn(*a), args)
+    closed, consts = jax.closure_convert(fn, *args)
+    return _held_computation(closed, tuple(consts), args)
+
+
+def _barrier(fn, operands):
+    """``fn(operands)`` inside a conditional that is always taken (see the module docstring)."""
+    floats = [leaf for leaf in jax.tree_util.tree_leaves(operands) if jnp.issubdtype(leaf.dtype, jnp.floating)]
+    out = jax.eval_shape(fn, operands)
+    return jax.lax.cond(_always_true(floats[0]), fn,
+                        lambda _: jax.tree_util.tree_map(lambda o: jnp.zeros(o.shape, o.dtype), out), operands)
 
 
 def _always_true(x):
     """``not (x[0] > +inf)``: true for every float, NaN included, and not foldable by XLA."""
     return jnp.logical_not(x.reshape(-1)[0] > jnp.inf)
+
+
+# Boundaries under the structured adjoint.  Under differentiation a boundary holds the primal
+# values only; tangents (and so, transposed, cotangents) pass by ordinary fusion.  A conditional in
+# the linearised program would make every residual leave it through a buffer of its own, and its
+# transpose would be a second conditional that runs the branch again.
+
+
+@jax.custom_jvp
+def _held(arrays):
+    return _barrier(lambda a: a, arrays)
+
+
+@_held.defjvp
+def _held_jvp(primals, tangents):
+    (arrays,), (arrays_dot,) = primals, tangents
+    return _held(arrays), arrays_dot
+
+
+@partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _held_computation(closed, consts, args):
+    return _barrier(lambda ca: closed(*ca[1], *ca[0]), (consts, args))
+
+
+@_held_computation.defjvp
+def _held_computation_jvp(closed, primals, tangents):
+    out, out_dot = jax.jvp(lambda c, a: closed(*a, *c), primals, tangents)
+    return _held(out), out_dot
+
+
+# ------------------------------------------------------------------ the adjoint
+ADJOINTS = ("structured", "autodiff")
+
+_adjoint = contextvars.ContextVar("jaxmpm_adjoint", default="structured")
+
+
+@contextlib.contextmanager
+def use_adjoint(adjoint: str):
+    """Trace the enclosed code with the derivative rules of ``adjoint`` (see the module docstring)."""
+    check(adjoint in ADJOINTS, f"adjoint = {adjoint!r}; choose one of {', '.join(ADJOINTS)}")
+    token = _adjoint.set(adjoint)
+    try:
+        yield
+    finally:
+        _adjoint.reset(token)
+
+
+def structured() -> bool:
+    """Whether code being traced now uses the structured derivative rules."""
+    return _adjoint.get() == "structured"
+
+
+def derivative_rule(plain, ruled):
+    """``ruled`` (a ``jax.custom_jvp`` of the same function as ``plain``) under the structured
+    adjoint, ``plain`` under ``"autodiff"``; both give the same values."""
+
+    @wraps(plain)
+    def dispatch(*args):
+        return (ruled if structured() else plain)(*args)
+
+    return dispatch

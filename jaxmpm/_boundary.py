@@ -151,9 +151,10 @@ class MirrorMap(eqx.Module):
         return u
 
     def fold_columns(self, nodal: dict) -> dict:
-        """``fold`` of the velocity field's nodal columns (mass, momentum, force); the terms' own
-        columns (transport) keep their own conditions."""
-        return {k: self.fold(v) if k in ("mass", "momentum", "updated_momentum", "force") else v
+        """``fold`` of the velocity field's nodal columns (mass, momentum, force, and the force
+        approach's damping rate, a mass-weighted sum divided by the folded mass, 001 eq. 107); the
+        terms' own columns (transport) keep their own conditions."""
+        return {k: self.fold(v) if k in ("mass", "momentum", "updated_momentum", "force", "damping_rate") else v
                 for k, v in nodal.items()}
 
 

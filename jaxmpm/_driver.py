@@ -81,7 +81,7 @@ def check_state(state) -> None:
 
 
 def rollout(sim, state: State, dt, frames: int, save_every: int = 1, save_particles: bool = True,
-            checkpoint=True):
+            checkpoint=True, history_gradients: bool = True):
     """Pure ``lax.scan`` rollout of ``frames * save_every`` steps.  Returns
     ``(final_state, history, failure)``; ``history`` holds the initial frame and one frame
     every ``save_every`` steps (``frames + 1`` in all).
@@ -91,6 +91,10 @@ def rollout(sim, state: State, dt, frames: int, save_every: int = 1, save_partic
     steps, so the gradient stores O(frames + sqrt(save_every)) states instead of every
     intermediate of every step; an int sets the segment length (a divisor of save_every);
     ``False`` stores everything (fastest for short rollouts).
+
+    ``history_gradients=False`` makes the saved frames constants to autodiff (``stop_gradient``):
+    a loss of the final state alone then carries no pullback of the diagnostics, and no frame
+    holds residuals.  The instability record is never differentiated (its outputs are integers).
     """
     sim = sim.in_precision(state.x.dtype)  # the model computes in its state's precision
     dt = jnp.asarray(dt, state.x.dtype)
@@ -102,7 +106,7 @@ def rollout(sim, state: State, dt, frames: int, save_every: int = 1, save_partic
     def one_step(carry, _):
         s, fail = carry
         s = sim.step(s, dt)
-        code, particle = sim.instability(s)
+        code, particle = sim.instability(jax.lax.stop_gradient(s))
         new = (fail.step < 0) & (code > 0)
         fail = Failure(
             jnp.where(new, s.step, fail.step),
@@ -118,13 +122,16 @@ def rollout(sim, state: State, dt, frames: int, save_every: int = 1, save_partic
         carry, _ = jax.lax.scan(one_step, carry, None, length=seg_len)
         return carry, None
 
+    def frame(s):
+        return sim.diagnostics_frame(s if history_gradients else jax.lax.stop_gradient(s), save_particles)
+
     @remat
     def one_frame(carry, _):
         carry, _ = jax.lax.scan(one_segment, carry, None, length=save_every // seg_len)
-        return carry, sim.diagnostics_frame(carry[0], save_particles)
+        return carry, frame(carry[0])
 
     (final, failure), frames_hist = jax.lax.scan(one_frame, (state, none), None, length=frames)
-    first = sim.diagnostics_frame(state, save_particles)
+    first = frame(state)
     history = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a[None], b]), first, frames_hist)
     return final, history, failure
 
@@ -141,6 +148,7 @@ def run(
     writer=None,
     frames_per_chunk: int | None = None,
     checkpoint=True,
+    history_gradients: bool = True,
     start_step: int | None = None,
 ):
     """Run ``steps`` steps, saving a frame every ``save_every`` steps (plus the initial frame).
@@ -151,7 +159,8 @@ def run(
     :class:`jaxmpm.H5Writer`) or ``progress=True`` it runs in chunks of ``frames_per_chunk``
     frames, writing/reporting each before the next, and returns ``(final_state, None)`` when
     a writer holds the frames.  ``checkpoint`` controls rematerialisation for reverse-mode
-    gradients (see :meth:`rollout`); it does not change the forward results.
+    gradients and ``history_gradients=False`` makes the saved frames constants to autodiff (see
+    :func:`rollout`); neither changes the forward results.
 
     Chunks are sized by wall time (about :data:`CHUNK_SECONDS`); ``frames_per_chunk`` caps them.
     SIGINT (Ctrl-C) or SIGTERM stops a chunked run at the next chunk boundary: the frames so far
@@ -166,6 +175,8 @@ def run(
     check(steps % save_every == 0,
           f"run: steps = {steps} is not a multiple of save_every = {save_every}; "
           f"use steps = {math.ceil(steps / save_every) * save_every}")
+    check(isinstance(history_gradients, bool),
+          f"run: history_gradients = {history_gradients!r} must be True (frames carry gradients) or False")
     frames = steps // save_every
     check_state(state)
     check(start_step is None or writer is not None or progress,
@@ -188,7 +199,7 @@ def run(
         _require_frame_memory(sim, state, frames, save_particles, writer is None)
     if traced or (writer is None and not progress):
         final, history, failure = _jit_rollout(sim, state, dt, frames, save_every, save_particles,
-                                               checkpoint)
+                                               checkpoint, history_gradients)
         if not traced and check_stability:
             _raise_if_failed(failure, dt, state)
         return final, history
@@ -371,7 +382,7 @@ def _advance(sim, state, failure, dt, n_frames, steps_per_frame, buffer_frames: 
     def one_step(carry):
         s, fail, i = carry
         s = sim.step(s, dt)
-        code, particle = sim.instability(s)
+        code, particle = sim.instability(jax.lax.stop_gradient(s))
         new = (fail.step < 0) & (code > 0)
         fail = Failure(jnp.where(new, s.step, fail.step), jnp.where(new, code, fail.cause),
                        jnp.where(new, particle, fail.particle))
@@ -398,8 +409,8 @@ def _jit_frame(sim, state, save_particles):
 
 
 @eqx.filter_jit
-def _jit_rollout(sim, state, dt, frames, save_every, save_particles, checkpoint=True):
-    return sim.rollout(state, dt, frames, save_every, save_particles, checkpoint)
+def _jit_rollout(sim, state, dt, frames, save_every, save_particles, checkpoint=True, history_gradients=True):
+    return sim.rollout(state, dt, frames, save_every, save_particles, checkpoint, history_gradients)
 
 
 def _segment_length(save_every: int, checkpoint):

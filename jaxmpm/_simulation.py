@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _diagnostics as diag
-from ._backend import POLICIES, use_policy
+from ._backend import ADJOINTS, POLICIES, use_adjoint, use_policy
 from ._boundary import as_conditions, build_constraint
 from ._contact import Contact
 from ._driver import History, StableTimeStepWarning, rollout, run  # noqa: F401  (re-exported)
@@ -45,7 +45,10 @@ class Simulation(eqx.Module):
     force (``gravity``, ``body_force``), damping (unless ``damping=False``), then any ``terms=``
     given.  ``backend`` picks the fusion policy ("auto", "cpu", "gpu"; see ``jaxmpm._backend``):
     it changes speed, never results.  ``kinematics`` is the strain increment: "linear" (default,
-    dF = I + grad v dt) or "exponential" (dF = exp(grad v dt), 001 eq. 26)."""
+    dF = I + grad v dt) or "exponential" (dF = exp(grad v dt), 001 eq. 26).  ``adjoint`` picks the
+    derivative rules of reverse mode: "structured" (default; the transfer layer's own rules, whose
+    transposes are the cheap adjoint operations) or "autodiff" (JAX differentiates the forward code
+    as written, the reference); it too changes speed, never results (``jaxmpm._backend``)."""
 
     grid: Grid
     shape: ShapeFunction
@@ -56,6 +59,7 @@ class Simulation(eqx.Module):
     update: str = eqx.field(static=True)
     backend: str = eqx.field(static=True)
     kinematics: str = eqx.field(static=True, default="linear")
+    adjoint: str = eqx.field(static=True, default="structured")
 
     def __init__(
         self,
@@ -71,6 +75,7 @@ class Simulation(eqx.Module):
         terms=(),
         backend: str = "auto",
         kinematics: str = "linear",
+        adjoint: str = "structured",
     ):
         check(isinstance(grid, Grid), f"Simulation: grid must be a jm.Grid, got {type(grid).__name__}")
         # a step holds a few nodal fields of 1 + D (mass, momentum) up to D^2 columns per node
@@ -90,6 +95,8 @@ class Simulation(eqx.Module):
               f"got {type(material).__name__}")
         check(update in UPDATES, f"Simulation: update = {update!r}; choose USF, USL (USL-), MUSL (USL+), USAVG- or USAVG+")
         check(backend in POLICIES, f"Simulation: backend = {backend!r}; choose one of {', '.join(POLICIES)}")
+        check(adjoint in ADJOINTS, f"Simulation: adjoint = {adjoint!r}; choose 'structured' (the transfer layer's "
+                                   "derivative rules, the default) or 'autodiff' (JAX's own, the reference)")
         # None: zero damping, still a differentiable parameter; False: no damping in the model at
         # all (nothing compiled for it -- "model no more than a scene needs")
         if damping is False:
@@ -116,6 +123,7 @@ class Simulation(eqx.Module):
         check(kinematics in KINEMATICS, f"Simulation: kinematics = {kinematics!r}; choose 'linear' (dF = I + grad v "
                                         "dt) or 'exponential' (dF = exp(grad v dt), 001 eq. 26)")
         self.kinematics = kinematics
+        self.adjoint = adjoint
         self._check_terms()
 
     def _check_terms(self):
@@ -147,6 +155,13 @@ class Simulation(eqx.Module):
         check(backend in POLICIES, f"Simulation: backend = {backend!r}; choose one of {', '.join(POLICIES)}")
         new = copy.copy(self)
         object.__setattr__(new, "backend", backend)
+        return new
+
+    def with_adjoint(self, adjoint: str):
+        """A copy differentiated with other derivative rules ("structured", "autodiff"; jaxmpm._backend)."""
+        check(adjoint in ADJOINTS, f"Simulation: adjoint = {adjoint!r}; choose one of {', '.join(ADJOINTS)}")
+        new = copy.copy(self)
+        object.__setattr__(new, "adjoint", adjoint)
         return new
 
     @property
@@ -249,7 +264,7 @@ class Simulation(eqx.Module):
         """Advance one time step (pure).  The model computes in its state's precision: float
         parameters of another precision (a float64 model built in a 64-bit process, stepped with a
         float32 state) are cast to the state's dtype on entry."""
-        with use_policy(self.backend):
+        with use_policy(self.backend), use_adjoint(self.adjoint):
             return _step(self.in_precision(state.x.dtype), state, dt)
 
     def in_precision(self, dtype):
@@ -329,9 +344,9 @@ class Simulation(eqx.Module):
 
     # ----------------------------------------------------- the driver's entry points
     def rollout(self, state: State, dt, frames: int, save_every: int = 1, save_particles: bool = True,
-                checkpoint=True):
+                checkpoint=True, history_gradients: bool = True):
         """See :func:`jaxmpm._driver.rollout`."""
-        return rollout(self, state, dt, frames, save_every, save_particles, checkpoint)
+        return rollout(self, state, dt, frames, save_every, save_particles, checkpoint, history_gradients)
 
     def run(self, state: State, dt, steps: int, save_every: int = 1, **options):
         """See :func:`jaxmpm._driver.run`."""

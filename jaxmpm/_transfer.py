@@ -14,12 +14,16 @@ Every scheme uses these; none writes its own scatter.
 
 from __future__ import annotations
 
+from functools import partial
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+from jax.custom_derivatives import SymbolicZero
 
-from ._backend import evaluate_once, materialise
+from ._backend import derivative_rule, evaluate_once, materialise
 from ._shapes import StencilBase as Stencil
+from ._shapes import rows
 
 
 def safe_divide(numerator, mass):
@@ -32,13 +36,63 @@ def safe_divide(numerator, mass):
     return jnp.where(positive, numerator / denom, 0.0)
 
 
-def sum_over_stencil(a):
+def _sum_over_stencil(a):
     """sum_k a[..., k, :] for planar a of shape (..., K, N), unrolled over the (4-64) stencil
     slots: K-1 elementwise adds of contiguous particle rows, which XLA fuses with their producers."""
     total = a[..., 0, :]
     for k in range(1, a.shape[-2]):
         total = total + a[..., k, :]
     return total
+
+
+_sum_over_stencil_ruled = jax.custom_jvp(_sum_over_stencil)
+
+
+@_sum_over_stencil_ruled.defjvp
+def _sum_over_stencil_jvp(primals, tangents):
+    # the same sum as one reduction: its transpose broadcasts the cotangent to the K slots, where
+    # that of the unrolled sum pads each row into its own (K, N) array of zeros and adds them up
+    (a,), (a_dot,) = primals, tangents
+    return _sum_over_stencil_ruled(a), jnp.sum(a_dot, axis=-2)
+
+
+sum_over_stencil = derivative_rule(_sum_over_stencil, _sum_over_stencil_ruled)
+
+
+def _per_slot(w, q):
+    """w[k, p] q[c, p] (or w[k, p] q[c, k, p]) for slot values w (K, N) and per-particle values q
+    (C, N) (or per-slot values q (C, K, N)): planar (C, K, N)."""
+    return w * (q if q.ndim == 3 else q[:, None, :])
+
+
+_per_slot_ruled = jax.custom_jvp(_per_slot)
+
+
+@partial(_per_slot_ruled.defjvp, symbolic_zeros=True)
+def _per_slot_jvp(primals, tangents):
+    # the same product, row by row: the transposes of the broadcasts are reductions over the short
+    # slot and component axes, which XLA's CPU backend runs slowly; those of row products are
+    # multiplies and adds (the forward keeps the broadcast, which fuses better)
+    (w, q), (w_dot, q_dot) = primals, tangents
+
+    def slots(a):  # (K, N) -> K rows; a per-slot (K, N) array stays whole (no broadcast needed)
+        return [a] if q.ndim == 3 else rows(a)
+
+    def spread(row_terms):  # K row products -> (K, N)
+        return row_terms[0] if q.ndim == 3 else jnp.stack(row_terms)
+
+    terms = []
+    if not isinstance(w_dot, SymbolicZero):
+        terms.append([spread([wd * qc for wd in slots(w_dot)]) for qc in rows(q)])
+    if not isinstance(q_dot, SymbolicZero):
+        terms.append([spread([wk * qd for wk in slots(w)]) for qd in rows(q_dot)])
+    out = _per_slot_ruled(w, q)
+    if not terms:
+        return out, jnp.zeros_like(out)
+    return out, jnp.stack([sum(t[c] for t in terms) for c in range(q.shape[0])])
+
+
+per_slot = derivative_rule(_per_slot, _per_slot_ruled)
 
 
 def scatter_planar(index, contributions, num_nodes: int):
@@ -111,15 +165,15 @@ def to_particle_major(planar):
 
 def scatter(stencil: Stencil, q, num_nodes: int):
     """(S^T q)_i = sum_p S_pi q_p for particle ``q`` of shape (N,) or (N, C)."""
-    contributions = stencil.weight * (q if q.ndim == 1 else q.T[:, None, :])  # (K, N) or (C, K, N)
+    contributions = stencil.weight * q if q.ndim == 1 else per_slot(stencil.weight, q.T)  # (K, N) or (C, K, N)
     return scatter_planar(stencil.index, contributions, num_nodes)
 
 
 def velocity_gradient(stencil: Stencil, v):
     """(grad v)_p[a, b] = sum_i v_i[a] G_pi[b]  (003 eq. 2.7), shape (N, D, D)."""
     values = nodal_values(stencil, v)  # D arrays (K, N)
-    g = stencil.gradient
-    d = g.shape[0]
+    g = rows(stencil.gradient)
+    d = len(g)
     planar = jnp.stack([jnp.stack([sum_over_stencil(values[a] * g[b]) for b in range(d)]) for a in range(d)])
     return to_particle_major(planar)
 
@@ -127,21 +181,21 @@ def velocity_gradient(stencil: Stencil, v):
 def scalar_gradient(stencil: Stencil, u):
     """(grad u)_p[b] = sum_i u_i G_pi[b] of a nodal scalar ``u`` (n,) (001 eq. 137), shape (N, D)."""
     values = nodal_values(stencil, u)  # (K, N)
-    g = stencil.gradient
-    return to_particle_major(jnp.stack([sum_over_stencil(values * g[b]) for b in range(g.shape[0])]))
+    g = rows(stencil.gradient)
+    return to_particle_major(jnp.stack([sum_over_stencil(values * g[b]) for b in range(len(g))]))
 
 
 def stress_divergence_contributions(stencil: Stencil, weighted_stress):
     """Per-slot internal force -(V0_p tau_p) . G_pi (001 eq. 20, 003 eq. 2.10), planar (D, K, N)."""
-    g = stencil.gradient
-    d = g.shape[0]
-    tau = materialise(jnp.moveaxis(weighted_stress, 0, -1))[:, :, None, :]  # (D, D, 1, N), once per particle
-    return -jnp.stack([sum(tau[a, b] * g[b] for b in range(d)) for a in range(d)])
+    g = rows(stencil.gradient)
+    d = len(g)
+    tau = [rows(t) for t in rows(materialise(jnp.moveaxis(weighted_stress, 0, -1))[:, :, None, :])]  # (D, D, 1, N)
+    return -jnp.stack([sum(tau[a][b] * g[b] for b in range(d)) for a in range(d)])
 
 
 def particle_force_contributions(stencil: Stencil, particle_force):
     """Per-slot S_pi q_p of a particle force ``q`` (N, D) (e.g. M_p b_p), planar (D, K, N)."""
-    return stencil.weight * materialise(particle_force.T)[:, None, :]
+    return per_slot(stencil.weight, materialise(particle_force.T))
 
 
 def force_contributions(stencil: Stencil, weighted_stress, particle_force=None):
@@ -161,7 +215,7 @@ def divergence(stencil: Stencil, weighted_stress, num_nodes: int, particle_force
 
 def momentum_contributions(stencil: Stencil, mass, velocity):
     """Per-slot momentum S_pi M_p V_p, planar (D, K, N)."""
-    return stencil.weight * (mass[:, None] * velocity).T[:, None, :]
+    return per_slot(stencil.weight, (mass[:, None] * velocity).T)
 
 
 class Transfer(eqx.Module):

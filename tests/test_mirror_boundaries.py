@@ -37,7 +37,7 @@ def _run(sim, state, dt, steps):
     return jax.lax.fori_loop(0, steps, lambda _, s: sim.step(s, dt), state)
 
 
-def _mirror_pair(mirrored: bool, dim: int, shape, scheme, update, velocity, cells: int, h: float):
+def _mirror_pair(mirrored: bool, dim: int, shape, scheme, update, velocity, cells: int, h: float, damping=None):
     """The body [0, L]^dim with a Mirror on every lower face (``mirrored``), or the doubled body
     [-L, L]^dim (every reflection of it, velocities reflected) with no condition."""
     L = cells * h
@@ -56,18 +56,22 @@ def _mirror_pair(mirrored: bool, dim: int, shape, scheme, update, velocity, cell
         x, v, vol = (np.concatenate([x * s for s in signs]), np.concatenate([v * s for s in signs]),
                      np.tile(vol, len(signs)))
     sim = jm.Simulation(grid=grid, shape=shape, material=jm.NeoHookean(E=100.0, nu=0.3, density=1.0), scheme=scheme,
-                        update=update, boundary=boundary)
+                        update=update, boundary=boundary, damping=damping)
     return sim, sim.init(jm.Particles(x=x, v=v, volume=vol, mass=None, ppc=2)), len(body.x)
 
 
+# grid damping by the force approach over an even region (its rate column is folded like the mass)
+FORCE_DAMPING = jm.Damping(grid=2.0, approach="force", region=lambda x: 1.0 / (1.0 + 4.0 * x[:, 0] ** 2))
+
 MIRROR_CASES = [
-    pytest.param(1, jm.CubicBSpline(), jm.FMPM(order=2), "MUSL", 8, id="1d-cubic-FMPM2-MUSL"),
-    pytest.param(2, jm.QuadraticBSpline(), jm.APIC(), "USF", 4, id="2d-quadratic-APIC-USF-corner"),
+    pytest.param(1, jm.CubicBSpline(), jm.FMPM(order=2), "MUSL", 8, None, id="1d-cubic-FMPM2-MUSL"),
+    pytest.param(2, jm.QuadraticBSpline(), jm.APIC(), "USF", 4, None, id="2d-quadratic-APIC-USF-corner"),
+    pytest.param(1, jm.QuadraticBSpline(), jm.FLIP(), "USL", 8, FORCE_DAMPING, id="1d-quadratic-force-damping-region"),
 ]
 
 
-@pytest.mark.parametrize("dim, shape, scheme, update, cells", MIRROR_CASES)
-def test_mirror_equals_the_doubled_body(dim, shape, scheme, update, cells):
+@pytest.mark.parametrize("dim, shape, scheme, update, cells, damping", MIRROR_CASES)
+def test_mirror_equals_the_doubled_body(dim, shape, scheme, update, cells, damping):
     """jm.Mirror = the doubled (reflected) body on the doubled domain, to round-off, after 12 steps:
     positions, velocities and deformation gradients of the body's particles."""
     h = 0.125
@@ -78,8 +82,8 @@ def test_mirror_equals_the_doubled_body(dim, shape, scheme, update, cells):
             v = v + 0.1 * x[:, ::-1] ** 2
         return v
 
-    mirror, m_state, n = _mirror_pair(True, dim, shape, scheme, update, velocity, cells, h)
-    doubled, d_state, _ = _mirror_pair(False, dim, shape, scheme, update, velocity, cells, h)
+    mirror, m_state, n = _mirror_pair(True, dim, shape, scheme, update, velocity, cells, h, damping)
+    doubled, d_state, _ = _mirror_pair(False, dim, shape, scheme, update, velocity, cells, h, damping)
     # the stencils cross the plane: the body's particles weigh ghost nodes beyond it
     stencil = mirror.shape.stencil(mirror.grid, m_state.x)
     ghost = np.any(mirror.grid.node_coordinates() < -1e-12, axis=1)[np.asarray(stencil.index)]

@@ -1,0 +1,92 @@
+"""Gradient time / forward time of a whole rollout, per scene and scheme family, under the structured
+adjoint (``Simulation(adjoint="structured")``, the default) and JAX's plain autodiff
+(``adjoint="autodiff"``), measured in one process (issue 15).
+
+The loss is sum(v^2) + sum(x^2) of the final state of ``sim.run`` (frames of a tenth of the run,
+no particle frames), differentiated with respect to the initial velocities.  For each
+(scene, scheme, adjoint, checkpoint) it reports the forward run time, the gradient run time
+(best of ``--repeat`` calls after a warm-up) and their ratio, and the compile times of both
+apart.  Times are CPU seconds of this process (``time.process_time``): run it pinned to one core
+with one XLA thread so that other load on the machine stays out of the ratios,
+
+    XLA_FLAGS=--xla_cpu_multi_thread_eigen=false taskset -c 0 python benchmarks/gradient_cost.py
+    ... python benchmarks/gradient_cost.py --scenes mpm88 --schemes apic --checkpoint True False
+
+Adding ``--xla_cpu_experimental_ynn_fusion_type=`` to XLA_FLAGS (jax 0.10) turns off the library
+kernels XLA:CPU uses for reductions, to see what they cost (see the benchmarks README).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import equinox as eqx  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+
+import jaxmpm as jm  # noqa: E402
+from _results import cpu_best, write_csv  # noqa: E402
+
+SCENES = {"bar": ({"cells": 128}, 1000), "disks": ({}, 300), "mpm88": ({}, 100)}
+SCHEMES = {"flip": "flip", "xpic2": "xpic:2", "fmpm2": "fmpm:2", "apic": "apic"}
+FIELDS = ["scene", "scheme", "particles", "steps", "adjoint", "checkpoint", "forward_s", "grad_s", "ratio",
+          "forward_compile_s", "grad_compile_s"]
+
+
+def compiled(fn, *args):
+    start = time.process_time()
+    out = jax.jit(fn).lower(*args).compile()
+    return out, time.process_time() - start
+
+
+def measure(scene, scheme, adjoint, checkpoint, repeat):
+    options, steps = SCENES[scene]
+    setup = jm.scene(scene, scheme=SCHEMES[scheme], **options)
+    sim, state, dt = setup.sim.with_adjoint(adjoint), setup.state, setup.dt
+
+    def loss(v0):
+        start = eqx.tree_at(lambda s: s.v, state, v0)
+        final, _ = sim.run(start, dt, steps, steps // 10, save_particles=False, checkpoint=checkpoint)
+        return jnp.sum(final.v ** 2) + jnp.sum(final.x ** 2)
+
+    forward, forward_compile = compiled(loss, state.v)
+    grad, grad_compile = compiled(jax.grad(loss), state.v)
+    forward_s = cpu_best(forward, state.v, repeat=repeat)
+    grad_s = cpu_best(grad, state.v, repeat=repeat)
+    return dict(scene=scene, scheme=scheme, particles=int(state.x.shape[0]), steps=steps, adjoint=adjoint,
+                checkpoint=checkpoint, forward_s=forward_s, grad_s=grad_s, ratio=grad_s / forward_s,
+                forward_compile_s=forward_compile, grad_compile_s=grad_compile)
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scenes", nargs="+", default=list(SCENES), choices=list(SCENES))
+    parser.add_argument("--schemes", nargs="+", default=list(SCHEMES), choices=list(SCHEMES))
+    parser.add_argument("--adjoints", nargs="+", default=["structured", "autodiff"], choices=["structured", "autodiff"])
+    parser.add_argument("--checkpoint", nargs="+", default=["True"], choices=["True", "False"])
+    parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--csv", default=str(Path(__file__).resolve().parent / "results" / "gradient_cost.csv"))
+    args = parser.parse_args()
+    print("| scene | scheme | particles | steps | adjoint | checkpoint | forward (s) | gradient (s) | gradient / "
+          "forward | compile forward / gradient (s) |")
+    print("|---" * 10 + "|")
+    rows = []
+    for scene in args.scenes:
+        for scheme in args.schemes:
+            for checkpoint in (c == "True" for c in args.checkpoint):
+                for adjoint in args.adjoints:
+                    r = measure(scene, scheme, adjoint, checkpoint, args.repeat)
+                    rows.append(r)
+                    print(f"| {scene} | {scheme} | {r['particles']} | {r['steps']} | {adjoint} | {checkpoint} | "
+                          f"{r['forward_s']:.3f} | {r['grad_s']:.3f} | {r['ratio']:.2f} | "
+                          f"{r['forward_compile_s']:.1f} / {r['grad_compile_s']:.1f} |", flush=True)
+    print(f"wrote {write_csv(args.csv, FIELDS, rows)}")
+
+
+if __name__ == "__main__":
+    main()

@@ -90,7 +90,8 @@ def rollout(sim, state: State, dt, frames: int, save_every: int = 1, save_partic
     frame into segments of about sqrt(save_every) steps and rematerialises frames, segments and
     steps, so the gradient stores O(frames + sqrt(save_every)) states instead of every
     intermediate of every step; an int sets the segment length (a divisor of save_every);
-    ``False`` stores everything (fastest for short rollouts).
+    ``False`` stores everything (on the CPU it was slower than ``True`` in every case measured,
+    benchmarks/gradient_memory.py: the stacked residual buffers cost more than recomputing).
 
     ``history_gradients=False`` makes the saved frames constants to autodiff (``stop_gradient``):
     a loss of the final state alone then carries no pullback of the diagnostics, and no frame

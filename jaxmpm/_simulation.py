@@ -153,15 +153,18 @@ class Simulation(eqx.Module):
     def with_backend(self, backend: str):
         """A copy traced under another fusion policy ("auto", "cpu", "gpu"; jaxmpm._backend)."""
         check(backend in POLICIES, f"Simulation: backend = {backend!r}; choose one of {', '.join(POLICIES)}")
-        new = copy.copy(self)
-        object.__setattr__(new, "backend", backend)
-        return new
+        return self._with_static(backend=backend)
 
     def with_adjoint(self, adjoint: str):
         """A copy differentiated with other derivative rules ("structured", "autodiff"; jaxmpm._backend)."""
         check(adjoint in ADJOINTS, f"Simulation: adjoint = {adjoint!r}; choose one of {', '.join(ADJOINTS)}")
+        return self._with_static(adjoint=adjoint)
+
+    def _with_static(self, **fields):
+        """A copy with static (trace-time) fields replaced: the model's hash changes, so jit retraces."""
         new = copy.copy(self)
-        object.__setattr__(new, "adjoint", adjoint)
+        for name, value in fields.items():
+            object.__setattr__(new, name, value)
         return new
 
     @property

@@ -99,16 +99,28 @@ PHASES = (0.0, 2.0 * math.pi / 3.0, 4.0 * math.pi / 3.0)  # Wallstedt & Guilkey 
 
 # --------------------------------------------------------------------------- exact motions
 @dataclasses.dataclass(frozen=True)
-class AxisAligned:
-    """u_i(X, t) = A sin(pi X_i) sin(c pi t + phi_i) for one point X (D,) at time t."""
+class SeparableMotion:
+    """u_i(X, t) = A f_i(X) sin(c pi t + phi_i) for one point X (D,) at time t: a spatial profile
+    f (``profile``, per subclass) times a phase-shifted sine."""
 
     amplitude: float
     c: float
     phases: tuple
 
+    def profile(self, X):
+        raise NotImplementedError
+
     def displacement(self, X, t):
         phi = jnp.asarray(self.phases, X.dtype)
-        return self.amplitude * jnp.sin(jnp.pi * X) * jnp.sin(self.c * jnp.pi * t + phi)
+        return self.amplitude * self.profile(X) * jnp.sin(self.c * jnp.pi * t + phi)
+
+
+@dataclasses.dataclass(frozen=True)
+class AxisAligned(SeparableMotion):
+    """u_i(X, t) = A sin(pi X_i) sin(c pi t + phi_i)."""
+
+    def profile(self, X):
+        return jnp.sin(jnp.pi * X)
 
 
 def _first_piola(material, F):

@@ -34,6 +34,7 @@ from _results import cpu_best, write_csv  # noqa: E402
 
 SCENES = {"bar": ({"cells": 128}, 1000), "disks": ({}, 300), "mpm88": ({}, 100)}
 SCHEMES = {"flip": "flip", "xpic2": "xpic:2", "fmpm2": "fmpm:2", "apic": "apic"}
+CHECKPOINTS = {"True": True, "False": False, "low_memory": "low_memory"}  # jm rollout's checkpoint options
 FIELDS = ["scene", "scheme", "particles", "steps", "adjoint", "checkpoint", "forward_s", "grad_s", "ratio",
           "forward_compile_s", "grad_compile_s"]
 
@@ -68,7 +69,7 @@ def main():
     parser.add_argument("--scenes", nargs="+", default=list(SCENES), choices=list(SCENES))
     parser.add_argument("--schemes", nargs="+", default=list(SCHEMES), choices=list(SCHEMES))
     parser.add_argument("--adjoints", nargs="+", default=["structured", "autodiff"], choices=["structured", "autodiff"])
-    parser.add_argument("--checkpoint", nargs="+", default=["True"], choices=["True", "False"])
+    parser.add_argument("--checkpoint", nargs="+", default=["True"], choices=list(CHECKPOINTS))
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--csv", default=str(Path(__file__).resolve().parent / "results" / "gradient_cost.csv"))
     args = parser.parse_args()
@@ -78,7 +79,7 @@ def main():
     rows = []
     for scene in args.scenes:
         for scheme in args.schemes:
-            for checkpoint in (c == "True" for c in args.checkpoint):
+            for checkpoint in (CHECKPOINTS[c] for c in args.checkpoint):
                 for adjoint in args.adjoints:
                     r = measure(scene, scheme, adjoint, checkpoint, args.repeat)
                     rows.append(r)

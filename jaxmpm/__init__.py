@@ -3,6 +3,7 @@
 FLIP, PIC and their blend, XPIC(m), FMPM(k), APIC and TPIC as pure, jit-able, differentiable steps.
 """
 
+from ._cache import compilation_cache
 from ._calibrate import CalibrationResult, calibrate
 from ._ensemble import ensemble
 from ._params import PARAMETERS, get_params, set_params
@@ -52,5 +53,5 @@ __all__ = [
     "scene", "stable_dt", "strain_energy", "with_fields", "with_scheme_state",
     "APIC", "RPIC", "TPIC", "with_velocity_gradient", "Wall", "NoStress", "VolumetricFluid",
     "Diffusion", "Dirichlet", "Heat", "Neumann", "Transport", "HypoElastic", "ParticleForce", "Traction", "Reaction",
-    "Mirror",
+    "Mirror", "compilation_cache",
 ]

@@ -25,7 +25,9 @@ transfer layer; it too changes speed, never results (tests/test_adjoint.py, 1e-1
 * ``"structured"`` (default): the transfer layer's building blocks carry their own JVP rules
   (:func:`derivative_rule`), written so that their transposes are the cheap adjoint operations --
   a broadcast for a sum over the stencil, row products and adds for the tensor-product shape
-  functions, and boundaries that hold only primal values.  JAX transposes the rest as usual.
+  functions, boundaries that hold only primal values, and (:func:`hold_tangent`) a boundary on
+  the scatter's tangent, so that its transpose evaluates the nodal cotangent once before the
+  gather.  JAX transposes the rest as usual.
 * ``"autodiff"``: JAX differentiates the forward code as written (the reference path).
 """
 
@@ -127,6 +129,17 @@ def _held_computation(closed, consts, args):
 def _held_computation_jvp(closed, primals, tangents):
     out, out_dot = jax.jvp(lambda c, a: closed(*a, *c), primals, tangents)
     return _held(out), out_dot
+
+
+def hold_tangent(tangent, primal):
+    """A stage boundary for a tangent (a linear function of the inputs' tangents): ``tangent``
+    unchanged, inside an always-taken conditional whose predicate comes from ``primal`` under the
+    CPU policy.  Its transpose is the same conditional on the cotangent, so reverse mode evaluates
+    that cotangent once before its consumers (e.g. the gather that transposes a scatter) instead
+    of fusing its computation into them."""
+    if active() != "cpu":
+        return tangent
+    return jax.lax.cond(_always_true(primal), lambda t: t, jnp.zeros_like, tangent)
 
 
 # ------------------------------------------------------------------ the adjoint

@@ -86,12 +86,19 @@ def rollout(sim, state: State, dt, frames: int, save_every: int = 1, save_partic
     ``(final_state, history, failure)``; ``history`` holds the initial frame and one frame
     every ``save_every`` steps (``frames + 1`` in all).
 
-    ``checkpoint`` (reverse mode only; the forward pass is unchanged): ``True`` splits each
-    frame into segments of about sqrt(save_every) steps and rematerialises frames, segments and
-    steps, so the gradient stores O(frames + sqrt(save_every)) states instead of every
-    intermediate of every step; an int sets the segment length (a divisor of save_every);
-    ``False`` stores everything (on the CPU it was slower than ``True`` in every case measured,
-    benchmarks/gradient_memory.py: the stacked residual buffers cost more than recomputing).
+    ``checkpoint`` (reverse mode only; the forward pass is unchanged):
+
+    * ``True`` (default): two levels.  The forward pass keeps the state at the start of every
+      segment of L steps (L a divisor of ``save_every``, chosen to minimise the states kept,
+      frames * save_every / L + L: about 2 sqrt(T) for T steps); the backward pass recomputes
+      each segment once, keeping its L step states, and each step once more for its pullback.
+    * ``"low_memory"``: three levels (frames, segments of about sqrt(save_every) steps, steps):
+      about frames + 2 sqrt(save_every) states, at the price of a third recomputation (on the
+      CPU 2-40% slower than ``True``, benchmarks/gradient_cost.py).
+    * an int: two levels with that segment length (a divisor of ``save_every``).
+    * ``False``: no rematerialisation; every intermediate of every step is stored (on the CPU
+      slower than ``True`` in every case measured, benchmarks/gradient_memory.py: the stacked
+      residual buffers cost more than recomputing).
 
     ``history_gradients=False`` makes the saved frames constants to autodiff (``stop_gradient``):
     a loss of the final state alone then carries no pullback of the diagnostics, and no frame
@@ -100,8 +107,9 @@ def rollout(sim, state: State, dt, frames: int, save_every: int = 1, save_partic
     sim = sim.in_precision(state.x.dtype)  # the model computes in its state's precision
     dt = jnp.asarray(dt, state.x.dtype)
     none = Failure(jnp.array(-1, jnp.int32), jnp.array(0, jnp.int32), jnp.array(-1, jnp.int32))
-    segment = _segment_length(save_every, checkpoint)
+    segment = _segment_length(save_every, checkpoint, frames)
     remat = (lambda f: f) if segment is None else jax.checkpoint  # noqa: E731
+    remat_frames = jax.checkpoint if isinstance(checkpoint, str) else (lambda f: f)  # noqa: E731  ("low_memory")
 
     @remat
     def one_step(carry, _):
@@ -126,7 +134,7 @@ def rollout(sim, state: State, dt, frames: int, save_every: int = 1, save_partic
     def frame(s):
         return sim.diagnostics_frame(s if history_gradients else jax.lax.stop_gradient(s), save_particles)
 
-    @remat
+    @remat_frames
     def one_frame(carry, _):
         carry, _ = jax.lax.scan(one_segment, carry, None, length=save_every // seg_len)
         return carry, frame(carry[0])
@@ -288,7 +296,7 @@ def _run_chunked(sim, state, dt, frames, save_every, save_particles, check_stabi
     :class:`RunInterrupted` is raised."""
     import time
 
-    _segment_length(save_every, checkpoint)  # validated; the chunked runner is forward only
+    _segment_length(save_every, checkpoint, frames)  # validated; the chunked runner is forward only
     start_step = int(state.step) if start_step is None else int(start_step)
     done_steps = int(state.step) - start_step
     total = frames * save_every
@@ -414,15 +422,19 @@ def _jit_rollout(sim, state, dt, frames, save_every, save_particles, checkpoint=
     return sim.rollout(state, dt, frames, save_every, save_particles, checkpoint, history_gradients)
 
 
-def _segment_length(save_every: int, checkpoint):
-    """Steps per rematerialised segment, or None for no checkpointing."""
+def _segment_length(save_every: int, checkpoint, frames: int = 1):
+    """Steps per rematerialised segment, or None for no checkpointing (see :func:`rollout`)."""
     if checkpoint is False or checkpoint is None:
         return None
-    if checkpoint is True:
-        divisors = [d for d in range(1, save_every + 1) if save_every % d == 0]
+    divisors = [d for d in range(1, save_every + 1) if save_every % d == 0]
+    if checkpoint is True:  # two levels: fewest states kept, frames * save_every / L segment starts + L steps
+        return min(divisors, key=lambda d: (frames * save_every // d + d, d))
+    if isinstance(checkpoint, str) and checkpoint == "low_memory":  # three levels: segments of ~sqrt(save_every)
         return min(divisors, key=lambda d: abs(d - math.sqrt(save_every)))
-    check(isinstance(checkpoint, (int, np.integer)) and checkpoint >= 1 and save_every % checkpoint == 0,
-          f"checkpoint = {checkpoint!r} must be True, False or a positive divisor of save_every = {save_every}")
+    check(isinstance(checkpoint, (int, np.integer)) and not isinstance(checkpoint, (bool, str)) and checkpoint >= 1
+          and save_every % checkpoint == 0,
+          f"checkpoint = {checkpoint!r} must be True, False, 'low_memory' or a positive divisor of "
+          f"save_every = {save_every}")
     return int(checkpoint)
 
 

@@ -47,8 +47,13 @@ def step_size(name, value, beta_step=0.025):
 
 
 def check_gradient(loss, params, rtol, beta_step=0.025):
-    grad = jax.jit(jax.grad(loss))(params)
-    f = jax.jit(loss)
+    # one compiled program: its gradient at params, its value (the forward loss) at the difference points
+    value_and_grad = jax.jit(jax.value_and_grad(loss))
+    grad = value_and_grad(params)[1]
+
+    def f(p):
+        return value_and_grad(p)[0]
+
     for name, value in params.items():
         def along(x, name=name):
             return f({**params, name: x})
@@ -126,7 +131,7 @@ def test_checkpointed_gradient_equals_plain():
     setup = jm.scene("bar", scheme=jm.FMPM(order=2))
     params = {"alpha_g": jnp.asarray(0.05), "E": jnp.asarray(100.0), "amplitude": jnp.asarray(1.0)}
     plain = jax.jit(jax.grad(make_loss(setup, 400, params)))(params)
-    for checkpoint in (True, 5):
+    for checkpoint in (True, "low_memory"):  # (an int L runs True's two-level code: test_checkpoint_segments)
         remat = jax.jit(jax.grad(make_loss(setup, 400, params, checkpoint=checkpoint)))(params)
         for k in params:
             assert abs(remat[k] - plain[k]) <= 1e-10 * abs(plain[k]), (k, checkpoint)
@@ -136,6 +141,20 @@ def test_checkpoint_validation():
     setup = jm.scene("bar")
     with pytest.raises(jm.InputError, match="checkpoint"):
         setup.sim.run(setup.state, setup.dt, 20, 10, checkpoint=3)
+    with pytest.raises(jm.InputError, match="low_memory"):
+        setup.sim.run(setup.state, setup.dt, 20, 10, checkpoint="fast")
+
+
+def test_checkpoint_segments():
+    """checkpoint=True keeps the fewest states, frames * save_every / L segment starts plus the L
+    step states of one segment (L | save_every); "low_memory" takes L ~ sqrt(save_every)."""
+    from jaxmpm._driver import _segment_length
+
+    assert _segment_length(1000, True, frames=1) == 25  # 40 + 25 states (the tie with 40 goes to the shorter)
+    assert _segment_length(100, True, frames=10) == 25  # 40 + 25, against 20 + 50 or 100 + 10
+    assert _segment_length(10, True, frames=10) == 10  # 10 + 10
+    assert _segment_length(100, "low_memory", frames=10) == 10
+    assert _segment_length(100, 4, frames=10) == 4 and _segment_length(100, False) is None
 
 
 # ------------------------------------------------------------------------------ calibration
@@ -182,12 +201,12 @@ def particle_velocities(setup, start, steps, save_every):
 
 @pytest.mark.parametrize("scheme, name, truth, guess", [
     (jm.XPIC(order=2, beta=0.3), "beta", 0.3, 0.7),
-    (jm.FLIP(), "E", 1000.0, 600.0),
-], ids=["xpic2-beta", "flip-E"])
+], ids=["xpic2-beta"])
 def test_calibrate_on_disks(disks_in_contact, scheme, name, truth, guess):
-    """beta of XPIC(2), and E, from the particle velocities through the impact (null-space noise
-    is what beta keeps or removes), over a 50-step window in contact.  L-BFGS reaches 1% for beta
-    in 6 iterations here; Adam(0.1) needs ~100."""
+    """beta of XPIC(2) from the particle velocities through the impact (null-space noise is what
+    beta keeps or removes), over a 50-step window in contact.  L-BFGS reaches 1% for beta in 6
+    iterations here; Adam(0.1) needs ~100.  (E on the same window, FLIP, 600 -> 1000 within 1%:
+    asserted by notebook 03, which tests/test_notebooks.py runs.)"""
     setup = jm.scene("disks", scheme=scheme, speed=0.5, shape=SMOOTH)
     observe = particle_velocities(setup, disks_in_contact, 50, 10)
     target = observe({name: truth})

@@ -205,8 +205,8 @@ def particle_velocities(setup, start, steps, save_every):
 def test_calibrate_on_disks(disks_in_contact, scheme, name, truth, guess):
     """beta of XPIC(2) from the particle velocities through the impact (null-space noise is what
     beta keeps or removes), over a 50-step window in contact.  L-BFGS reaches 1% for beta in 6
-    iterations here; Adam(0.1) needs ~100.  (E on the same window, FLIP, 600 -> 1000 within 1%:
-    asserted by notebook 03, which tests/test_notebooks.py runs.)"""
+    iterations here; Adam(0.1) needs ~100.  (E under FLIP, 600 -> 1000 within 1%, is asserted by
+    notebook 03 on its disks window, 20 steps at the size tests/test_notebooks.py runs it.)"""
     setup = jm.scene("disks", scheme=scheme, speed=0.5, shape=SMOOTH)
     observe = particle_velocities(setup, disks_in_contact, 50, 10)
     target = observe({name: truth})

@@ -90,11 +90,13 @@ def evaluate_once(fn, *args):
     return _held_computation(closed, tuple(consts), args)
 
 
-def _barrier(fn, operands):
-    """``fn(operands)`` inside a conditional that is always taken (see the module docstring)."""
-    floats = [leaf for leaf in jax.tree_util.tree_leaves(operands) if jnp.issubdtype(leaf.dtype, jnp.floating)]
+def _barrier(fn, operands, witness=None):
+    """``fn(operands)`` inside a conditional that is always taken (see the module docstring); its
+    predicate reads ``witness`` (default: the first float of ``operands``)."""
+    if witness is None:
+        witness = next(leaf for leaf in jax.tree_util.tree_leaves(operands) if jnp.issubdtype(leaf.dtype, jnp.floating))
     out = jax.eval_shape(fn, operands)
-    return jax.lax.cond(_always_true(floats[0]), fn,
+    return jax.lax.cond(_always_true(witness), fn,
                         lambda _: jax.tree_util.tree_map(lambda o: jnp.zeros(o.shape, o.dtype), out), operands)
 
 
@@ -139,7 +141,7 @@ def hold_tangent(tangent, primal):
     of fusing its computation into them."""
     if active() != "cpu":
         return tangent
-    return jax.lax.cond(_always_true(primal), lambda t: t, jnp.zeros_like, tangent)
+    return _barrier(lambda t: t, tangent, witness=primal)  # the predicate must not read the tangent
 
 
 # ------------------------------------------------------------------ the adjoint

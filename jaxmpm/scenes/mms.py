@@ -108,7 +108,8 @@ class SeparableMotion:
     phases: tuple
 
     def profile(self, X):
-        raise NotImplementedError
+        """f(X), (D,): each subclass names its spatial profile."""
+        raise NotImplementedError(f"{type(self).__name__} must define profile(X)")
 
     def displacement(self, X, t):
         phi = jnp.asarray(self.phases, X.dtype)

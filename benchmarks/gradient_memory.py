@@ -15,12 +15,17 @@ Each configuration runs in a fresh subprocess, which reports
   and after running, minus that of a baseline process that imports jax and jaxmpm and builds the scene
   but compiles nothing (so they include XLA's compile-time memory and the arrays of the run);
 * ``compile_s``: lowering + compiling the gradient (``jax.jit(grad).lower(x).compile()``);
-* ``grad_s`` / ``forward_s``: best of 3 calls after a warm-up call; ``ratio`` = grad_s / forward_s.
+* ``grad_s`` / ``forward_s``: best of ``--repeat`` calls (3) after a warm-up call (none with
+  ``--repeat 1``, for runs of minutes); ``ratio`` = grad_s / forward_s.
 
     python benchmarks/gradient_memory.py            # 1k, 4k, 16k steps (about 2 minutes on 2 CPU cores)
     python benchmarks/gradient_memory.py --quick    # 1k and 4k steps
-    python benchmarks/gradient_memory.py --scheme flip --cells 256 --csv /tmp/g.csv
-    python benchmarks/gradient_memory.py --scene mpm88 --scheme apic --particles 8192 --steps 1000
+    python benchmarks/gradient_memory.py --scheme flip xpic2 fmpm2 apic --cells 256 --csv /tmp/g.csv
+    python benchmarks/gradient_memory.py --scene mpm88 --scheme apic --particles 8192 --steps 1000 --checkpoint True
+    python benchmarks/gradient_memory.py --scene mpm88 --particles 131072 --steps 1000 --checkpoint True --repeat 1
+
+``--checkpoint True`` leaves out the uncheckpointed gradient, whose residuals outgrow the memory of
+most machines on the larger scenes (mpm88, 8k particles, 1000 steps: about 31 GiB).
 """
 
 from __future__ import annotations
@@ -65,7 +70,7 @@ def build(scene: str, scheme: str, size: int):
     return jax, jm, jm.scene(scene, scheme=chosen, **options), ("amplitude", 1.0)
 
 
-def child(scene: str, scheme: str, size: int, steps: int, checkpoint: bool) -> dict:
+def child(scene: str, scheme: str, size: int, steps: int, checkpoint: bool, repeat: int = 3) -> dict:
     """One configuration, measured in this (fresh) process."""
     jax, jm, setup, (name, value) = build(scene, scheme, size)
     import equinox as eqx
@@ -88,22 +93,24 @@ def child(scene: str, scheme: str, size: int, steps: int, checkpoint: bool) -> d
     rss_compile = peak_rss_mib()
 
     def best(fn):
-        jax.block_until_ready(fn(x))  # warm-up
+        """(best time, value of the last call)"""
+        if repeat > 1:
+            jax.block_until_ready(fn(x))  # warm-up
         times = []
-        for _ in range(3):
+        for _ in range(repeat):
             start = time.perf_counter()
-            jax.block_until_ready(fn(x))
+            out = jax.block_until_ready(fn(x))
             times.append(time.perf_counter() - start)
-        return min(times)
+        return min(times), out
 
-    grad_s, forward_s = best(grad), best(forward)
+    (grad_s, gradient), (forward_s, _) = best(grad), best(forward)
     return dict(
         scene=scene, scheme=scheme, cells=size if scene == "bar" else None, particles=int(setup.state.x.shape[0]),
         steps=steps, checkpoint=checkpoint,
         temp_MiB=grad.memory_analysis().temp_size_in_bytes / 2**20,
         forward_temp_MiB=forward.memory_analysis().temp_size_in_bytes / 2**20,
         rss_compile_MiB=rss_compile, rss_peak_MiB=peak_rss_mib(), compile_s=compile_s, grad_s=grad_s,
-        forward_s=forward_s, ratio=grad_s / forward_s, gradient=float(grad(x)),
+        forward_s=forward_s, ratio=grad_s / forward_s, gradient=float(gradient),
     )
 
 
@@ -120,7 +127,7 @@ def in_subprocess(*args) -> dict:
 
 
 def print_row(row: dict, header: bool) -> None:
-    cols = [("steps", 6, "d"), ("checkpoint", 10, ""), ("temp_MiB", 9, ".2f"), ("rss_peak_MiB", 12, ".1f"),
+    cols = [("scheme", 6, ""), ("steps", 6, "d"), ("checkpoint", 10, ""), ("temp_MiB", 9, ".2f"), ("rss_peak_MiB", 12, ".1f"),
             ("rss_compile_MiB", 15, ".1f"), ("compile_s", 9, ".2f"), ("forward_s", 9, ".3f"), ("grad_s", 8, ".3f"),
             ("ratio", 6, ".2f")]
     if header:
@@ -136,7 +143,10 @@ def main(argv=None) -> int:
     parser.add_argument("--scene", choices=SCENES, default="bar")
     parser.add_argument("--cells", type=int, default=128, help="cells along the bar (2 particles each)")
     parser.add_argument("--particles", type=int, default=8192, help="mpm88's particles")
-    parser.add_argument("--scheme", choices=SCHEMES, default="fmpm2")
+    parser.add_argument("--scheme", choices=SCHEMES, nargs="+", default=["fmpm2"], help="one or more scheme families")
+    parser.add_argument("--checkpoint", choices=("False", "True"), nargs="+", default=["False", "True"],
+                        help="the schedules measured (default both)")
+    parser.add_argument("--repeat", type=int, default=3, help="timed calls of each program (best of; 1: no warm-up)")
     parser.add_argument("--csv", default=str(DEFAULT_CSV))
     parser.add_argument("--child", nargs="+", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -145,33 +155,41 @@ def main(argv=None) -> int:
         if args.child[0] == "baseline":
             result = baseline(args.child[1], args.child[2], int(args.child[3]))
         else:
-            scene, scheme, size, steps, checkpoint = args.child
-            result = child(scene, scheme, int(size), int(steps), checkpoint == "True")
+            scene, scheme, size, steps, checkpoint, repeat = args.child
+            result = child(scene, scheme, int(size), int(steps), checkpoint == "True", int(repeat))
         print(json.dumps(result))
         return 0
 
     steps_list = args.steps or ([1000, 4000] if args.quick else [1000, 4000, 16000])
     size = args.cells if args.scene == "bar" else args.particles
     what = f"{args.cells} cells" if args.scene == "bar" else f"{args.particles} particles" if args.scene == "mpm88" else ""
-    print(f"{args.scene}, {args.scheme}, {what}, float64; python {platform.python_version()}, "
+    if args.repeat < 1:
+        parser.error(f"--repeat {args.repeat} must be at least 1")
+    print(f"{args.scene}, {' '.join(args.scheme)}, {what}, float64; python {platform.python_version()}, "
           f"{os.cpu_count()} CPUs; load {os.getloadavg()}")
-    base = in_subprocess("baseline", args.scene, args.scheme, size)["rss_peak_MiB"]
-    print(f"baseline process (imports + scene, nothing compiled): peak RSS {base:.1f} MiB")
     rows = []
-    for steps in steps_list:
-        for checkpoint in (False, True):
-            row = in_subprocess(args.scene, args.scheme, size, steps, checkpoint)
-            row["rss_compile_MiB"] -= base
-            row["rss_peak_MiB"] -= base
-            row["baseline_rss_MiB"] = base
-            row["load_1min"] = os.getloadavg()[0]
-            print_row(row, header=not rows)
-            rows.append(row)
-    for steps in steps_list:
-        plain, remat = (next(r for r in rows if r["steps"] == steps and r["checkpoint"] is c) for c in (False, True))
-        print(f"{steps:6d} steps: checkpointing keeps {remat['temp_MiB'] / plain['temp_MiB']:.4f} of the temporaries, "
-              f"costs {remat['grad_s'] / plain['grad_s']:.2f}x the time; same gradient: "
-              f"{abs(remat['gradient'] - plain['gradient']) <= 1e-10 * abs(plain['gradient'])}")
+    for scheme in args.scheme:
+        base = in_subprocess("baseline", args.scene, scheme, size)["rss_peak_MiB"]
+        print(f"{scheme}: baseline process (imports + scene, nothing compiled): peak RSS {base:.1f} MiB")
+        for steps in steps_list:
+            for checkpoint in args.checkpoint:
+                row = in_subprocess(args.scene, scheme, size, steps, checkpoint, args.repeat)
+                row["rss_compile_MiB"] -= base
+                row["rss_peak_MiB"] -= base
+                row["baseline_rss_MiB"] = base
+                row["load_1min"] = os.getloadavg()[0]
+                print_row(row, header=not rows)
+                rows.append(row)
+    for scheme in args.scheme:
+        for steps in steps_list:
+            pair = [next((r for r in rows if r["scheme"] == scheme and r["steps"] == steps and r["checkpoint"] is c), None)
+                    for c in (False, True)]
+            if None in pair:
+                continue
+            plain, remat = pair
+            same = abs(remat["gradient"] - plain["gradient"]) <= 1e-10 * abs(plain["gradient"])
+            print(f"{scheme} {steps:6d} steps: checkpointing keeps {remat['temp_MiB'] / plain['temp_MiB']:.4f} of the "
+                  f"temporaries, costs {remat['grad_s'] / plain['grad_s']:.2f}x the time; same gradient: {same}")
     print(f"wrote {write_csv(args.csv, FIELDS, rows)}; load after: {os.getloadavg()}")
     return 0
 

@@ -32,9 +32,10 @@ def compilation_cache(path=None, *, min_compile_seconds: float = 0.5) -> Path:
     ``path`` (default :func:`default_cache_dir`) and reuse it in later processes: a notebook or
     script run again then skips XLA's compilation (tracing still happens).  Returns the folder.
 
-    Call it once, before the first compilation (the first cell of a notebook).  The cache is
-    JAX's own (``jax_compilation_cache_dir``); its entries are keyed by the program, the JAX
-    version and the device, and are safe to delete at any time.  Keep one folder per machine."""
+    Call it once, early (the first cell of a notebook): programs compiled before the call are not
+    kept.  The cache is JAX's own (``jax_compilation_cache_dir``); its entries are keyed by the
+    program, the JAX version and the device, and are safe to delete at any time.  Keep one folder
+    per machine."""
     check(isinstance(min_compile_seconds, (int, float)) and min_compile_seconds >= 0,
           f"compilation_cache: min_compile_seconds = {min_compile_seconds!r} must be a number >= 0")
     folder = default_cache_dir() if path is None else Path(path).expanduser()

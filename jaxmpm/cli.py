@@ -41,10 +41,12 @@ SCENE_OPTIONS = {
 }
 
 EXIT_ERROR = 2
+CACHE_HELP = ("keep compiled programs on disk (jm.compilation_cache: $JAXMPM_CACHE_DIR, else ~/.cache/jaxmpm/xla), "
+              "so that the same command run again skips most of XLA's compilation")
 EXIT_SIGNAL = {"SIGINT": 130, "SIGTERM": 143}
 
 #: the options of ``jaxmpm run`` that are not scene options (kept out of the stored command)
-RUN_ONLY = ("out", "force", "no_progress", "command")
+RUN_ONLY = ("out", "force", "no_progress", "command", "cache")
 
 
 class _OneLineErrors(argparse.ArgumentParser):
@@ -141,6 +143,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--out", required=True, metavar="FILE.h5", help="HDF5 output file (an XDMF sidecar goes beside it)")
     run.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     run.add_argument("--no-progress", action="store_true", help="no progress bar")
+    run.add_argument("--cache", action="store_true", help=CACHE_HELP)
     resume = sub.add_parser(
         "resume",
         help="continue an interrupted run",
@@ -149,6 +152,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     resume.add_argument("file", metavar="FILE.h5", help="the --out file of an interrupted `jaxmpm run`")
     resume.add_argument("--no-progress", action="store_true", help="no progress bar")
+    resume.add_argument("--cache", action="store_true", help=CACHE_HELP)
     return parser
 
 
@@ -228,7 +232,8 @@ def resume_run(args) -> int:
         setup = setup_from_options(options)
     except (ValueError, KeyError) as err:  # InputError is a ValueError
         fail(str(err))
-    return run_setup(setup, argparse.Namespace(out=args.file, no_progress=args.no_progress), options, resume=True)
+    return run_setup(setup, argparse.Namespace(out=args.file, no_progress=args.no_progress, cache=args.cache), options,
+                     resume=True)
 
 
 def options_of(args) -> dict:
@@ -320,6 +325,11 @@ def run_setup(setup, args, options: dict, resume: bool = False) -> int:
     import jaxmpm as jm
     from jaxmpm._io import xdmf_paths
 
+    if args.cache:
+        try:
+            jm.compilation_cache()
+        except jm.InputError as err:
+            fail(str(err))
     sim, state = setup.sim, setup.state
     n = int(state.x.shape[0])
     e0, p0 = energy_and_momentum(sim, state)

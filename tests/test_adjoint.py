@@ -25,7 +25,7 @@ def case(name):
     """(setup, {parameter: value}) for each case, at the scene's own parameter values.  Every
     scheme family, shape (linear: the conduction case) and update once; 2D for the tensor-product rules (in 3D they are the same
     code with a third factor, checked by hand: 1e-13, see the issue 15 note), contact with
-    friction (the block on the slope slides from the first step) and conduction."""
+    friction (the block on the slope slides from the first step), conduction and diffusion."""
     damping = jm.Damping(0.02, 0.01)
     bar = dict(damping=damping, cells=16)
     if name == "bar-blend-ugimp-musl":
@@ -52,6 +52,14 @@ def case(name):
     elif name == "heat-step-linear":  # a held end: conduction acts
         setup = jm.scene("heat_step", cells=16)
         names = ["conductivity", "heat_capacity", "amplitude"]
+    elif name == "swelling-bar":  # the elastic bar of thermal-bar with solvent diffusing in at a held end
+        setup = jm.scene("thermal_bar", cells=16, damping=damping)
+        end = jm.NodeSet(np.asarray(setup.sim.grid.node_coordinates())[:, 0] <= 0.5 * setup.sim.grid.spacing[0])
+        diffusion = jm.Diffusion(diffusivity=0.05, expansion=0.01, boundary=jm.Dirichlet(end, 1.0))
+        setup.sim = jm.Simulation(setup.sim.grid, setup.sim.shape, setup.sim.material, setup.sim.scheme,
+                                  terms=(diffusion,), damping=damping)
+        setup.state = setup.sim.init(setup.particles)
+        names = ["diffusivity", "moisture_expansion", "E", "amplitude"]
     else:
         raise KeyError(name)
     values = jm.get_params(setup.sim, *[k for k in names if k != "amplitude"])
@@ -60,7 +68,17 @@ def case(name):
 
 
 CASES = ["bar-blend-ugimp-musl", "bar-xpic2-usf", "bar-fmpm2-cubic", "bar-tpic-cubic", "disks-apic",
-         "slide-rpic-friction", "thermal-bar", "heat-step-linear"]
+         "slide-rpic-friction", "thermal-bar", "heat-step-linear", "swelling-bar"]
+
+
+def test_cases_cover_every_parameter():
+    """Every parameter the library registers (jm.PARAMETERS; not those a test registers for a
+    class of its own) is differentiated by one of the cases."""
+    from jaxmpm._registry import owner_registry
+
+    library = {k for k in jm.PARAMETERS if all(c.__module__.startswith("jaxmpm") for c in owner_registry(k)[2])}
+    covered = set().union(*(case(name)[1] for name in CASES))
+    assert library <= covered, sorted(library - covered)
 
 
 def rollout(setup, adjoint, steps=STEPS, along=None):

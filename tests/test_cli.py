@@ -135,6 +135,32 @@ def test_run_scheme_options_reach_hdf5(tmp_path, capsys, options, attrs, n):
     assert summary_value(capsys.readouterr().out, "particles") == str(n)
 
 
+def test_cache_option_switches_on_the_compilation_cache(tmp_path, capsys, monkeypatch):
+    """`--cache` calls jm.compilation_cache() (whose own tests are in test_compilation_cache.py)
+    once, before the run; it is not a scene option (not stored for `resume`); a folder it cannot
+    use exits 2 in one line."""
+    import h5py
+
+    calls = []
+    monkeypatch.setattr(jm, "compilation_cache", lambda: calls.append("called"))
+    path = tmp_path / "cached.h5"
+    assert run_cli(["run", "bar", *SHORT, "--out", str(path), "--no-progress", "--cache"]) == 0
+    assert calls == ["called"]
+    with h5py.File(path, "r") as f:
+        assert "cache" not in f.attrs["command"]
+    assert run_cli(["run", "bar", *SHORT, "--out", str(tmp_path / "plain.h5"), "--no-progress"]) == 0
+    assert calls == ["called"]
+
+    def refuse():
+        raise jm.InputError("compilation_cache: path '/nowhere' is not a folder; pass a folder")
+
+    monkeypatch.setattr(jm, "compilation_cache", refuse)
+    capsys.readouterr()
+    assert run_cli(["run", "bar", *SHORT, "--out", str(tmp_path / "x.h5"), "--no-progress", "--cache"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "is not a folder" in err[0], err
+
+
 def test_unknown_scheme_exits_2_naming_it(tmp_path, capsys):
     path = tmp_path / "x.h5"
     assert run_cli(["run", "bar", "--scheme", "foo:3", "--out", str(path)]) == 2

@@ -15,6 +15,7 @@ SCRIPT = textwrap.dedent("""
     import jaxmpm as jm
     events = []
     jax.monitoring.register_event_listener(lambda e, **kw: events.append(e))
+    early = jax.jit(lambda x: x + 1)(1.0)  # a compilation before the call: the cache still takes effect
     folder = jm.compilation_cache(sys.argv[1], min_compile_seconds=0)
     assert jax.config.jax_compilation_cache_dir == str(folder)
     f = lambda x: jnp.sin(x) * 2

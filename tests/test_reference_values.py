@@ -5,6 +5,7 @@ to 1e-13 relative, whole ``bar`` and ``spin`` runs to 1e-10 (float64)."""
 
 import os
 
+import equinox as eqx
 import numpy as np
 import pytest
 
@@ -13,9 +14,10 @@ from reference import configs
 STORED = np.load(os.path.join(os.path.dirname(__file__), "reference", "values.npz"))
 
 
+@eqx.filter_jit
 def _step(sim, state, dt):
-    # eagerly, op by op: a fraction of a second per case where compiling each case costs seconds
-    # (the stored values were jitted; the difference is round-off, far below the tolerance)
+    # jitted, as the stored values were: each case compiles in about a second, where running it
+    # eagerly op by op (every fusion barrier a compiled conditional of its own) takes 2-5 s
     return sim.step(state, dt)
 
 

@@ -41,9 +41,9 @@ SCENE_OPTIONS = {
 }
 
 EXIT_ERROR = 2
+EXIT_SIGNAL = {"SIGINT": 130, "SIGTERM": 143}
 CACHE_HELP = ("keep compiled programs on disk (jm.compilation_cache: $JAXMPM_CACHE_DIR, else ~/.cache/jaxmpm/xla), "
               "so that the same command run again skips most of XLA's compilation")
-EXIT_SIGNAL = {"SIGINT": 130, "SIGTERM": 143}
 
 #: the options of ``jaxmpm run`` that are not scene options (kept out of the stored command)
 RUN_ONLY = ("out", "force", "no_progress", "command", "cache")

@@ -17,7 +17,7 @@ STORED = np.load(os.path.join(os.path.dirname(__file__), "reference", "values.np
 @eqx.filter_jit
 def _step(sim, state, dt):
     # jitted, as the stored values were: each case compiles in about a second, where running it
-    # eagerly op by op (every fusion barrier a compiled conditional of its own) takes 2-5 s
+    # eagerly op by op (each conditional and loop compiled on its own) takes 2-5 s
     return sim.step(state, dt)
 
 

@@ -60,9 +60,11 @@ def calibrate(
 ) -> CalibrationResult:
     """Minimise ``loss(params)`` from ``init`` with ``optimizer`` (default ``optax.adam(0.05)``
     on the raw parameters; ``optax.lbfgs()`` converges in far fewer iterations on smooth,
-    low-dimensional problems) for at most ``steps`` iterations, stopping early once the loss is
-    below ``tol``.  ``bounds`` maps a name to ``"positive"``, ``(lower, upper)`` or ``None``;
-    names of simulation parameters get the bounds their registration declares (``jaxmpm._registry``).
+    low-dimensional problems, and with ``linesearch=optax.scale_by_backtracking_linesearch(...)``
+    compiles one copy of the loss's gradient instead of two) for at most ``steps`` iterations,
+    stopping early once the loss is below ``tol``.  ``bounds`` maps a name to ``"positive"``,
+    ``(lower, upper)`` or ``None``; names of simulation parameters get the bounds their
+    registration declares (``jaxmpm._registry``).
     ``callback(iteration, loss, params)`` is called every iteration."""
     check(isinstance(init, dict) and init, "calibrate: init must be a non-empty dict {name: initial value}")
     check(isinstance(steps, int) and steps >= 1, f"calibrate: steps = {steps!r} must be a positive integer")

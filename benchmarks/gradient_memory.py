@@ -127,8 +127,8 @@ def in_subprocess(*args) -> dict:
 
 
 def print_row(row: dict, header: bool) -> None:
-    cols = [("scheme", 6, ""), ("steps", 6, "d"), ("checkpoint", 10, ""), ("temp_MiB", 9, ".2f"), ("rss_peak_MiB", 12, ".1f"),
-            ("rss_compile_MiB", 15, ".1f"), ("compile_s", 9, ".2f"), ("forward_s", 9, ".3f"), ("grad_s", 8, ".3f"),
+    cols = [("scheme", 6, ""), ("steps", 6, "d"), ("checkpoint", 10, ""), ("temp_MiB", 9, ".2f"),
+            ("rss_peak_MiB", 12, ".1f"), ("rss_compile_MiB", 15, ".1f"), ("compile_s", 9, ".2f"), ("forward_s", 9, ".3f"), ("grad_s", 8, ".3f"),
             ("ratio", 6, ".2f")]
     if header:
         print("  ".join(f"{name:>{w}}" for name, w, _ in cols))
@@ -182,8 +182,8 @@ def main(argv=None) -> int:
                 rows.append(row)
     for scheme in args.scheme:
         for steps in steps_list:
-            pair = [next((r for r in rows if r["scheme"] == scheme and r["steps"] == steps and r["checkpoint"] is c), None)
-                    for c in (False, True)]
+            pair = [next((r for r in rows if r["scheme"] == scheme and r["steps"] == steps and r["checkpoint"] is c),
+                         None) for c in (False, True)]
             if None in pair:
                 continue
             plain, remat = pair

@@ -11,7 +11,18 @@ other load on the machine does not enter the ratios,
     XLA_FLAGS=--xla_cpu_multi_thread_eigen=false taskset -c 0 python benchmarks/step_adjoint.py
 
 A structured adjoint should bring every column near 2 (one forward plus a transpose of similar
-cost).  Columns well above that name the path to work on.  ``--adjoint autodiff`` measures JAX's
+cost).  Columns well above that name the path to work on.
+
+A second table bounds what any checkpointing schedule can reach.  It splits the gradient of the
+whole step (every float of the new state, cotangent ones) in two programs: "linearise", the
+forward step that also hands out every residual its pullback reads (the per-step price of a
+schedule that stores residuals instead of recomputing them), and "transpose alone", the pullback
+fed those residuals, with no forward work at all; times as multiples of the whole step, and the
+floating-point operations XLA counts in each program (``cost_analysis``) as multiples of the
+step's.  A rollout gradient that keeps O(sqrt T) states evaluates every step forward at least
+twice (the pass that yields the loss, and once more from a checkpoint) and transposes it once, so
+its operation count is at least 2 + (transpose / forward) times the forward run's: the last
+column, whatever the schedule.  ``--adjoint autodiff`` measures JAX's
 plain rules (``Simulation(adjoint="autodiff")``) in place of the structured default.
 """
 
@@ -58,6 +69,40 @@ def measure(scene: str, scheme: str, options: dict, repeat: int, adjoint: str = 
     return "| " + " | ".join(cells) + " |"
 
 
+def flops(fn, *args) -> float:
+    """The floating-point operations XLA counts in the compiled ``fn(*args)``."""
+    cost = jax.jit(fn).lower(*args).compile().cost_analysis()
+    return (cost[0] if isinstance(cost, (list, tuple)) else cost)["flops"]
+
+
+def floor(scene: str, scheme: str, options: dict, repeat: int, adjoint: str = "structured") -> str:
+    setup = jm.scene(scene, scheme=scheme, **options)
+    sim, dt = setup.sim.with_adjoint(adjoint), setup.dt
+    floats, rest = eqx.partition(setup.state, eqx.is_inexact_array)
+
+    def step(d):  # the whole step: every float of the new state
+        return eqx.partition(sim.step(eqx.combine(d, rest), dt), eqx.is_inexact_array)[0]
+
+    def linearise(d):
+        return jax.vjp(step, d)[1]
+
+    def transpose(pullback, cotangent):
+        return pullback(cotangent)
+
+    def gradient(d, cotangent):
+        return jax.vjp(step, d)[1](cotangent)
+
+    ones = jax.tree_util.tree_map(jnp.ones_like, floats)
+    pullback = jax.jit(linearise)(floats)
+    forward = cpu_best(jax.jit(step), floats, repeat=repeat)
+    times = [cpu_best(jax.jit(f), *a, repeat=repeat) / forward
+             for f, a in ((gradient, (floats, ones)), (linearise, (floats,)), (transpose, (pullback, ones)))]
+    ops = [flops(f, *a) / flops(step, floats) for f, a in ((gradient, (floats, ones)), (transpose, (pullback, ones)))]
+    cells = [f"{scene} {scheme} ({setup.state.x.shape[0]} particles)", f"{forward * 1e6:.0f}",
+             *(f"{t:.1f}" for t in times), *(f"{o:.2f}" for o in ops), f"{2 + ops[1]:.2f}"]
+    return "| " + " | ".join(cells) + " |"
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeat", type=int, default=15)
@@ -68,6 +113,12 @@ def main():
     print("|---" * (3 + len(FIELDS)) + "|")
     for scene, scheme, options in CASES:
         print(measure(scene, scheme, options, args.repeat, args.adjoint), flush=True)
+    print()
+    print("| scene | whole step (CPU us) | step gradient / step | linearise / step | transpose alone / step "
+          "| gradient flops / step flops | transpose flops / step flops | floor: rollout gradient flops / forward flops |")
+    print("|---" * 8 + "|")
+    for scene, scheme, options in CASES:
+        print(floor(scene, scheme, options, args.repeat, args.adjoint), flush=True)
 
 
 if __name__ == "__main__":

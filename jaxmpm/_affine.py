@@ -327,7 +327,11 @@ def with_velocity_gradient(sim, state, gradient):
     4.1: L_p = K_p omega for a rigid field); unchanged otherwise."""
     if not isinstance(sim.scheme, (APIC, TPIC, RPIC)):
         return state
-    L = jnp.broadcast_to(jnp.asarray(gradient, state.x.dtype), state.F.shape)
+    d = state.x.shape[-1]  # the grid's dimension (F is 3x3 on an r-z grid; the affine state is d x d)
+    L = jnp.asarray(gradient, state.x.dtype)
+    check(L.shape[-2:] == (d, d), f"with_velocity_gradient: gradient has shape {L.shape}; give a ({d}, {d}) "
+          f"matrix or one per particle ({state.x.shape[0]}, {d}, {d}), in the grid's coordinates")
+    L = jnp.broadcast_to(L, (state.x.shape[0], d, d))
     if isinstance(sim.scheme, RPIC):  # omega x r = W r, W = (L - L^T)/2: omega_z = W_yx = (L_yx - L_xy)/2, ...
         omega = axial_vector(0.5 * L)
         K = rigid_inertia(sim.shape.stencil(sim.grid, state.x), state.mass)

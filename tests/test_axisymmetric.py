@@ -276,3 +276,86 @@ def test_elastic_breathing_conserves_energy(cylinder):
         deviation.append(np.max(np.abs((kinetic + strain) / total0 - 1)))
     assert deviation[0] < 0.012
     assert deviation[1] < 0.4 * deviation[0]  # first order in dt (a dt-independent error: 1)
+
+
+# ------------------------------------------------------------ APIC and TPIC on an r-z grid
+AFFINE = jnp.array([[0.3, -0.2], [0.5, 0.1]])  # a velocity field v = A x + c in (r, z)
+OFFSET = jnp.array([0.05, -0.02])
+
+
+@eqx.filter_jit
+def _affine_round_trip(sim, state, dt):
+    """The nodal velocity p_i / m_i of P2G before the step, the state after it, and p_i / m_i of P2G
+    from the particles' new velocities and affine state at their old positions: 002 prop. 5.1's
+    G2P-then-P2G round trip (nodes without mass: 0)."""
+    from jaxmpm._step import p2g
+    from jaxmpm._transfer import safe_divide
+
+    def nodal_velocity(s):
+        fields = p2g(sim, s, force=False)
+        return safe_divide(fields.momentum, fields.transfer.nodal_mass), fields.transfer.nodal_mass
+
+    new = sim.step(state, dt)
+    return nodal_velocity(state), new, nodal_velocity(eqx.tree_at(lambda s: s.x, new, state.x))
+
+
+def _affine_setup(shape, scheme):
+    h = 0.125
+    grid = jm.Grid.covering((1.0, 0.0), (2.0, 1.0), h, shape=shape, pad=(3 * h, 3 * h), axisymmetric=True)
+    particles = jm.fill(grid, jm.Box((1.25, 0.25), (1.75, 0.75)), ppc=2)  # stencils well inside the grid
+    sim = jm.Simulation(grid=grid, shape=shape, material=jm.LinearElastic(E=1.0, nu=0.3, density=1.0), scheme=scheme)
+    state = sim.init(particles)  # F = I: no stress in the first step, so only the transfers act
+    state = eqx.tree_at(lambda s: s.v, state, state.x @ AFFINE.T + OFFSET)
+    return sim, jm.with_velocity_gradient(sim, state, AFFINE), grid
+
+
+@pytest.mark.parametrize("scheme", [jm.APIC(), jm.TPIC()], ids=["apic", "tpic"])
+@pytest.mark.parametrize("shape", [jm.Linear(), jm.QuadraticBSpline(), jm.CubicBSpline()],
+                         ids=["linear", "quadratic", "cubic"])
+def test_affine_fields_survive_the_transfers_on_an_rz_grid(shape, scheme):
+    """APIC (002 prop. 5.1) and TPIC (004) keep an affine velocity field v = A x + c through
+    P2G and G2P on an r-z grid, as in the plane, for shapes evaluated at the particle point (the
+    point-particle limit of 001 eqs. 112-116: S_ip = N_i(X_p), G_ip = grad N_i(X_p)).  The
+    per-radian masses M_p = rho A_p r_p weight P2G's sums but not their affine exactness.  From
+    particles carrying V_p = A X_p + c and the matching affine state (B_p = A D_p, resp.
+    grad v_p = A): P2G gives v_i = A x_i + c at every node with mass, G2P gives back V_p and the
+    affine state, and P2G of those at the same positions the same nodal field again."""
+    sim, state, grid = _affine_setup(shape, scheme)
+    (v0, m0), new, (v1, m1) = _affine_round_trip(sim, state, 1e-4)
+    nodes = grid.node_coordinates()
+    for v, m in ((v0, m0), (v1, m1)):
+        has_mass = np.asarray(m) > 0
+        np.testing.assert_allclose(np.asarray(v)[has_mass], (nodes @ np.asarray(AFFINE).T + np.asarray(OFFSET))[has_mass],
+                                   rtol=0, atol=1e-14)
+    np.testing.assert_allclose(np.asarray(new.v), np.asarray(state.x @ AFFINE.T + OFFSET), rtol=0, atol=1e-14)
+    np.testing.assert_allclose(np.asarray(new.scheme_state), np.asarray(state.scheme_state), rtol=0, atol=1e-14)
+
+
+def test_ugimp_samples_an_affine_field_at_the_r_weighted_centroid():
+    """With uGIMP on an r-z grid S_ip is the r-weighted mean of N_i over the particle's domain (001
+    eq. 112), so sum_i S_ip x_i is the domain's r-weighted centroid, r_p + l^2 / (3 r_p) in r for
+    a domain of half-width l (the mean of r^2 over the mean of r), not X_p.  G2P of an affine field
+    therefore returns A (X_p + l^2 / (3 r_p) e_r) + c: exactly that (to round-off), and 1e-4 away
+    from A X_p + c here (l = h/4, r_p about 1.3).  This is the seed's weighting, not an error of
+    APIC or TPIC (point-evaluated shapes keep the field exactly, above); P2G still reproduces the
+    affine nodal field from particles that carry it."""
+    sim, state, grid = _affine_setup(jm.UGIMP(2), jm.APIC())
+    (v0, m0), new, _ = _affine_round_trip(sim, state, 1e-4)
+    has_mass = np.asarray(m0) > 0
+    nodes = np.asarray(grid.node_coordinates())
+    np.testing.assert_allclose(np.asarray(v0)[has_mass], (nodes @ np.asarray(AFFINE).T + np.asarray(OFFSET))[has_mass],
+                               rtol=0, atol=1e-14)
+    half = 0.125 / 4  # uGIMP(2): the particle's domain is h/2 wide
+    centroid = state.x.at[:, 0].add(half**2 / (3 * state.x[:, 0]))
+    np.testing.assert_allclose(np.asarray(new.v), np.asarray(centroid @ AFFINE.T + OFFSET), rtol=0, atol=1e-14)
+    assert float(jnp.max(jnp.abs(new.v - (state.x @ AFFINE.T + OFFSET)))) > 1e-4
+
+
+def test_velocity_gradient_start_takes_the_grid_dimension():
+    """jm.with_velocity_gradient sets a (2, 2) affine state on an r-z grid, whose F is 3x3, and
+    names the expected shape for a wrong one."""
+    sim, state, _ = _affine_setup(jm.QuadraticBSpline(), jm.TPIC())
+    assert state.scheme_state.shape == (state.x.shape[0], 2, 2) and state.F.shape[1:] == (3, 3)
+    np.testing.assert_array_equal(np.asarray(state.scheme_state[0]), np.asarray(AFFINE))
+    with pytest.raises(jm.InputError, match=r"\(2, 2\) matrix"):
+        jm.with_velocity_gradient(sim, state, jnp.eye(3))

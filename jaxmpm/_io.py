@@ -9,7 +9,8 @@
 /materials/<name> (T,M[,D])   multimaterial mode: kinetic, strain, momentum, contact_force per material
 /totals/<name> (T,)           the terms' totals: thermal_energy (jm.Heat), solute (jm.Diffusion)
 /state/<leaf>                 the state a chunked run reached (H5Writer.write_state; jaxmpm.resume)
-attributes on /: scene, scheme, order, beta, alpha_g, alpha_p, shape, update, dt, cells, ppc,
+attributes on /: scene, scheme, order, beta, alpha_g, alpha_p, damping approach, damping varies (0/1:
+                 a schedule or region scales alpha_g, alpha_p), shape, update, dt, cells, ppc,
                  dtype, jaxmpm version, scene parameters (JSON), and every other float
                  parameter the model's registered parts declare (E, nu, density, ...)
 ```
@@ -52,6 +53,8 @@ def run_attributes(sim, dt=None, scene: str | None = None, params: dict | None =
         "beta": float(np.asarray(getattr(scheme, "beta", np.nan))),
         "alpha_g": 0.0 if sim.damping is None else float(np.asarray(sim.damping.grid)),
         "alpha_p": 0.0 if sim.damping is None else float(np.asarray(sim.damping.particle)),
+        "damping approach": "velocity" if sim.damping is None else sim.damping.approach,
+        "damping varies": int(sim.damping is not None and sim.damping.varies),  # a schedule or region scales the rates
         "shape": type(sim.shape).__name__,
         "update": sim.update,
         "dt": float(np.asarray(dt)) if dt is not None else np.nan,

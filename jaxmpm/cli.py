@@ -31,6 +31,7 @@ SCENE_OPTIONS = {
     "--beta": "scheme",
     "--alpha-g": "damping",
     "--alpha-p": "damping",
+    "--damping-approach": "damping",
     "--dtype": "dtype",
     "--contact": "contact",
     "--friction": "friction",
@@ -85,6 +86,7 @@ def _show(value) -> str:
 def build_parser() -> argparse.ArgumentParser:
     import jaxmpm  # noqa: F401  (registers the schemes and shapes)
     from jaxmpm._registry import SCHEMES, SHAPES
+    from jaxmpm._terms import DAMPING_APPROACHES
     from jaxmpm.scenes import SCENES
     from jaxmpm.scenes._common import CONTACT_OPTIONS
 
@@ -112,6 +114,10 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--alpha-g", type=float, default=None, metavar="A", help="grid damping alpha_g in 1/time (default 0)")
     run.add_argument("--alpha-p", type=float, default=None, metavar="A",
                      help="particle damping alpha_p in 1/time (default 0)")
+    run.add_argument("--damping-approach", default=None, choices=list(DAMPING_APPROACHES),
+                     help="how grid damping acts (001 §5.1.2-5.2.2; jm.Damping's approach): on the particle update "
+                          "(velocity, the default), on the grid momentum extrapolated as momentum (momentum), or on the "
+                          "nodal force (force); needs --alpha-g")
     run.add_argument("--shape", default=None, choices=list(SHAPES.names()), help="shape function " + _defaults("shape"))
     run.add_argument("--update", default=None, choices=["USL", "USF", "MUSL", "USAVG-", "USAVG+"], help="stress update " + _defaults("update"))
     run.add_argument("--cells", type=int, default=None, metavar="N", help="cells along each axis " + _defaults("cells"))
@@ -288,8 +294,11 @@ def build_setup(args):
         check(args.shape != "ugimp" or "ppc" in accepted, f"--shape ugimp needs a scene with ppc; {args.scene!r} has none")
         ppc = args.ppc if args.ppc is not None else accepted["ppc"].default if "ppc" in accepted else None
         kwargs["shape"] = shape_from_name(args.shape, ppc=ppc) if args.shape == "ugimp" else shape_from_name(args.shape)
+    check(args.damping_approach is None or args.alpha_g is not None,
+          f"--damping-approach {args.damping_approach} sets how grid damping acts; give its rate with --alpha-g")
     if args.alpha_g is not None or args.alpha_p is not None:
-        kwargs["damping"] = jm.Damping(grid=args.alpha_g or 0.0, particle=args.alpha_p or 0.0)
+        kwargs["damping"] = jm.Damping(grid=args.alpha_g or 0.0, particle=args.alpha_p or 0.0,
+                                       approach=args.damping_approach or "velocity")
     if args.transport_xpic is not None:
         kwargs["transport"] = f"xpic:{args.transport_xpic}"  # checked by the scene (jaxmpm/_transport.py)
     # the options passed through as they are: those named as their scene keyword (not the parts and dtype,

@@ -117,7 +117,10 @@ def test_run_bar_writes_hdf5_and_summary(tmp_path, capsys):
         (["--scheme", "xpic:3", "--dtype", "f32"], dict(scheme="XPIC", order=3, beta=0.0, dtype="float32"), 32),
         (["--scheme", "fmpm:2", "--shape", "ugimp", "--ppc", "3", "--alpha-g", "0.5", "--alpha-p", "0.25"],
          dict(scheme="FMPM", order=2, beta=0.0, shape="UGIMP", ppc=3, alpha_g=0.5, alpha_p=0.25), 48),
-        (["--scheme", "blend:0.9"], dict(scheme="FLIP", order=1, beta=0.9, shape="Linear"), 32),
+        (["--scheme", "blend:0.9"], dict(scheme="FLIP", order=1, beta=0.9, shape="Linear",
+                                         **{"damping approach": "velocity", "damping varies": 0}), 32),
+        (["--alpha-g", "0.5", "--damping-approach", "force"],
+         dict(alpha_g=0.5, alpha_p=0.0, **{"damping approach": "force", "damping varies": 0}), 32),
         (["--scheme", "xpic:2", "--beta", "0.5", "--update", "MUSL"], dict(scheme="XPIC", order=2, beta=0.5,
                                                                             update="MUSL"), 32),
     ],
@@ -227,3 +230,19 @@ def test_unstable_run_exits_2_naming_the_step(tmp_path, capsys):
     dt = 3 * DT / 0.1
     time = jm.load_h5(path)["time"]
     np.testing.assert_allclose(time, dt * np.arange(step), rtol=1e-12)  # frames 0 .. step-1
+
+
+def test_damping_approach_needs_a_grid_rate_and_reaches_the_model(tmp_path, capsys):
+    """--damping-approach sets jm.Damping's approach (001 §5.2.2); alone (no --alpha-g, the rate it
+    shapes) it exits 2 in one line naming both options."""
+    from jaxmpm.cli import build_parser, build_setup
+
+    args = build_parser().parse_args(["run", "bar", *SHORT, "--alpha-g", "0.5", "--alpha-p", "0.1",
+                                      "--damping-approach", "momentum", "--out", "unused.h5"])
+    damping = build_setup(args).sim.damping
+    assert damping.approach == "momentum" and float(damping.grid) == 0.5 and float(damping.particle) == 0.1
+    path = tmp_path / "x.h5"
+    assert run_cli(["run", "bar", *SHORT, "--damping-approach", "force", "--out", str(path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--damping-approach force" in err[0] and "--alpha-g" in err[0]
+    assert not path.exists()

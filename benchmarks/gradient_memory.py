@@ -128,8 +128,8 @@ def in_subprocess(*args) -> dict:
 
 def print_row(row: dict, header: bool) -> None:
     cols = [("scheme", 6, ""), ("steps", 6, "d"), ("checkpoint", 10, ""), ("temp_MiB", 9, ".2f"),
-            ("rss_peak_MiB", 12, ".1f"), ("rss_compile_MiB", 15, ".1f"), ("compile_s", 9, ".2f"), ("forward_s", 9, ".3f"), ("grad_s", 8, ".3f"),
-            ("ratio", 6, ".2f")]
+            ("rss_peak_MiB", 12, ".1f"), ("rss_compile_MiB", 15, ".1f"), ("compile_s", 9, ".2f"),
+            ("forward_s", 9, ".3f"), ("grad_s", 8, ".3f"), ("ratio", 6, ".2f")]
     if header:
         print("  ".join(f"{name:>{w}}" for name, w, _ in cols))
     print("  ".join(f"{str(row[name]) if fmt == '' else format(row[name], fmt):>{w}}" for name, w, fmt in cols),

@@ -89,15 +89,16 @@ def floor(scene: str, scheme: str, options: dict, repeat: int, adjoint: str = "s
     def transpose(pullback, cotangent):
         return pullback(cotangent)
 
-    def gradient(d, cotangent):
-        return jax.vjp(step, d)[1](cotangent)
+    def gradient(d, cotangent):  # the two in one program
+        return transpose(linearise(d), cotangent)
 
     ones = jax.tree_util.tree_map(jnp.ones_like, floats)
     pullback = jax.jit(linearise)(floats)
     forward = cpu_best(jax.jit(step), floats, repeat=repeat)
     times = [cpu_best(jax.jit(f), *a, repeat=repeat) / forward
              for f, a in ((gradient, (floats, ones)), (linearise, (floats,)), (transpose, (pullback, ones)))]
-    ops = [flops(f, *a) / flops(step, floats) for f, a in ((gradient, (floats, ones)), (transpose, (pullback, ones)))]
+    step_flops = flops(step, floats)
+    ops = [flops(f, *a) / step_flops for f, a in ((gradient, (floats, ones)), (transpose, (pullback, ones)))]
     cells = [f"{scene} {scheme} ({setup.state.x.shape[0]} particles)", f"{forward * 1e6:.0f}",
              *(f"{t:.1f}" for t in times), *(f"{o:.2f}" for o in ops), f"{2 + ops[1]:.2f}"]
     return "| " + " | ".join(cells) + " |"

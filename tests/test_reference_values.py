@@ -1,49 +1,85 @@
-"""Behaviour preserved: the numbers stored before the open-core refactor (issue 10), on commit
-025c38f, by ``tests/reference/generate.py`` -- one step of every scheme x shape x dimension
-(plus USF/MUSL, the folded affine P2G with walls and a fluid, and the XPIC/FMPM options) agrees
-to 1e-13 relative, whole ``bar`` and ``spin`` runs to 1e-10 (float64)."""
+"""Behaviour preserved: numbers stored before a refactor, compared with what the library computes now.
+
+* ``values.npz`` -- stored before the open-core refactor (issue 10), on commit 025c38f: one step of
+  every scheme x shape x dimension (plus USF/MUSL, the folded affine P2G with walls and a fluid, and
+  the XPIC/FMPM options) to 1e-13 relative, whole ``bar`` and ``spin`` runs to 1e-10 (float64).
+* ``values_v2.npz`` -- stored before the core v2 refactor (issue 27), on commit 6c6f418: USAVG-/USAVG+
+  for every scheme, every contact law with every scheme (1D-3D, three materials, both normals, the
+  separation criterion, walls), the damping variants, the transport / load / reaction / stress-XPIC
+  terms, r-z grids, the exponential increment -- one step each to 1e-13 with every particle field --
+  and whole ``disks``, ``bars_impact`` and ``heat1d`` runs to 1e-10.
+
+``tests/reference/configs.py`` builds every case through the public API; ``generate.py`` wrote the
+files.  The one-step cases run eagerly (``jax.disable_jit``): each primitive is compiled once per
+shape and reused across cases, 0.1-0.3 s a case, where compiling each case's step took 1-2.5 s.  The
+stored values were computed jitted; the two orders of evaluation agree to round-off."""
 
 import os
 
-import equinox as eqx
+import jax
 import numpy as np
 import pytest
 
 from reference import configs
 
-STORED = np.load(os.path.join(os.path.dirname(__file__), "reference", "values.npz"))
+HERE = os.path.join(os.path.dirname(__file__), "reference")
+STORED = {name: np.load(os.path.join(HERE, name)) for name in ("values.npz", "values_v2.npz")}
 
 
-@eqx.filter_jit
-def _step(sim, state, dt):
-    # jitted, as the stored values were: each case compiles in about a second, where running it
-    # eagerly op by op (each conditional and loop compiled on its own) takes 2-5 s
-    return sim.step(state, dt)
+def _eager_step(sim, state, dt):
+    with jax.disable_jit():
+        return sim.step(state, dt)
 
 
-def _compare(prefix, values, rtol, energy_scale=0.0):
+def _compare(store, prefix, values, rtol, energy_scale=0.0, force_scale=0.0):
     """Every stored array to ``rtol`` of its largest entry; the dissipated energy, a difference of
     two energies that can cancel to round-off (1e-17 against 1e-2 under FLIP with walls), to
-    ``rtol`` of the energies it is the difference of (``energy_scale``)."""
-    stored = sorted(k[len(prefix):] for k in STORED.files if k.startswith(prefix))
-    assert sorted(values) == stored
-    for key in stored:
-        ref, got = STORED[prefix + key], values[key]
+    ``rtol`` of the energies it is the difference of (``energy_scale``); a per-particle force field
+    (contact, reaction), which is round-off where no force acts (1e-16 against 1e1 when the bodies
+    already move apart), to ``rtol`` of the momentum change per step sum_p M_p |V_p| / dt
+    (``force_scale``)."""
+    stored = STORED[store]
+    keys = sorted(k[len(prefix):] for k in stored.files if k.startswith(prefix))
+    assert keys and sorted(values) == keys
+    for key in keys:
+        ref, got = stored[prefix + key], values[key]
         assert got.shape == ref.shape and got.dtype == ref.dtype, key
         scale = np.max(np.abs(ref[np.isfinite(ref)]), initial=0.0)
         if key == "dissipated":
             scale = max(scale, energy_scale)
+        if key.startswith("field_") and key.endswith("_force"):
+            scale = max(scale, force_scale)
         np.testing.assert_allclose(got, ref, rtol=0, atol=rtol * max(scale, 1e-300), equal_nan=True,
                                    err_msg=f"{prefix}{key}")
+
+
+def _kinetic(state):
+    return 0.5 * float(np.sum(np.asarray(state.mass)[:, None] * np.asarray(state.v) ** 2))
+
+
+def _momentum_rate(state, dt):
+    return float(np.sum(np.asarray(state.mass) * np.linalg.norm(np.asarray(state.v), axis=-1))) / dt
 
 
 @pytest.mark.parametrize("name", list(configs.one_step_cases()))
 def test_one_step_matches_stored(name):
     sim, state, dt = configs.build(**configs.one_step_cases()[name])
-    kinetic = 0.5 * float(np.sum(np.asarray(state.mass)[:, None] * np.asarray(state.v) ** 2))
-    _compare(f"step/{name}/", configs.one_step_values(sim, state, dt, _step), 1e-13, kinetic)
+    _compare("values.npz", f"step/{name}/", configs.one_step_values(sim, state, dt, _eager_step), 1e-13,
+             _kinetic(state))
+
+
+@pytest.mark.parametrize("name", list(configs.v2_step_cases()))
+def test_core_v2_step_matches_stored(name):
+    sim, state, dt = configs.build_v2(**configs.v2_step_cases()[name])
+    _compare("values_v2.npz", f"step/{name}/", configs.v2_step_values(sim, state, dt, _eager_step), 1e-13,
+             _kinetic(state), _momentum_rate(state, dt))
 
 
 @pytest.mark.parametrize("name", list(configs.RUNS))
 def test_run_matches_stored(name):
-    _compare(f"run/{name}/", configs.run_values(configs.run_setup(name)), 1e-10)
+    _compare("values.npz", f"run/{name}/", configs.run_values(configs.run_setup(name)), 1e-10)
+
+
+@pytest.mark.parametrize("name", list(configs.RUNS_V2))
+def test_core_v2_run_matches_stored(name):
+    _compare("values_v2.npz", f"run/{name}/", configs.run_values_v2(configs.run_setup_v2(name)), 1e-10)

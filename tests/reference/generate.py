@@ -5,6 +5,9 @@ and say so in the commit):
     git worktree add /tmp/baseline 025c38f
     cp -r tests/reference /tmp/baseline/tests/ && cd /tmp/baseline
     PYTHONPATH=. python tests/reference/generate.py   # writes tests/reference/values.npz there
+
+``--v2`` writes ``values_v2.npz`` instead, the core v2 configurations, run on commit 6c6f418 (the
+last commit before the core v2 refactor, issue 27) the same way.
 """
 
 from __future__ import annotations
@@ -30,8 +33,28 @@ def _step(sim, state, dt):
     return sim.step(state, dt)
 
 
+def main_v2():
+    """``values_v2.npz``: the core v2 configurations (configs.v2_step_cases, configs.RUNS_V2), stored
+    on commit 6c6f418, the last commit before the core v2 refactor (issue 27)."""
+    values = {}
+    for name, kwargs in configs.v2_step_cases().items():
+        sim, state, dt = configs.build_v2(**kwargs)
+        for key, arr in configs.v2_step_values(sim, state, dt, _step).items():
+            values[f"step/{name}/{key}"] = arr
+    for name in configs.RUNS_V2:
+        for key, arr in configs.run_values_v2(configs.run_setup_v2(name)).items():
+            values[f"run/{name}/{key}"] = arr
+    return "values_v2.npz", values
+
+
 def main():
     print("jaxmpm from", jm.__file__)
+    if "--v2" in sys.argv:
+        name, values = main_v2()
+        path = os.path.join(os.path.dirname(os.path.abspath(__file__)), name)
+        np.savez_compressed(path, **values)
+        print(f"wrote {len(values)} arrays to {path} ({os.path.getsize(path) / 1e6:.2f} MB)")
+        return
     values = {}
     for name, kwargs in configs.one_step_cases().items():
         sim, state, dt = configs.build(**kwargs)

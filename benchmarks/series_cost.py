@@ -44,8 +44,8 @@ import equinox as eqx  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
 import jaxmpm as jm  # noqa: E402
-from jaxmpm._simulation import CAUSES  # noqa: E402
-from jaxmpm._transfer import Transfer  # noqa: E402
+from jaxmpm.model.simulation import CAUSES  # noqa: E402
+from jaxmpm.transfer.operators import Transfer  # noqa: E402
 
 DEFAULT_CSV = Path(__file__).resolve().parent / "results" / "series_cost.csv"
 AIM = 0.5  # the budget: one extra order <= half a FLIP step

@@ -3,37 +3,37 @@
 FLIP, PIC and their blend, XPIC(m), FMPM(k), APIC and TPIC as pure, jit-able, differentiable steps.
 """
 
-from ._cache import compilation_cache
-from ._calibrate import CalibrationResult, calibrate
-from ._ensemble import ensemble
-from ._params import PARAMETERS, get_params, set_params
-from ._schemes import FLIP, FMPM, PIC, XPIC, mass_matrix_series  # noqa: I001  (flip first in the registry)
-from ._registry import (MATERIALS, SCHEMES, SHAPES, TERMS, Parameter, register_material, register_scheme,
+from .run.cache import compilation_cache
+from .run.calibrate import CalibrationResult, calibrate
+from .run.ensemble import ensemble
+from .core.params import PARAMETERS, get_params, set_params
+from .schemes.xpic import FLIP, FMPM, PIC, XPIC, mass_matrix_series  # noqa: I001  (flip first in the registry)
+from .core.registry import (MATERIALS, SCHEMES, SHAPES, TERMS, Parameter, register_material, register_scheme,
                         register_shape, register_term, scheme_from_name, shape_from_name)
-from ._boundary import Constraint, Fixed, Mirror, NodeSet, Prescribed, Slip, Wall
-from ._diagnostics import angular_momentum, kinetic_energy, linear_momentum, stable_dt, strain_energy
-from ._errors import InputError, InstabilityError
-from ._fields import GridFields, GridSolution, ParticleField
-from ._grid import Grid
-from ._io import H5Writer, load_h5, save_h5
-from ._materials import HypoElastic, LinearElastic, Material, NeoHookean, NoStress, VolumetricFluid
-from ._particles import Ball, Box, Disk, Particles, Region, Ring, fill
-from ._scheme_base import ParticleUpdate, Scheme
-from ._schemes import FLIP, FMPM, PIC, XPIC, mass_matrix_series
-from ._affine import APIC, RPIC, TPIC, with_velocity_gradient
-from ._shapes import (AxisymmetricStencil, CubicBSpline, Linear, QuadraticBSpline, ShapeFunction, Stencil, StencilBase,
+from .physics.conditions import Constraint, Fixed, Mirror, NodeSet, Prescribed, Slip, Wall
+from .core.measures import angular_momentum, kinetic_energy, linear_momentum, stable_dt, strain_energy
+from .core.errors import InputError, InstabilityError
+from .core.fields import GridFields, GridSolution, ParticleField
+from .core.grid import Grid
+from .io.hdf5 import H5Writer, load_h5, save_h5
+from .materials.base import HypoElastic, LinearElastic, Material, NeoHookean, NoStress, VolumetricFluid
+from .core.particles import Ball, Box, Disk, Particles, Region, Ring, fill
+from .schemes.base import ParticleUpdate, Scheme
+from .schemes.xpic import FLIP, FMPM, PIC, XPIC, mass_matrix_series
+from .schemes.affine import APIC, RPIC, TPIC, with_velocity_gradient
+from .transfer.shapes import (AxisymmetricStencil, CubicBSpline, Linear, QuadraticBSpline, ShapeFunction, Stencil, StencilBase,
                       TensorStencil, UGIMP)
-from ._driver import History, RunInterrupted, StableTimeStepWarning
-from ._resume import resume
-from ._simulation import Simulation
-from ._state import State, with_fields, with_scheme_state
-from ._step import folds_force, grid_solve, g2p, p2g
-from ._terms import BodyForce, Damping, StressDivergence, Term
-from ._contact import Contact
-from ._loads import ParticleForce, Traction
-from ._reaction import Reaction
-from ._transport import Diffusion, Dirichlet, Heat, Neumann, Transport
-from ._transfer import Transfer, gather, scatter
+from .run.driver import History, RunInterrupted, StableTimeStepWarning
+from .resume import resume
+from .model.simulation import Simulation
+from .core.state import State, with_fields, with_scheme_state
+from .model.step import folds_force, grid_solve, g2p, p2g
+from .physics.term import BodyForce, Damping, StressDivergence, Term
+from .physics.contact import Contact
+from .physics.loads import ParticleForce, Traction
+from .physics.reaction import Reaction
+from .physics.transport import Diffusion, Dirichlet, Heat, Neumann, Transport
+from .transfer.operators import Transfer, gather, scatter
 from .scenes import SCENES, scene
 
 __version__ = "0.1.0"

@@ -85,8 +85,8 @@ def _show(value) -> str:
 
 def build_parser() -> argparse.ArgumentParser:
     import jaxmpm  # noqa: F401  (registers the schemes and shapes)
-    from jaxmpm._registry import SCHEMES, SHAPES
-    from jaxmpm._terms import DAMPING_APPROACHES
+    from jaxmpm.core.registry import SCHEMES, SHAPES
+    from jaxmpm.physics.term import DAMPING_APPROACHES
     from jaxmpm.scenes import SCENES
     from jaxmpm.scenes._common import CONTACT_OPTIONS
 
@@ -205,16 +205,17 @@ def run_scene(args) -> int:
 
     _with_x64(args.dtype)
     import jaxmpm as jm
+    from jaxmpm.core.errors import check
 
     if os.path.exists(args.out) and not args.force:
         fail(f"--out {args.out} exists; pass --force to overwrite it, or choose another file")
     try:
         setup = build_setup(args)
         if args.max_steps is not None:
-            jm._errors.check(args.max_steps >= 1, f"--max-steps = {args.max_steps} must be a positive integer")
-            jm._errors.check(setup.steps <= args.max_steps,
-                             f"the run needs {setup.steps} steps, more than --max-steps {args.max_steps}; "
-                             "shorten --t-end or use a larger --dt/--cfl")
+            check(args.max_steps >= 1, f"--max-steps = {args.max_steps} must be a positive integer")
+            check(setup.steps <= args.max_steps,
+                  f"the run needs {setup.steps} steps, more than --max-steps {args.max_steps}; "
+                  "shorten --t-end or use a larger --dt/--cfl")
     except jm.InputError as err:
         fail(str(err))
     except MemoryError:
@@ -225,7 +226,7 @@ def run_scene(args) -> int:
 def resume_run(args) -> int:
     import json
 
-    from jaxmpm._resume import run_info
+    from jaxmpm.resume import run_info
 
     try:
         info = run_info(args.file)
@@ -271,8 +272,8 @@ def given_options(args) -> list[str]:
 def build_setup(args):
     """Scene builder keyword arguments from ``args``; an option the builder does not take is an error."""
     import jaxmpm as jm
-    from jaxmpm._errors import check
-    from jaxmpm._registry import scheme_from_name, shape_from_name
+    from jaxmpm.core.errors import check
+    from jaxmpm.core.registry import scheme_from_name, shape_from_name
 
     check(args.scene in jm.SCENES,
           f"unknown scene {args.scene!r}; choose one of {', '.join(jm.SCENES)} (see `jaxmpm scenes`)")
@@ -332,7 +333,7 @@ def run_setup(setup, args, options: dict, resume: bool = False) -> int:
     import numpy as np
 
     import jaxmpm as jm
-    from jaxmpm._io import xdmf_paths
+    from jaxmpm.io.hdf5 import xdmf_paths
 
     if args.cache:
         try:

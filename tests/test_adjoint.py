@@ -1,5 +1,5 @@
 """The structured adjoint (``Simulation(adjoint="structured")``, the default) against JAX's own
-autodiff of the forward code (``adjoint="autodiff"``, the reference; jaxmpm._backend): the same
+autodiff of the forward code (``adjoint="autodiff"``, the reference; jaxmpm.transfer.backend): the same
 forward values bitwise, the same reverse-mode gradients to 1e-10 in float64 for every scheme and
 every parameter the library exposes, and the same forward-mode derivatives (issue 15).
 
@@ -74,7 +74,7 @@ CASES = ["bar-blend-ugimp-musl", "bar-xpic2-usf", "bar-fmpm2-cubic", "bar-tpic-c
 def test_cases_cover_every_parameter():
     """Every parameter the library registers (jm.PARAMETERS; not those a test registers for a
     class of its own) is differentiated by one of the cases."""
-    from jaxmpm._registry import owner_registry
+    from jaxmpm.core.registry import owner_registry
 
     library = {k for k in jm.PARAMETERS if all(c.__module__.startswith("jaxmpm") for c in owner_registry(k)[2])}
     covered = set().union(*(case(name)[1] for name in CASES))

@@ -1,4 +1,4 @@
-"""APIC and TPIC transfers (jaxmpm._affine) against the propositions of 002 and the formulas of 004.
+"""APIC and TPIC transfers (jaxmpm.schemes.affine) against the propositions of 002 and the formulas of 004.
 
 * 002 eq. (3): D_p = sum_i S_pi (x_i - X_p)(x_i - X_p)^T is h^2/4 I (quadratic B-spline) and
   h^2/3 I (cubic); for multilinear shape functions S_pi D_p^-1 (x_i - X_p) = G_pi
@@ -28,10 +28,10 @@ import numpy as np
 import pytest
 
 import jaxmpm as jm
-from jaxmpm._affine import affine_angular_momentum, affine_weights, inertia_tensor
-from jaxmpm._boundary import Constraint
-from jaxmpm._schemes import GridSolution
-from jaxmpm._transfer import Transfer
+from jaxmpm.schemes.affine import affine_angular_momentum, affine_weights, inertia_tensor
+from jaxmpm.physics.conditions import Constraint
+from jaxmpm.schemes.xpic import GridSolution
+from jaxmpm.transfer.operators import Transfer
 from cases import AFFINE_GRIDS, FOUR_SHAPES, random_particles
 
 TOL = 1e-12
@@ -203,7 +203,7 @@ def test_tpic_conserves_linear_momentum_and_p2g_angular_momentum(shape_name, dim
 def test_scheme_names_and_initial_field(name):
     """``scheme_from_name`` knows apic/tpic; the affine field starts at zero with shape (N, D, D) and
     ``with_velocity_gradient`` sets B_p = L D_p (APIC) or grad v_p = L (TPIC)."""
-    from jaxmpm._schemes import scheme_from_name
+    from jaxmpm.schemes.xpic import scheme_from_name
 
     scheme = scheme_from_name(name)
     assert type(scheme) is type(SCHEMES[name])

@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 import jaxmpm as jm
-from jaxmpm._backend import use_policy
-from jaxmpm._step import strain_rate
-from jaxmpm._transfer import Transfer, scatter_planar
+from jaxmpm.transfer.backend import use_policy
+from jaxmpm.model.step import strain_rate
+from jaxmpm.transfer.operators import Transfer, scatter_planar
 
 
 @eqx.filter_jit
@@ -288,8 +288,8 @@ def _affine_round_trip(sim, state, dt):
     """The nodal velocity p_i / m_i of P2G before the step, the state after it, and p_i / m_i of P2G
     from the particles' new velocities and affine state at their old positions: 002 prop. 5.1's
     G2P-then-P2G round trip (nodes without mass: 0)."""
-    from jaxmpm._step import p2g
-    from jaxmpm._transfer import safe_divide
+    from jaxmpm.model.step import p2g
+    from jaxmpm.transfer.operators import safe_divide
 
     def nodal_velocity(s):
         fields = p2g(sim, s, force=False)

@@ -37,7 +37,7 @@ def test_a_compiled_program_is_reused_from_the_disk(tmp_path):
 
 def test_default_folder_and_bad_arguments(tmp_path, monkeypatch):
     monkeypatch.setenv("JAXMPM_CACHE_DIR", str(tmp_path / "here"))
-    from jaxmpm._cache import default_cache_dir
+    from jaxmpm.run.cache import default_cache_dir
 
     assert default_cache_dir() == tmp_path / "here"
     monkeypatch.delenv("JAXMPM_CACHE_DIR")

@@ -67,7 +67,7 @@ def trajectory(sim, state, dt, steps):
 
 @eqx.filter_jit
 def grid_stage(sim, state, dt):
-    """The grid solution of one step, as ``jaxmpm._step.step`` computes it: P2G, the lumped solve
+    """The grid solution of one step, as ``jaxmpm.model.step.step`` computes it: P2G, the lumped solve
     with the velocity conditions, then the terms' grid actions (contact among them)."""
     dt = jnp.asarray(dt, state.x.dtype)
     constraint = sim.constraint(state.x.dtype)

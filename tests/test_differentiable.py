@@ -148,7 +148,7 @@ def test_checkpoint_validation():
 def test_checkpoint_segments():
     """checkpoint=True keeps the fewest states, frames * save_every / L segment starts plus the L
     step states of one segment (L | save_every); "low_memory" takes L ~ sqrt(save_every)."""
-    from jaxmpm._driver import _segment_length
+    from jaxmpm.run.driver import _segment_length
 
     assert _segment_length(1000, True, frames=1) == 25  # 40 + 25 states (the tie with 40 goes to the shorter)
     assert _segment_length(100, True, frames=10) == 25  # 40 + 25, against 20 + 50 or 100 + 10

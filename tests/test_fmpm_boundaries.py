@@ -29,9 +29,9 @@ import numpy as np
 import pytest
 
 import jaxmpm as jm
-from jaxmpm._boundary import build_constraint
-from jaxmpm._schemes import UNLUMPED_MODES, mass_matrix_series
-from jaxmpm._transfer import Transfer
+from jaxmpm.physics.conditions import build_constraint
+from jaxmpm.schemes.xpic import UNLUMPED_MODES, mass_matrix_series
+from jaxmpm.transfer.operators import Transfer
 from cases import UNIT_GRIDS, dense_weights
 
 GRID = UNIT_GRIDS[1]  # 8 cells, 9 nodes on [0, 1]
@@ -311,8 +311,8 @@ def test_fmpm_runs_each_mode_from_the_grid_solve_velocity_before_the_conditions(
     conditions (``v_tilde_unconstrained``), so one step equals the update written out here from
     ``mass_matrix_series(..., free=(p + f dt)/m)`` (003 eqs. 2.13, 2.17) to round-off, on ``bar``
     (fixed at x = 0) after 20 steps of motion; and XPIC, USF and MUSL refuse the modes clearly."""
-    from jaxmpm._step import p2g, grid_solve
-    from jaxmpm._transfer import safe_divide
+    from jaxmpm.model.step import p2g, grid_solve
+    from jaxmpm.transfer.operators import safe_divide
 
     base = jm.scene("bar", scheme=jm.FMPM(order=2), cells=8)
     state = base.state

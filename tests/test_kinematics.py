@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 
 import jaxmpm as jm
-from jaxmpm._step import update_deformation
+from jaxmpm.model.step import update_deformation
 
 
 def test_a_spin_gives_an_exact_rotation():

@@ -25,9 +25,9 @@ import numpy as np
 import pytest
 
 import jaxmpm as jm
-from jaxmpm._boundary import build_constraint
-from jaxmpm._schemes import Damping, GridSolution, mass_matrix_series
-from jaxmpm._transfer import Transfer
+from jaxmpm.physics.conditions import build_constraint
+from jaxmpm.schemes.xpic import Damping, GridSolution, mass_matrix_series
+from jaxmpm.transfer.operators import Transfer
 from cases import FOUR_SHAPES, UNIT_GRIDS, at_cells, dense_weights, interior_cells
 
 N_PARTICLES = 40

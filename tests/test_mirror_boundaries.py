@@ -1,7 +1,7 @@
 """Boundaries that B-splines need: the symmetry plane ``jm.Mirror`` and free slip on an inclined
 plane ``jm.Slip(normal=..., point=...)``.
 
-* Mirror: the particles' mirror images folded onto the grid (jaxmpm._boundary.MirrorMap) must give
+* Mirror: the particles' mirror images folded onto the grid (jaxmpm.physics.conditions.MirrorMap) must give
   exactly the run of the doubled body -- the body plus its reflection (x -> 2c - x, normal velocity
   negated) on the doubled domain, no condition at all.  Dense check to round-off over whole runs: 1D
   cubic B-splines with FMPM(2) and MUSL (the fold enters P2G, S+ of the mass-matrix series 003 eqs.
@@ -29,7 +29,7 @@ import numpy as np
 import pytest
 
 import jaxmpm as jm
-from jaxmpm._schemes import mass_matrix_series
+from jaxmpm.schemes.xpic import mass_matrix_series
 
 
 @eqx.filter_jit

@@ -17,8 +17,8 @@ import optax
 import pytest
 
 import jaxmpm as jm
-from jaxmpm._scheme_base import dissipated_energy
-from jaxmpm._terms import damping_acceleration
+from jaxmpm.schemes.base import dissipated_energy
+from jaxmpm.physics.term import damping_acceleration
 
 
 # ------------------------------------------------------------------ a scheme in one file
@@ -217,10 +217,10 @@ def test_gpu_policy_has_no_stage_boundaries():
 
 
 def test_scatter_rows_are_widened_to_a_power_of_two_only_under_the_cpu_policy():
-    # XLA:CPU adds rows of 3, 5, 6, 7 columns 2-4x slower than rows of 4 or 8 (jaxmpm._backend);
+    # XLA:CPU adds rows of 3, 5, 6, 7 columns 2-4x slower than rows of 4 or 8 (jaxmpm.transfer.backend);
     # the widened scatter must give the same sums, column by column, bit for bit
-    from jaxmpm._backend import scatter_row_width, use_policy
-    from jaxmpm._transfer import scatter_planar
+    from jaxmpm.transfer.backend import scatter_row_width, use_policy
+    from jaxmpm.transfer.operators import scatter_planar
 
     with use_policy("cpu"):
         assert [scatter_row_width(w) for w in range(1, 10)] == [1, 2, 4, 4, 8, 8, 8, 8, 16]

@@ -25,10 +25,10 @@ import numpy as np
 import pytest
 
 import jaxmpm as jm
-from jaxmpm._affine import rigid_inertia
-from jaxmpm._boundary import Constraint
-from jaxmpm._schemes import GridSolution
-from jaxmpm._transfer import Transfer
+from jaxmpm.schemes.affine import rigid_inertia
+from jaxmpm.physics.conditions import Constraint
+from jaxmpm.schemes.xpic import GridSolution
+from jaxmpm.transfer.operators import Transfer
 from cases import dense_weights, particle_major
 
 TOL = 1e-12

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import jaxmpm as jm
-from jaxmpm._boundary import build_constraint
+from jaxmpm.physics.conditions import build_constraint
 from cases import UNIT_SQUARE, central_difference
 
 # ----------------------------------------------------------------------------------------- rings

@@ -1,4 +1,4 @@
-"""Transfer operators S, S+, S^T and the force divergence (jaxmpm._transfer), and conservation of
+"""Transfer operators S, S+, S^T and the force divergence (jaxmpm.transfer.operators), and conservation of
 linear momentum by one full time step of every scheme.
 
 * P2G conserves mass and momentum: sum_i m_i = sum_p M_p, sum_i p_i = sum_p M_p V_p (003 eq. 2.1)

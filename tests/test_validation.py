@@ -18,7 +18,7 @@ from hypothesis import HealthCheck, given, settings
 
 import jaxmpm as jm
 from cases import small_simulation
-from jaxmpm._validate import Range, finite_vector, positive_int, real
+from jaxmpm.core.validate import Range, finite_vector, positive_int, real
 
 NAN, INF = math.nan, math.inf
 

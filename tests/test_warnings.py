@@ -1,4 +1,4 @@
-"""jaxmpm's warnings name the user's line (jaxmpm._warn.warn), not a jaxmpm, equinox or JAX file."""
+"""jaxmpm's warnings name the user's line (jaxmpm.core.warn.warn), not a jaxmpm, equinox or JAX file."""
 
 import inspect
 import os
@@ -9,7 +9,7 @@ import jax
 import pytest
 
 import jaxmpm as jm
-from jaxmpm._warn import warn
+from jaxmpm.core.warn import warn
 
 
 def line_of(marker: str) -> int:

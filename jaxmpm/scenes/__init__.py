@@ -47,7 +47,7 @@ def scene(name: str, **options) -> Setup:
     for every scene), so ``jm.SCENES[name][0](**options)`` is checked the same way: an unknown
     option, a count that is not a positive integer, a non-positive or non-finite size, step or
     time, or a material constant out of range raises :class:`jaxmpm.InputError`."""
-    from .._errors import check
+    from ..core.errors import check
 
     check(isinstance(name, str) and name in SCENES, f"unknown scene {name!r}; choose one of {', '.join(SCENES)}")
     return SCENES[name][0](**options)

@@ -10,8 +10,8 @@ from typing import Any, Callable
 import jax
 import jax.numpy as jnp
 
-from .._errors import check
-from .._limits import require_steps
+from ..core.errors import check
+from ..core.limits import require_steps
 
 
 @dataclasses.dataclass
@@ -77,7 +77,7 @@ def contact_model(contact: str, friction: float, normal: str = "average", separa
     :class:`jaxmpm.Contact` takes it, and the ``separation`` criterion (cells; None: none)."""
     if contact == "none":
         return (), False
-    from .._contact import Contact
+    from ..physics.contact import Contact
 
     return (Contact(law=contact, friction=friction if contact == "coulomb" else 0.0, normal=normal,
                     separation=separation),), True

@@ -29,7 +29,7 @@ import inspect
 
 import numpy as np
 
-from .._validate import FINITE, NON_NEGATIVE, POISSON, POSITIVE, Range, concrete, fail, positive_int, sequence, show
+from ..core.validate import FINITE, NON_NEGATIVE, POISSON, POSITIVE, Range, concrete, fail, positive_int, sequence, show
 from ._common import CONTACT_OPTIONS
 
 
@@ -62,7 +62,7 @@ def _contact(scene, name, value):
 
 
 def _normal(scene, name, value):
-    from .._contact import NORMALS
+    from ..physics.contact import NORMALS
 
     if not (isinstance(value, str) and value in NORMALS):
         fail(scene, f"{name} = {show(value)}; choose one of {', '.join(map(repr, NORMALS))}",
@@ -71,7 +71,7 @@ def _normal(scene, name, value):
 
 
 def _transport(scene, name, value):
-    from .._transport import _parse_update
+    from ..physics.transport import _parse_update
 
     _parse_update(scene, value if isinstance(value, str) else repr(value), name)
     return value
@@ -120,7 +120,7 @@ OPTION_CHECKS = {
 
 def _parts(scene: str, values: dict, signature) -> dict:
     """scheme/shape strings -> parts, as the command line builds them."""
-    from .._registry import scheme_from_name, shape_from_name
+    from ..core.registry import scheme_from_name, shape_from_name
 
     if isinstance(values.get("scheme"), str):
         values["scheme"] = scheme_from_name(values["scheme"])

@@ -17,14 +17,14 @@ import math
 
 import numpy as np
 
-from .._boundary import Fixed, Mirror
-from .._errors import check
-from .._grid import Grid
-from .._materials import LinearElastic
-from .._particles import Box, fill
-from .._schemes import Damping, FLIP
-from .._shapes import Linear
-from .._simulation import Simulation
+from ..physics.conditions import Fixed, Mirror
+from ..core.errors import check
+from ..core.grid import Grid
+from ..materials.base import LinearElastic
+from ..core.particles import Box, fill
+from ..schemes.xpic import Damping, FLIP
+from ..transfer.shapes import Linear
+from ..model.simulation import Simulation
 from ._common import Setup, cast_state, resolve_dtype, schedule
 from ._options import checked_options
 

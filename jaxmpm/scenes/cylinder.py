@@ -33,15 +33,15 @@ import math
 
 import numpy as np
 
-from .._boundary import Slip
-from .._errors import check
-from .._grid import Grid
-from .._loads import Traction
-from .._materials import LinearElastic
-from .._particles import Box, fill
-from .._schemes import Damping, FLIP
-from .._shapes import UGIMP
-from .._simulation import Simulation
+from ..physics.conditions import Slip
+from ..core.errors import check
+from ..core.grid import Grid
+from ..physics.loads import Traction
+from ..materials.base import LinearElastic
+from ..core.particles import Box, fill
+from ..schemes.xpic import Damping, FLIP
+from ..transfer.shapes import UGIMP
+from ..model.simulation import Simulation
 from ._common import Setup, cast_state, resolve_dtype, schedule
 from ._options import checked_options
 

@@ -18,12 +18,12 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from .._grid import Grid
-from .._materials import LinearElastic
-from .._particles import Disk, fill
-from .._schemes import Damping, FLIP
-from .._shapes import UGIMP
-from .._simulation import Simulation
+from ..core.grid import Grid
+from ..materials.base import LinearElastic
+from ..core.particles import Disk, fill
+from ..schemes.xpic import Damping, FLIP
+from ..transfer.shapes import UGIMP
+from ..model.simulation import Simulation
 from ._common import Setup, cast_state, contact_model, material_ids, resolve_dtype, schedule
 from ._options import checked_options
 

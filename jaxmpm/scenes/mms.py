@@ -81,15 +81,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._boundary import Mirror, Slip
-from .._errors import check
-from .._limits import require_steps
-from .._grid import Grid
-from .._materials import NeoHookean
-from .._particles import Box, Particles, fill
-from .._schemes import FLIP, Damping
-from .._shapes import Linear
-from .._simulation import Simulation
+from ..physics.conditions import Mirror, Slip
+from ..core.errors import check
+from ..core.limits import require_steps
+from ..core.grid import Grid
+from ..materials.base import NeoHookean
+from ..core.particles import Box, Particles, fill
+from ..schemes.xpic import FLIP, Damping
+from ..transfer.shapes import Linear
+from ..model.simulation import Simulation
 from ._common import Setup, cast_state, resolve_dtype
 from ._options import checked_options
 

@@ -41,15 +41,15 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from .._boundary import Slip
-from .._errors import check
-from .._grid import Grid
-from .._loads import Traction
-from .._materials import NeoHookean
-from .._particles import Box, fill
-from .._schemes import FLIP
-from .._shapes import Linear
-from .._simulation import Simulation
+from ..physics.conditions import Slip
+from ..core.errors import check
+from ..core.grid import Grid
+from ..physics.loads import Traction
+from ..materials.base import NeoHookean
+from ..core.particles import Box, fill
+from ..schemes.xpic import FLIP
+from ..transfer.shapes import Linear
+from ..model.simulation import Simulation
 from ._common import Setup, resolve_dtype
 from .mms import (ManufacturedForce, ManufacturedReference, SeparableMotion, _plane, exact_fields, schedule_exact,
                   start_deformed)

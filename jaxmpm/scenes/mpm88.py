@@ -31,14 +31,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._affine import APIC
-from .._boundary import Wall
-from .._grid import Grid
-from .._materials import VolumetricFluid
-from .._particles import Particles
-from .._schemes import Damping
-from .._shapes import QuadraticBSpline
-from .._simulation import Simulation
+from ..schemes.affine import APIC
+from ..physics.conditions import Wall
+from ..core.grid import Grid
+from ..materials.base import VolumetricFluid
+from ..core.particles import Particles
+from ..schemes.xpic import Damping
+from ..transfer.shapes import QuadraticBSpline
+from ..model.simulation import Simulation
 from ._common import Setup, cast_state, resolve_dtype, schedule
 from ._options import checked_options
 

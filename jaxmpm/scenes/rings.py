@@ -12,13 +12,13 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from .._errors import check
-from .._grid import Grid
-from .._materials import NeoHookean
-from .._particles import Ring, fill
-from .._schemes import FLIP, Damping
-from .._shapes import QuadraticBSpline
-from .._simulation import Simulation
+from ..core.errors import check
+from ..core.grid import Grid
+from ..materials.base import NeoHookean
+from ..core.particles import Ring, fill
+from ..schemes.xpic import FLIP, Damping
+from ..transfer.shapes import QuadraticBSpline
+from ..model.simulation import Simulation
 from ._common import Setup, cast_state, contact_model, material_ids, resolve_dtype, schedule
 from ._options import checked_options
 

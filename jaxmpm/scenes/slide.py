@@ -41,14 +41,14 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from .._boundary import Fixed
-from .._errors import check
-from .._grid import Grid
-from .._materials import LinearElastic
-from .._particles import Box, fill
-from .._schemes import Damping, FLIP
-from .._shapes import UGIMP
-from .._simulation import Simulation
+from ..physics.conditions import Fixed
+from ..core.errors import check
+from ..core.grid import Grid
+from ..materials.base import LinearElastic
+from ..core.particles import Box, fill
+from ..schemes.xpic import Damping, FLIP
+from ..transfer.shapes import UGIMP
+from ..model.simulation import Simulation
 from ._common import Setup, cast_state, contact_model, material_ids, resolve_dtype, schedule
 from ._options import checked_options
 

@@ -20,14 +20,14 @@ import math
 
 import numpy as np
 
-from .._affine import with_velocity_gradient
-from .._errors import check
-from .._grid import Grid
-from .._materials import NeoHookean, NoStress
-from .._particles import Disk, fill
-from .._schemes import FLIP, Damping
-from .._shapes import QuadraticBSpline
-from .._simulation import Simulation
+from ..schemes.affine import with_velocity_gradient
+from ..core.errors import check
+from ..core.grid import Grid
+from ..materials.base import NeoHookean, NoStress
+from ..core.particles import Disk, fill
+from ..schemes.xpic import FLIP, Damping
+from ..transfer.shapes import QuadraticBSpline
+from ..model.simulation import Simulation
 from ._common import Setup, cast_state, resolve_dtype, schedule
 from ._options import checked_options
 

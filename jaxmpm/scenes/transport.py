@@ -24,14 +24,14 @@ import math
 
 import numpy as np
 
-from .._boundary import NodeSet
-from .._grid import Grid
-from .._materials import LinearElastic, NoStress
-from .._particles import Box, fill
-from .._schemes import Damping, FLIP
-from .._shapes import Linear, UGIMP
-from .._simulation import Simulation
-from .._transport import Diffusion, Dirichlet, Heat
+from ..physics.conditions import NodeSet
+from ..core.grid import Grid
+from ..materials.base import LinearElastic, NoStress
+from ..core.particles import Box, fill
+from ..schemes.xpic import Damping, FLIP
+from ..transfer.shapes import Linear, UGIMP
+from ..model.simulation import Simulation
+from ..physics.transport import Diffusion, Dirichlet, Heat
 from ._common import Setup, cast_state, resolve_dtype, schedule
 from ._options import checked_options
 

@@ -57,13 +57,13 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
-from .._errors import check
-from .._grid import Grid
-from .._materials import NeoHookean
-from .._particles import Ring, fill
-from .._schemes import FLIP, Damping
-from .._shapes import QuadraticBSpline
-from .._simulation import Simulation
+from ..core.errors import check
+from ..core.grid import Grid
+from ..materials.base import NeoHookean
+from ..core.particles import Ring, fill
+from ..schemes.xpic import FLIP, Damping
+from ..transfer.shapes import QuadraticBSpline
+from ..model.simulation import Simulation
 from ._common import Setup, cast_state, resolve_dtype
 from ._options import checked_options
 from .mms import ManufacturedForce, ManufacturedReference, schedule_exact

@@ -1,0 +1,104 @@
+"""Named float parameters of a :class:`Simulation`, for calibration and ensembles.
+
+``set_params(sim, beta=0.5, alpha_g=0.1)`` returns a new simulation; ``get_params(sim, "beta")``
+reads them.  The names come from the registry (``jaxmpm.core.registry``): every registered scheme,
+material, shape and term declares its parameters, each a path to an array leaf, so ``jax.grad``
+and ``jax.vmap`` reach it.  :data:`PARAMETERS` lists them all.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import jax.numpy as jnp
+import numpy as np
+
+from .errors import check
+from .registry import TERMS, all_parameters, owner_registry, sim_parameters
+from .validate import fail, traced
+
+
+class _ParameterTable(Mapping):
+    """{name: (where(sim) -> leaf, description)} over every registered parameter (live: a part
+    registered later shows up)."""
+
+    def __getitem__(self, name):
+        p = all_parameters()[name]
+        return (lambda sim: _where(sim, name)(sim)), p.doc
+
+    def __iter__(self):
+        return iter(all_parameters())
+
+    def __len__(self):
+        return len(all_parameters())
+
+
+PARAMETERS = _ParameterTable()
+
+
+def _with_owner(sim, name):
+    """``sim`` itself, or -- when ``name`` belongs to a term the model does not have, e.g. damping
+    in a model built with ``damping=False`` -- a copy with that term added at its neutral
+    default, so that the parameter can be read, set and differentiated."""
+    if name in sim_parameters(sim):
+        return sim
+    owner = owner_registry(name)
+    if owner is not None and owner[0] is TERMS:
+        for cls in owner[2]:
+            try:
+                return sim.with_term(cls())
+            except TypeError:  # needs arguments: no neutral default
+                continue
+    return sim
+
+
+def _where(sim, name):
+    known = all_parameters()
+    check(name in known, f"unknown parameter {name!r}; choose one of {', '.join(known)}")
+    present = sim_parameters(sim)
+    check(name in present, f"parameter {name!r} does not exist for scheme {type(sim.scheme).__name__} / "
+                           f"material {type(sim.material).__name__}; this model has {', '.join(present)}")
+    return present[name][0]
+
+
+def get_params(sim, *names) -> dict:
+    """{name: value} for the named parameters."""
+    out = {}
+    for n in names:
+        s = _with_owner(sim, n)
+        out[n] = _where(s, n)(s)
+    return out
+
+
+def check_value(sim, name, value, owner: str = "set_params", label: str | None = None):
+    """Raise InputError unless a concrete ``value`` of parameter ``name`` lies in the range its
+    registration declares (``Parameter.valid``) and, for a vector leaf such as gravity, has the
+    shape of the model's leaf.  A traced value passes unchecked."""
+    if traced(value):
+        return
+    where, p = sim_parameters(sim)[name]
+    p.check(owner, value, label or name)
+    old_shape = np.shape(where(sim))
+    if old_shape and np.shape(value) not in ((), old_shape):
+        fail(owner, f"{label or name} has shape {np.shape(value)}; this model's {name} has shape {old_shape} "
+                    f"(one value per grid axis)")
+
+
+def set_params(sim, **values):
+    """A copy of ``sim`` with the named parameters replaced (values may be traced).  Concrete
+    values are checked against the parameter's valid range (nu in (-1, 0.5), beta in [0, 1], ...)."""
+    import equinox as eqx
+
+    for name, value in values.items():
+        sim = _with_owner(sim, name)
+        where = _where(sim, name)
+        check_value(sim, name, value)
+        old = where(sim)
+        sim = eqx.tree_at(where, sim, jnp.asarray(value, dtype=jnp.result_type(old)))
+    return sim
+
+
+def default_bounds(name):
+    """The calibration bounds a registered parameter declares (None if unknown or unbounded)."""
+    p = all_parameters().get(name)
+    return None if p is None else p.bounds

@@ -1,0 +1,216 @@
+"""One registry for the parts of a model: schemes, shapes, materials and physics terms.
+
+Each registration gives a part its name, its parser (the command-line form, e.g. ``xpic:5``) and
+its float parameters.  Everything that needs to know the parts reads the registry: the CLI's
+choices and help, :func:`scheme_from_name` / :func:`shape_from_name`, :func:`jaxmpm.set_params`
+and :data:`jaxmpm.PARAMETERS`, the calibration bounds, the HDF5 attributes and the error messages.
+Adding a scheme is one class and one call::
+
+    class MyPIC(jm.Scheme): ...
+    jm.register_scheme("mypic", MyPIC, parse=lambda arg, beta: MyPIC(),
+                       parameters=[jm.Parameter("beta", lambda s: s.beta, "FLIP fraction", (0.0, 1.0))])
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Callable
+
+from .errors import check
+from .validate import as_range
+
+
+@dataclasses.dataclass(frozen=True)
+class Parameter:
+    """A float parameter of a registered part: ``name`` (unique across the library: it is the
+    keyword of :func:`jaxmpm.set_params`), ``get(part)`` the array leaf it names, a one-line
+    ``doc``, the calibration ``bounds`` (None, ``"positive"`` or ``(lower, upper)``) and the
+    validity range ``valid`` that :func:`jaxmpm.set_params` and :func:`jaxmpm.ensemble` check
+    concrete values against: a ``jaxmpm.core.validate.Range``, ``"finite"`` (the default),
+    ``"positive"``, ``"non-negative"``, a closed ``(lower, upper)`` or None (no check).  The two
+    differ where calibration needs an open interval inside a closed valid one (beta: bounds
+    (0, 1) for the logit transform, valid [0, 1]; damping: bounds "positive", valid >= 0)."""
+
+    name: str
+    get: Callable[[Any], Any]
+    doc: str
+    bounds: Any = None
+    valid: Any = "finite"
+
+    def __post_init__(self):
+        object.__setattr__(self, "valid", as_range(self.valid))
+
+    def check(self, owner: str, value, label: str | None = None) -> None:
+        """Raise InputError unless a concrete ``value`` lies in :attr:`valid` (traced: passes)."""
+        if self.valid is not None:
+            self.valid.check(owner, label or self.name, value)
+
+
+@dataclasses.dataclass(frozen=True)
+class Entry:
+    name: str
+    cls: type
+    parse: Callable | None  # parse(argument after ':', **options) -> part; None: cls(**options)
+    spec: str  # the command-line form, e.g. "xpic:M"; without ':' the part takes no argument
+    doc: str
+    parameters: tuple
+
+
+class Registry:
+    """Registered parts of one kind.  ``owner(sim)`` is where a model holds its part of this kind
+    (``sim.scheme``); for terms, ``owner(sim, cls)`` finds the term of that class."""
+
+    def __init__(self, kind: str, owner: Callable):
+        self.kind = kind
+        self.owner = owner
+        self._entries: dict[str, Entry] = {}
+
+    def register(self, name: str, cls: type, *, parse: Callable | None = None, spec: str | None = None,
+                 parameters=(), doc: str = "") -> type:
+        check(isinstance(name, str) and name and name == name.lower() and ":" not in name,
+              f"register_{self.kind}: name = {name!r} must be a lower-case word without ':'")
+        check(isinstance(cls, type), f"register_{self.kind}: {cls!r} is not a class")
+        for p in parameters:
+            check(isinstance(p, Parameter), f"register_{self.kind}: parameters must be jm.Parameter, got {p!r}")
+            for reg in REGISTRIES.values():
+                for other in reg._entries.values():
+                    clash = any(q.name == p.name for q in other.parameters)
+                    check(not clash or reg is self,
+                          f"register_{self.kind}: parameter {p.name!r} already belongs to {reg.kind} {other.name!r}; "
+                          "choose another name")
+        self._entries[name] = Entry(name, cls, parse, spec or name, doc or (cls.__doc__ or "").strip().split("\n")[0],
+                                    tuple(parameters))
+        return cls
+
+    # ------------------------------------------------------------------ lookup
+    def names(self) -> tuple:
+        return tuple(self._entries)
+
+    def specs(self) -> str:
+        """The command-line forms, e.g. ``flip | pic | blend:B | xpic:M``."""
+        return " | ".join(e.spec for e in self._entries.values())
+
+    def __contains__(self, name) -> bool:
+        return name in self._entries
+
+    def __getitem__(self, name: str) -> Entry:
+        check(name in self._entries, f"unknown {self.kind} {name!r}; choose one of {', '.join(self._entries)}")
+        return self._entries[name]
+
+    def entry_of(self, part) -> Entry | None:
+        """The entry of ``part``'s class, or of its nearest registered base class."""
+        for cls in type(part).__mro__:
+            for e in self._entries.values():
+                if e.cls is cls:
+                    return e
+        return None
+
+    def name_of(self, part) -> str:
+        e = self.entry_of(part)
+        return e.name if e is not None else type(part).__name__
+
+    def parse(self, spec: str, **options):
+        """A part from its command-line form ``name[:argument]``."""
+        check(isinstance(spec, str) and spec.strip(), f"{self.kind} {spec!r}: give one of {self.specs()}")
+        name, _, arg = spec.strip().partition(":")
+        name = name.lower()
+        check(name in self._entries, f"unknown {self.kind} {spec!r}; choose {self.specs()}")
+        entry = self._entries[name]
+        check(not arg or ":" in entry.spec, f"{self.kind} {spec!r}: {name} takes no ':' argument")
+        if entry.parse is None:
+            return entry.cls(**options)
+        return entry.parse(arg, **options)
+
+    def parameters_of(self, part) -> tuple:
+        """The registered parameters of ``part`` (of its class and its registered base classes)."""
+        out, seen = [], set()
+        for cls in type(part).__mro__:
+            for e in self._entries.values():
+                if e.cls is cls:
+                    for p in e.parameters:
+                        if p.name not in seen:
+                            seen.add(p.name)
+                            out.append(p)
+        return tuple(out)
+
+    def all_parameters(self) -> dict:
+        """{name: Parameter} over every registered part of this kind."""
+        return {p.name: p for e in self._entries.values() for p in e.parameters}
+
+
+def _term_of(sim, cls):
+    for term in sim.terms:
+        if isinstance(term, cls):
+            return term
+    return None
+
+
+SCHEMES = Registry("scheme", lambda sim, cls=None: sim.scheme)
+SHAPES = Registry("shape", lambda sim, cls=None: sim.shape)
+MATERIALS = Registry("material", lambda sim, cls=None: sim.material)
+TERMS = Registry("term", _term_of)
+REGISTRIES = {"scheme": SCHEMES, "shape": SHAPES, "material": MATERIALS, "term": TERMS}
+
+
+def register_scheme(name, cls, **kwargs):
+    """Register a particle-update scheme (see :class:`Registry.register`)."""
+    return SCHEMES.register(name, cls, **kwargs)
+
+
+def register_shape(name, cls, **kwargs):
+    """Register a shape function."""
+    return SHAPES.register(name, cls, **kwargs)
+
+
+def register_material(name, cls, **kwargs):
+    """Register a material."""
+    return MATERIALS.register(name, cls, **kwargs)
+
+
+def register_term(name, cls, **kwargs):
+    """Register a physics term."""
+    return TERMS.register(name, cls, **kwargs)
+
+
+def scheme_from_name(spec: str, beta: float | None = None):
+    """A scheme from its command-line form (``flip``, ``xpic:5``, ...; :data:`SCHEMES`)."""
+    return SCHEMES.parse(spec, beta=beta)
+
+
+def shape_from_name(spec: str, **kwargs):
+    """A shape function from its name (``linear``, ``ugimp``, ``quadratic``, ``cubic``)."""
+    return SHAPES.parse(spec, **kwargs)
+
+
+def parts_of(sim):
+    """(registry, part) for every part of a model: its scheme, shape, material and terms."""
+    out = [(SCHEMES, sim.scheme), (SHAPES, sim.shape), (MATERIALS, sim.material)]
+    out += [(TERMS, term) for term in sim.terms]
+    return out
+
+
+def sim_parameters(sim) -> dict:
+    """{name: (where(sim) -> leaf, Parameter)} for the parameters the parts of ``sim`` have."""
+    out = {}
+    for reg, part in parts_of(sim):
+        for p in reg.parameters_of(part):
+            cls = type(part)
+            out[p.name] = (lambda s, p=p, reg=reg, cls=cls: p.get(reg.owner(s, cls)), p)
+    return out
+
+
+def all_parameters() -> dict:
+    """{name: Parameter} over every registered part."""
+    out = {}
+    for reg in REGISTRIES.values():
+        out.update(reg.all_parameters())
+    return out
+
+
+def owner_registry(name: str):
+    """(registry, Parameter, classes) of a registered parameter name, or None."""
+    for reg in REGISTRIES.values():
+        classes = [e.cls for e in reg._entries.values() if any(p.name == name for p in e.parameters)]
+        if classes:
+            return reg, reg.all_parameters()[name], classes
+    return None

@@ -1,0 +1,385 @@
+"""HDF5 output in the layout of docs/design.md, written chunk by chunk, with an XDMF sidecar.
+
+```
+/time (T,)   /particles/x (T,N,D)  /particles/v (T,N,D)  /particles/mass (N,)  /particles/volume0 (N,)
+/energy/kinetic (T,)  /energy/strain (T,)  /energy/dissipated (T,)
+/momentum/linear (T,D)  /momentum/angular (T,1 or 3)
+/particles/<name> (T,N,...)   every saved per-particle field a physics term declares
+/particles/material (N,)      multimaterial mode: the material id of each particle (int32)
+/materials/<name> (T,M[,D])   multimaterial mode: kinetic, strain, momentum, contact_force per material
+/totals/<name> (T,)           the terms' totals: thermal_energy (jm.Heat), solute (jm.Diffusion)
+/state/<leaf>                 the state a chunked run reached (H5Writer.write_state; jaxmpm.resume)
+attributes on /: scene, scheme, order, beta, alpha_g, alpha_p, damping approach, damping varies (0/1:
+                 a schedule or region scales alpha_g, alpha_p), shape, update, dt, cells, ppc,
+                 dtype, jaxmpm version, scene parameters (JSON), and every other float
+                 parameter the model's registered parts declare (E, nu, density, ...)
+```
+A new field or parameter needs no edit here: the writer follows ``History.fields`` and the
+registry.  The sidecar is two files next to ``FILE.h5``: ``FILE.xdmf`` and ``FILE.xdmf.h5`` (per-frame
+HDF5 virtual datasets into ``FILE.h5``, no data of their own; see :func:`write_xdmf`).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+
+import h5py
+import numpy as np
+
+_SERIES = {
+    "time": "time",
+    "x": "particles/x",
+    "v": "particles/v",
+    "kinetic": "energy/kinetic",
+    "strain": "energy/strain",
+    "dissipated": "energy/dissipated",
+    "momentum": "momentum/linear",
+    "angular": "momentum/angular",
+}
+
+
+def run_attributes(sim, dt=None, scene: str | None = None, params: dict | None = None, ppc=None) -> dict:
+    """The root attributes of docs/design.md for a simulation."""
+    from .. import __version__
+
+    from ..core.registry import sim_parameters
+
+    scheme = sim.scheme
+    attrs = {
+        "scene": scene or "",
+        "scheme": type(scheme).__name__,
+        "order": int(getattr(scheme, "order", 1)),
+        "beta": float(np.asarray(getattr(scheme, "beta", np.nan))),
+        "alpha_g": 0.0 if sim.damping is None else float(np.asarray(sim.damping.grid)),
+        "alpha_p": 0.0 if sim.damping is None else float(np.asarray(sim.damping.particle)),
+        "damping approach": "velocity" if sim.damping is None else sim.damping.approach,
+        "damping varies": int(sim.damping is not None and sim.damping.varies),  # a schedule or region scales the rates
+        "shape": type(sim.shape).__name__,
+        "update": sim.update,
+        "dt": float(np.asarray(dt)) if dt is not None else np.nan,
+        "cells": np.asarray(sim.grid.cells, dtype=np.int64),
+        "grid_lower": np.asarray(sim.grid.lower),
+        "grid_upper": np.asarray(sim.grid.upper),
+        "ppc": int(ppc) if ppc is not None else int(getattr(sim.shape, "ppc", 0)),
+        "dtype": "",
+        "jaxmpm version": __version__,
+        "scene parameters": json.dumps(params or {}, default=float),
+    }
+    for name, (where, _) in sim_parameters(sim).items():  # the registered float parameters present
+        value = np.asarray(where(sim))
+        if np.issubdtype(value.dtype, np.floating):
+            attrs[name] = float(value) if value.ndim == 0 else value.astype(np.float64)
+    return attrs
+
+
+class H5Writer:
+    """Append-as-you-go HDF5 writer: ``append(history_chunk)`` grows every dataset along time and
+    flushes, so an interrupted run keeps all frames written so far.  Use as a context manager.
+
+    ``mode="w"`` creates (or truncates) ``path``; ``mode="a"`` reopens a file this writer made to
+    append to it (:func:`jaxmpm.resume`).  ``write_state`` stores the full state reached under
+    ``/state`` (every leaf of the :class:`State` pytree, with the run's schedule as attributes)."""
+
+    def __init__(self, path, sim, state, dt=None, scene: str | None = None, params: dict | None = None,
+                 ppc=None, xdmf: bool = True, mode: str = "w"):
+        from ..core.errors import check
+
+        check(mode in ("w", "a"), f"H5Writer: mode = {mode!r}; use 'w' (create) or 'a' (append)")
+        self.path = os.fspath(path)
+        self.xdmf = xdmf
+        if mode == "a":
+            check(os.path.exists(self.path), f"H5Writer: {self.path} does not exist; mode='a' appends to a run's file")
+            self.file = h5py.File(self.path, "a")
+            self.frames = int(self.file["time"].shape[0]) if "time" in self.file else 0
+            self.n, self.dim = np.asarray(state.x).shape
+            return
+        self.file = h5py.File(self.path, "w")
+        attrs = run_attributes(sim, dt, scene, params, ppc)
+        attrs["dtype"] = str(np.asarray(state.x).dtype)
+        for k, v in attrs.items():
+            self.file.attrs[k] = v
+        self.file.create_dataset("particles/mass", data=np.asarray(state.mass))
+        self.file.create_dataset("particles/volume0", data=np.asarray(state.volume0))
+        if "material" in state.fields:  # multimaterial mode: each particle's material id, once
+            self.file.create_dataset("particles/material", data=np.asarray(state.fields["material"]).astype(np.int32))
+        self.frames = 0
+        self.n, self.dim = np.asarray(state.x).shape
+
+    def write_state(self, state, start_step: int, steps: int, save_every: int) -> None:
+        """Store ``state`` under ``/state`` (replacing an earlier one), with the schedule of the
+        run it belongs to: its first frame's step, its length in steps and ``save_every``."""
+        if "state" in self.file:
+            del self.file["state"]
+        group = self.file.create_group("state")
+        for name, leaf in state_leaves(state):
+            group.create_dataset(name, data=np.asarray(leaf))
+        group.attrs["start step"] = int(start_step)
+        group.attrs["steps"] = int(steps)
+        group.attrs["save every"] = int(save_every)
+        group.attrs["complete"] = int(state.step) >= int(start_step) + int(steps)
+        self.file.flush()
+
+    def append(self, history) -> None:
+        """Append the frames of a :class:`jaxmpm.History` (leading axis = time)."""
+        t = np.asarray(history.time)
+        if t.size == 0:
+            return
+        series = [(getattr(history, field), name) for field, name in _SERIES.items()]
+        series += [(value, f"particles/{field}") for field, value in history.fields.items()]
+        series += [(value, f"materials/{name}") for name, value in history.by_material.items()]
+        series += [(value, f"totals/{name}") for name, value in history.totals.items()]
+        for value, name in series:
+            if value is None:
+                continue
+            arr = np.asarray(value)
+            if name not in self.file:
+                self.file.create_dataset(name, data=arr, maxshape=(None,) + arr.shape[1:],
+                                         chunks=(max(1, min(64, arr.shape[0])),) + arr.shape[1:])
+            else:
+                ds = self.file[name]
+                ds.resize(ds.shape[0] + arr.shape[0], axis=0)
+                ds[-arr.shape[0]:] = arr
+        self.frames += t.size
+        self.flush()
+
+    def flush(self) -> None:
+        self.file.flush()
+        if self.xdmf:
+            write_xdmf(self.path, self.file)
+
+    def close(self) -> None:
+        if self.file.id.valid:
+            self.flush()
+            self.file.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+def save_h5(path, sim, history, state=None, dt=None, scene: str | None = None, params: dict | None = None,
+            ppc=None) -> None:
+    """Write a whole history at once (``state`` supplies particle mass/volume0; it defaults to a
+    state with the history's particle count and unit values if omitted)."""
+    if state is None:
+        raise TypeError("save_h5: pass state=... (the initial or final State) for particle mass and volume0")
+    with H5Writer(path, sim, state, dt=dt, scene=scene, params=params, ppc=ppc) as w:
+        w.append(history)
+
+
+def _key_name(key) -> str:
+    for attr in ("name", "key", "idx"):
+        if hasattr(key, attr):
+            return str(getattr(key, attr))
+    return str(key)  # pragma: no cover
+
+
+def state_leaves(state):
+    """(HDF5 name, array) for every leaf of a :class:`State`: ``x``, ``F``, ``scheme_state``,
+    ``fields/temperature``, ``material_state/0`` ..."""
+    import jax
+
+    leaves, _ = jax.tree_util.tree_flatten_with_path(state)
+    return [("/".join(_key_name(k) for k in path), leaf) for path, leaf in leaves]
+
+
+def read_state(path, template):
+    """The state stored under ``/state`` of ``path`` (see :meth:`H5Writer.write_state`), as a
+    :class:`State` shaped like ``template`` (the run's initial state), plus the schedule:
+    ``(state, {"start step", "steps", "save every", "complete"})``."""
+    import jax
+    import jax.numpy as jnp
+
+    from ..core.errors import check
+
+    with h5py.File(path, "r") as f:
+        check("state" in f, f"{os.fspath(path)} holds no saved state (/state): it was written by an older "
+                            "jaxmpm or a run that failed before its first chunk; rerun it")
+        group = f["state"]
+        leaves = []
+        for name, leaf in state_leaves(template):
+            check(name in group, f"{os.fspath(path)}: /state/{name} is missing; the file's run used another "
+                                 "model (scheme, material, terms) than the one given")
+            value = group[name][()]
+            check(value.shape == np.shape(leaf) and value.dtype == jnp.result_type(leaf),
+                  f"{os.fspath(path)}: /state/{name} is {value.dtype}{list(value.shape)} but the model's state "
+                  f"has {jnp.result_type(leaf)}{list(np.shape(leaf))}; resume with the run's own scene and options")
+            leaves.append(jnp.asarray(value))
+        schedule = {k: (bool(v) if k == "complete" else int(v)) for k, v in group.attrs.items()}
+    return jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(template), leaves), schedule
+
+
+class Results(dict):
+    """What :func:`load_h5` returns: arrays by their HDF5 path, plus ``attrs`` and ``params``."""
+
+    attrs: dict
+    params: dict
+
+
+def load_h5(path) -> Results:
+    """Read a jaxmpm HDF5 file: ``res["particles/x"]``, ``res.attrs["scheme"]``, ``res.params`` ..."""
+    out = Results()
+    with h5py.File(path, "r") as f:
+        def visit(name, obj):  # /state is restart data (read_state, jaxmpm.resume), not results
+            if isinstance(obj, h5py.Dataset) and not name.startswith("state/"):
+                out[name] = obj[()]
+
+        f.visititems(visit)
+        attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
+    out.attrs = attrs
+    out.params = json.loads(attrs.get("scene parameters", "{}") or "{}")
+    return out
+
+
+def _xdmf_type(dtype) -> str:
+    """XDMF NumberType and Precision of a NumPy dtype."""
+    dtype = np.dtype(dtype)
+    kind = {"f": "Float", "i": "Int", "u": "UInt"}.get(dtype.kind, "Float")
+    return f'NumberType="{kind}" Precision="{dtype.itemsize}"'
+
+
+def _xdmf_item(file_name: str, path: str, shape, dtype) -> str:
+    """An XDMF DataItem that is one whole HDF5 dataset (what every XDMF reader, meshio included, reads)."""
+    dims = " ".join(str(int(v)) for v in shape)
+    return f'<DataItem Dimensions="{dims}" {_xdmf_type(dtype)} Format="HDF">{file_name}:/{path.lstrip("/")}</DataItem>'
+
+
+def xdmf_paths(h5_path) -> tuple[str, str]:
+    """The two sidecar files of ``h5_path``: ``FILE.xdmf`` and ``FILE.xdmf.h5`` (its per-frame views)."""
+    stem = os.path.splitext(os.fspath(h5_path))[0]
+    return stem + ".xdmf", stem + ".xdmf.h5"
+
+
+def _frame_series(f: h5py.File, T: int, N: int) -> list[str]:
+    """The per-frame per-particle datasets of ``f`` shown as point data: particles/x, particles/v and
+    every saved field (T, N, ...)."""
+    names = ["x", "v"] + sorted(n for n in f["particles"] if n not in ("x", "v", "mass", "volume0"))
+    out = []
+    for name in names:
+        ds = f["particles"].get(name)
+        if isinstance(ds, h5py.Dataset) and ds.ndim >= 2 and ds.shape[:2] == (T, N):
+            out.append(name)
+    return out
+
+
+def _view_shape(N: int, per: tuple) -> tuple:
+    """A frame's view of a (T, N, *per) dataset: (N,), (N, C), or (N, prod(per)) for a matrix."""
+    return (N,) + per if len(per) <= 1 else (N, int(np.prod(per)))
+
+
+def _replace_view(g: h5py.File, path: str, layout) -> None:
+    if path in g:  # left by an update that was interrupted before it recorded its frames
+        del g[path]
+    g.create_virtual_dataset(path, layout, fillvalue=0)
+
+
+def _write_frame_views(views_path: str, h5_name: str, f: h5py.File, series: list[str], T: int, N: int, D: int):
+    """Create (or extend) the views file: ``/index`` (N, 1) int64, the Polyvertex connectivity
+    0..N-1, and for each frame t ``/particles/<name>/<t>`` (t as six digits), an HDF5 virtual
+    dataset that is frame t of ``h5_name:/particles/<name>`` (no data is copied; a matrix per
+    particle is flattened to a row); in 1D also ``/points/<t>`` (N, 2), the position with a zero
+    second coordinate.  A views file whose particle count, dtypes or fields differ from ``f`` is
+    rebuilt; otherwise only the frames it lacks are added."""
+    signature = json.dumps({"views layout": 1, "source": h5_name, "N": N, "D": D,
+                            "series": [[n, list(f["particles"][n].shape[2:]), f["particles"][n].dtype.str]
+                                       for n in series]})
+    mode = "a"
+    if os.path.exists(views_path):
+        try:
+            with h5py.File(views_path, "r") as g:
+                if g.attrs.get("signature") != signature:
+                    mode = "w"
+        except OSError:  # not an HDF5 file (or a truncated one): rebuild it
+            mode = "w"
+    with h5py.File(views_path, mode) as g:
+        if g.attrs.get("signature") != signature:
+            for key in list(g.keys()):
+                del g[key]
+            g.create_dataset("index", data=np.arange(N, dtype=np.int64).reshape(N, 1))
+            g.attrs["signature"] = signature
+            g.attrs["frames"] = 0
+            g.attrs["about"] = (f"per-frame views (HDF5 virtual datasets) of {h5_name} for its XDMF sidecar; "
+                                "written by jaxmpm, no data of its own")
+        done = int(g.attrs["frames"])
+        meta = [(name, f["particles"][name].shape[2:], f["particles"][name].dtype) for name in series]
+        for t in range(done, T):
+            for name, per, dtype in meta:
+                source = h5py.VirtualSource(h5_name, f"particles/{name}", shape=(t + 1, N) + per, dtype=dtype)
+                layout = h5py.VirtualLayout(shape=_view_shape(N, per), dtype=dtype)
+                layout[...] = source[t]  # row-major: a matrix per particle becomes one row
+                _replace_view(g, f"particles/{name}/{t:06d}", layout)
+                if name == "x" and D == 1:  # meshio reads only XY / XYZ geometry
+                    layout = h5py.VirtualLayout(shape=(N, 2), dtype=dtype)
+                    layout[:, 0] = source[t, :, 0]
+                    _replace_view(g, f"points/{t:06d}", layout)
+        g.attrs["frames"] = max(done, T)
+
+
+def write_xdmf(h5_path: str, f: h5py.File) -> None:
+    """The XDMF 3 sidecar ``FILE.xdmf`` of ``FILE.h5``: a temporal collection, one Polyvertex grid
+    per frame, read by ParaView/VTK (checked with VTK's ``vtkXdmfReader``) and by meshio
+    (``meshio.xdmf.TimeSeriesReader``).
+
+    Every DataItem is a whole HDF5 dataset (meshio reads no hyperslabs): the per-frame slices of
+    ``/particles/x``, ``/particles/v`` and the saved fields are HDF5 virtual datasets in
+    ``FILE.xdmf.h5`` (see :func:`_write_frame_views`), which map into ``FILE.h5`` and copy nothing.
+    Point data per frame: ``position`` (meshio takes the points of the first frame only),
+    ``velocity``, ``mass``, ``volume0`` and every saved per-particle field.  1D positions are
+    written as XY points with y = 0."""
+    if "particles/x" not in f:
+        return
+    T, N, D = f["particles/x"].shape
+    xdmf_path, views_path = xdmf_paths(h5_path)
+    h5_name = os.path.basename(os.fspath(h5_path))
+    views_name = os.path.basename(views_path)
+    series = _frame_series(f, T, N)
+    try:
+        _write_frame_views(views_path, h5_name, f, series, T, N, D)
+    except OSError as error:  # e.g. the views file held open by a viewer: keep the last consistent pair
+        from ..core.warn import warn
+
+        warn(f"XDMF sidecar not updated ({views_path}: {error}); {os.fspath(h5_path)} itself is complete", UserWarning)
+        return
+    times = f["time"][()]
+    dtype = f["particles/x"].dtype
+
+    def attribute(name, kind, item):
+        return f'<Attribute Name="{name}" AttributeType="{kind}" Center="Node">{item}</Attribute>'
+
+    def kind_of(per):
+        return ("Scalar" if per in ((), (1,)) else "Vector" if per in ((2,), (3,)) else
+                "Tensor" if per == (3, 3) else "Matrix")
+
+    labels = {"x": "position", "v": "velocity"}
+    frame_items = []  # per series: (label, kind, DataItem with @T@ for the frame's group)
+    for name in series:
+        ds = f["particles"][name]
+        item = _xdmf_item(views_name, f"particles/{name}/@T@", _view_shape(N, ds.shape[2:]), ds.dtype)
+        frame_items.append((labels.get(name, name), kind_of(ds.shape[2:]), item))
+
+    constants = [(name, _xdmf_item(h5_name, f"particles/{name}", (N,), f["particles"][name].dtype))
+                 for name in ("mass", "volume0", "material")
+                 if isinstance(f["particles"].get(name), h5py.Dataset) and f["particles"][name].shape == (N,)]
+    topology = (f'<Topology TopologyType="Polyvertex" NumberOfElements="{N}" NodesPerElement="1">'
+                + _xdmf_item(views_name, "index", (N, 1), np.int64) + "</Topology>")
+    lines = ['<?xml version="1.0" ?>', '<Xdmf Version="3.0">', "<Domain>",
+             '<Grid Name="particles" GridType="Collection" CollectionType="Temporal">']
+    for t in range(T):
+        lines.append(f'<Grid Name="frame{t}" GridType="Uniform"><Time Value="{float(times[t])!r}"/>')
+        lines.append(topology)
+        frame = f"{t:06d}"
+        points = _xdmf_item(views_name, f"points/{frame}", (N, 2), dtype) if D == 1 else frame_items[0][2]
+        lines.append(f'<Geometry GeometryType="{"XYZ" if D == 3 else "XY"}">{points.replace("@T@", frame)}</Geometry>')
+        for label, kind, item in frame_items:  # position, velocity, then the terms' saved fields (temperature, ...)
+            lines.append(attribute(label, kind, item.replace("@T@", frame)))
+        for name, item in constants:
+            lines.append(attribute(name, "Scalar", item))
+        lines.append("</Grid>")
+    lines += ["</Grid>", "</Domain>", "</Xdmf>"]
+    partial = xdmf_path + ".partial"  # replaced in one step: a reader never sees half a file
+    with open(partial, "w") as out:
+        out.write("\n".join(lines))
+    os.replace(partial, xdmf_path)

@@ -1,0 +1,360 @@
+"""``Simulation``: the static model -- grid, shape function, material, scheme, physics terms,
+velocity conditions -- as one equinox module with ``init`` and ``step``.  Running it (``run``,
+``rollout``, checkpointing, chunked HDF5 writing, progress, instability detection) is the
+driver's job (``jaxmpm.run.driver``); ``sim.run`` and ``sim.rollout`` call it."""
+
+from __future__ import annotations
+
+import copy
+from typing import Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..core import measures as diag
+from ..transfer.backend import ADJOINTS, POLICIES, use_adjoint, use_policy
+from ..physics.conditions import as_conditions, build_constraint
+from ..physics.contact import Contact
+from ..run.driver import History, StableTimeStepWarning, rollout, run  # noqa: F401  (re-exported)
+from ..core.errors import check
+from ..core.limits import require_memory
+from ..core.grid import Grid
+from ..materials.base import Material
+from ..core.particles import Particles
+from ..core.registry import MATERIALS, SCHEMES, SHAPES, scheme_from_name, shape_from_name
+from ..schemes.base import Scheme
+from ..transfer.shapes import UGIMP, ShapeFunction
+from ..core.state import State
+from .step import step as _step
+from ..physics.term import BodyForce, Damping, StressDivergence, Term
+from ..core.validate import FINITE, concrete
+
+UPDATES = {"USF": "USF", "USL": "USL", "USL-": "USL", "MUSL": "MUSL", "USL+": "MUSL",
+           "USAVG-": "USAVG-", "USAVG+": "USAVG+", "usavg-": "USAVG-", "usavg+": "USAVG+"}  # 003 §2.2
+KINEMATICS = ("linear", "exponential")  # the deformation-gradient increment dF (jaxmpm.model.step.update_deformation)
+
+
+class Simulation(eqx.Module):
+    """An MPM model.  Float parameters (material constants, beta, damping, gravity, prescribed
+    velocities) are array leaves, so ``jax.grad``/``jax.vmap`` reach them; everything that fixes
+    shapes or loop lengths is static.
+
+    ``terms`` holds the physics terms of the step in order: the stress divergence, the body
+    force (``gravity``, ``body_force``), damping (unless ``damping=False``), then any ``terms=``
+    given.  ``backend`` picks the fusion policy ("auto", "cpu", "gpu"; see ``jaxmpm.transfer.backend``):
+    it changes speed, never results.  ``kinematics`` is the strain increment: "linear" (default,
+    dF = I + grad v dt) or "exponential" (dF = exp(grad v dt), 001 eq. 26).  ``adjoint`` picks the
+    derivative rules of reverse mode: "structured" (default; the transfer layer's own rules, whose
+    transposes are the cheap adjoint operations) or "autodiff" (JAX differentiates the forward code
+    as written, the reference); it too changes speed, never results (``jaxmpm.transfer.backend``)."""
+
+    grid: Grid
+    shape: ShapeFunction
+    material: Material
+    scheme: Scheme
+    terms: tuple
+    boundary: tuple  # velocity conditions, callable selectors resolved to node sets
+    update: str = eqx.field(static=True)
+    backend: str = eqx.field(static=True)
+    kinematics: str = eqx.field(static=True, default="linear")
+    adjoint: str = eqx.field(static=True, default="structured")
+
+    def __init__(
+        self,
+        grid: Grid,
+        shape: ShapeFunction | str,
+        material: Material,
+        scheme: Scheme | str,
+        damping: Damping | None = None,
+        update: str = "USL",
+        boundary=None,
+        gravity=None,
+        body_force: Callable | None = None,
+        terms=(),
+        backend: str = "auto",
+        kinematics: str = "linear",
+        adjoint: str = "structured",
+    ):
+        check(isinstance(grid, Grid), f"Simulation: grid must be a jm.Grid, got {type(grid).__name__}")
+        # a step holds a few nodal fields of 1 + D (mass, momentum) up to D^2 columns per node
+        require_memory(f"Simulation: a grid of {grid.num_nodes:.4g} nodes ({' x '.join(map(str, grid.node_shape))})",
+                       8.0 * grid.num_nodes * 4 * (1 + grid.dim + grid.dim**2),
+                       "use a coarser grid (larger spacing or fewer cells)")
+        if isinstance(shape, str):
+            shape = shape_from_name(shape)
+        check(isinstance(shape, ShapeFunction),
+              f"Simulation: unknown shape {shape!r}; use one of {', '.join(SHAPES.names())} (jm.Linear(), ...)")
+        if isinstance(scheme, str):
+            scheme = scheme_from_name(scheme)
+        check(isinstance(scheme, Scheme),
+              f"Simulation: unknown scheme {scheme!r}; use a jm.Scheme or one of {SCHEMES.specs()}")
+        check(isinstance(material, Material),
+              f"Simulation: material must be a jm.Material ({', '.join(MATERIALS.names())}), "
+              f"got {type(material).__name__}")
+        check(update in UPDATES, f"Simulation: update = {update!r}; choose USF, USL (USL-), MUSL (USL+), USAVG- or USAVG+")
+        check(backend in POLICIES, f"Simulation: backend = {backend!r}; choose one of {', '.join(POLICIES)}")
+        check(adjoint in ADJOINTS, f"Simulation: adjoint = {adjoint!r}; choose 'structured' (the transfer layer's "
+                                   "derivative rules, the default) or 'autodiff' (JAX's own, the reference)")
+        # None: zero damping, still a differentiable parameter; False: no damping in the model at
+        # all (nothing compiled for it -- "model no more than a scene needs")
+        if damping is False:
+            damping = None
+        elif damping is None:
+            damping = Damping()
+        else:
+            check(isinstance(damping, Damping),
+                  "Simulation: damping must be jm.Damping(grid=..., particle=...), None (zero) or False (none)")
+        g = jnp.zeros(grid.dim) if gravity is None else FINITE.leaf("Simulation", "gravity", gravity)
+        g = jnp.broadcast_to(g, (grid.dim,)) if g.ndim == 0 else g
+        check(g.shape[-1:] == (grid.dim,), f"Simulation: gravity must have {grid.dim} components, got shape {g.shape}")
+        extra = (terms,) if isinstance(terms, Term) else tuple(terms)
+        for t in extra:
+            check(isinstance(t, Term), f"Simulation: terms must be jm.Term instances, got {t!r}")
+        self.grid = grid
+        self.shape = shape
+        self.material = material
+        self.scheme = scheme
+        self.terms = (StressDivergence(), BodyForce(g, body_force)) + ((damping,) if damping is not None else ()) + extra
+        self.boundary = as_conditions(boundary, grid)
+        self.update = UPDATES[update]
+        self.backend = backend
+        check(kinematics in KINEMATICS, f"Simulation: kinematics = {kinematics!r}; choose 'linear' (dF = I + grad v "
+                                        "dt) or 'exponential' (dF = exp(grad v dt), 001 eq. 26)")
+        self.kinematics = kinematics
+        self.adjoint = adjoint
+        self._check_terms()
+
+    def _check_terms(self):
+        """The terms fit together and with the model (also after :meth:`with_term`)."""
+        names = [f.name for t in self.terms for f in t.particle_fields()]
+        check(len(names) == len(set(names)), f"Simulation: two terms declare the same particle field: {names}")
+        if self.material_fields > 1:
+            check(self.update == "USL", f"Simulation: update = {self.update!r} with contact; multimaterial mode runs "
+                                        "USL (USF and MUSL would need contact on their extra extrapolations)")
+
+    # ------------------------------------------------------------- the parts
+    def term(self, cls):
+        """The model's term of class ``cls``, or None."""
+        for t in self.terms:
+            if isinstance(t, cls):
+                return t
+        return None
+
+    def with_term(self, term: Term):
+        """A copy with ``term`` added (or replacing the term of the same class)."""
+        check(isinstance(term, Term), f"Simulation.with_term: pass a jm.Term instance, got {term!r}")
+        kept = tuple(t for t in self.terms if type(t) is not type(term))
+        new = eqx.tree_at(lambda s: s.terms, self, kept + (term,))
+        new._check_terms()
+        return new
+
+    def with_backend(self, backend: str):
+        """A copy traced under another fusion policy ("auto", "cpu", "gpu"; jaxmpm.transfer.backend)."""
+        check(backend in POLICIES, f"Simulation: backend = {backend!r}; choose one of {', '.join(POLICIES)}")
+        return self._with_static(backend=backend)
+
+    def with_adjoint(self, adjoint: str):
+        """A copy differentiated with other derivative rules ("structured", "autodiff"; jaxmpm.transfer.backend)."""
+        check(adjoint in ADJOINTS, f"Simulation: adjoint = {adjoint!r}; choose one of {', '.join(ADJOINTS)}")
+        return self._with_static(adjoint=adjoint)
+
+    def _with_static(self, **fields):
+        """A copy with static (trace-time) fields replaced: the model's hash changes, so jit retraces."""
+        new = copy.copy(self)
+        for name, value in fields.items():
+            object.__setattr__(new, name, value)
+        return new
+
+    @property
+    def damping(self) -> Damping | None:
+        """The damping term, or None when the model has none (``damping=False``)."""
+        return self.term(Damping)
+
+    @property
+    def gravity(self):
+        return self.term(BodyForce).gravity
+
+    @property
+    def body_force(self):
+        return self.term(BodyForce).field
+
+    def particle_fields(self) -> tuple:
+        """The :class:`jaxmpm.ParticleField` declared by the model's terms."""
+        return tuple(f for t in self.terms for f in t.particle_fields())
+
+    # ------------------------------------------------------------------ state
+    @property
+    def material_fields(self) -> int:
+        """Velocity fields per node: the contact term's materials (multimaterial mode), else 1."""
+        contact = self.term(Contact)
+        return 1 if contact is None else contact.materials
+
+    @property
+    def field_nodes(self) -> int:
+        """Rows of a nodal field: the grid's nodes times the velocity fields."""
+        return self.grid.num_nodes * self.material_fields
+
+    def constraint(self, dtype):
+        """The velocity conditions on every velocity field's nodes."""
+        return build_constraint(self.grid, self.boundary, dtype).tile(self.material_fields)
+
+    def init(self, particles: Particles, fields: dict | None = None) -> State:
+        """Initial state from :func:`jaxmpm.fill` output (or any :class:`Particles`); the fields
+        the terms declare start at their declared initial values unless ``fields`` gives them."""
+        check(isinstance(particles, Particles), "Simulation.init: pass the jm.Particles returned by jm.fill")
+        x = jnp.asarray(particles.x)
+        d = self.grid.dim
+        check(x.ndim == 2 and x.shape[1] == d, f"Simulation.init: particles have shape {x.shape}; the grid is {d}D")
+        check(particles.axisymmetric == self.grid.axisymmetric,  # 001 §7: masses and volumes per radian
+              f"Simulation.init: the grid has axisymmetric={self.grid.axisymmetric} but the particles "
+              f"axisymmetric={particles.axisymmetric}; fill them on this grid (jm.fill(grid, ...))")
+        xc = concrete(x)
+        if xc is not None:
+            with jax.ensure_compile_time_eval():  # concrete positions: check even inside jit
+                inside = np.asarray(self.shape.inside(self.grid, jnp.asarray(xc)))
+            if not inside.all():
+                bad = int(np.argmin(inside))
+                raise_msg = (
+                    f"Simulation.init: particles outside the grid: {int((~inside).sum())} of {inside.size} "
+                    f"(first: particle {bad} at {xc[bad].tolist()}); the {type(self.shape).__name__} stencil needs "
+                    f"{self.shape.margin} cells of room. Enlarge the grid, e.g. jm.Grid.covering(..., shape=shape)."
+                )
+                check(False, raise_msg)
+        if isinstance(self.shape, UGIMP):
+            check(self.shape.ppc == particles.ppc,
+                  f"Simulation.init: UGIMP(ppc={self.shape.ppc}) but particles were filled with ppc={particles.ppc}; "
+                  "make them equal (the particle half-width is h / (2 ppc))")
+        volume = jnp.asarray(particles.volume)
+        if particles.mass is None:
+            mass = self.material.density * volume
+        else:
+            mass = jnp.asarray(particles.mass)
+            mc, vc, rc = concrete(mass), concrete(volume), concrete(self.material.density)
+            if mc is not None and vc is not None and rc is not None:
+                check(np.allclose(mc / vc, rc, rtol=1e-6),
+                      f"Simulation.init: particles were filled with density {float(np.mean(mc / vc)):.6g} but the "
+                      f"material density is {float(rc):.6g}; drop density from jm.fill or make them agree")
+        dtype = x.dtype
+        n = x.shape[0]
+        declared = {f.name: f for f in self.particle_fields()}
+        given = dict(fields or {})
+        unknown = sorted(set(given) - set(declared))
+        check(not unknown, f"Simulation.init: fields {unknown} are not declared by any term of this model "
+                           f"(declared: {sorted(declared) or 'none'})")
+        values = {name: (jnp.broadcast_to(jnp.asarray(given[name], dtype), (n,) + f.shape_in(d)) if name in given
+                         else f.initial_value(x)) for name, f in declared.items()}
+        for term in self.terms:
+            term.check_fields(values)
+        dF = d + self.grid.axisymmetric  # axisymmetric: F is 3x3 in (r, z, theta), 001 §7
+        return State(
+            x=x,
+            v=jnp.asarray(particles.v, dtype),
+            F=jnp.broadcast_to(jnp.eye(dF, dtype=dtype), (n, dF, dF)),
+            mass=mass.astype(dtype),
+            volume0=volume.astype(dtype),
+            time=jnp.zeros((), dtype),
+            step=jnp.zeros((), jnp.int32),
+            dissipated=jnp.zeros((), dtype),
+            scheme_state=self.scheme.initial_state(particles),
+            material_state=self.material.initial_state(particles),
+            fields=values,
+        )
+
+    # ------------------------------------------------------------------- step
+    def step(self, state: State, dt) -> State:
+        """Advance one time step (pure).  The model computes in its state's precision: float
+        parameters of another precision (a float64 model built in a 64-bit process, stepped with a
+        float32 state) are cast to the state's dtype on entry."""
+        with use_policy(self.backend), use_adjoint(self.adjoint):
+            return _step(self.in_precision(state.x.dtype), state, dt)
+
+    def in_precision(self, dtype):
+        """The model with its float leaves cast to ``dtype`` (itself if they already are)."""
+        leaves = [leaf for leaf in jax.tree_util.tree_leaves(self) if isinstance(leaf, jax.Array)
+                  and jnp.issubdtype(leaf.dtype, jnp.floating)]
+        if all(leaf.dtype == dtype for leaf in leaves):
+            return self
+        return jax.tree_util.tree_map(
+            lambda a: a.astype(dtype) if isinstance(a, jax.Array) and jnp.issubdtype(a.dtype, jnp.floating) else a,
+            self)
+
+    def stable_dt(self, state: State, cfl: float = 1.0):
+        """The stable time step times ``cfl``: the smallest of the CFL limit h / max_p(c + |V_p|) and
+        the terms' limits (conduction, diffusion: :meth:`time_step_limits`)."""
+        limits = list(self.time_step_limits(state, cfl).values())
+        return limits[0] if len(limits) == 1 else jnp.min(jnp.stack(limits))
+
+    def time_step_limits(self, state: State, cfl: float = 1.0) -> dict:
+        """{name: largest stable dt, times ``cfl``}: "CFL" (h / max_p(c + |V_p|)) and one per term
+        that limits it (e.g. "heat": h^2 / (2 D a), jaxmpm.physics.transport)."""
+        model = self.in_precision(state.x.dtype)
+        limits = {"CFL": diag.stable_dt(self.grid, model.material, state.v, cfl)}
+        for term in model.terms:
+            limit = term.time_step_limit(model, state)
+            if limit is not None:
+                limits[type(term).__name__.lower()] = cfl * limit
+        return limits
+
+    def elastic_deformation(self, state: State):
+        """The deformation gradient the material sees: F, divided by the isotropic stretch of any
+        term that imposes one (thermal / moisture expansion, jaxmpm.physics.transport)."""
+        F = state.F
+        for term in self.terms:
+            stretch = term.stretch(state)
+            if stretch is not None:
+                F = F / stretch[:, None, None]
+        return F
+
+    def instability(self, state: State):
+        """(cause code, particle index) for the first problem found in ``state``; code 0 = fine."""
+        finite = jnp.all(jnp.isfinite(state.x), -1) & jnp.all(jnp.isfinite(state.v), -1)
+        finite = finite & jnp.all(jnp.isfinite(state.F), (-1, -2))
+        for value in state.fields.values():  # the terms' fields too (e.g. a temperature)
+            if jnp.issubdtype(value.dtype, jnp.floating):
+                finite = finite & jnp.all(jnp.isfinite(value.reshape(value.shape[0], -1)), -1)
+        positive = jnp.linalg.det(state.F) > 0
+        inside = self.shape.inside(self.grid, state.x)
+        code = jnp.where(~jnp.all(finite), 1, jnp.where(~jnp.all(positive), 2, jnp.where(~jnp.all(inside), 3, 0)))
+        bad = jnp.where(code == 1, ~finite, jnp.where(code == 2, ~positive, ~inside))
+        return code.astype(jnp.int32), jnp.argmax(bad).astype(jnp.int32)
+
+    def diagnostics(self, state: State) -> dict:
+        return dict(
+            kinetic=diag.kinetic_energy(state),
+            strain=diag.strain_energy(state, self.material, self.elastic_deformation(state)),
+            dissipated=state.dissipated,
+            momentum=diag.linear_momentum(state),
+            angular=self.scheme.angular_momentum(state),
+        )
+
+    def diagnostics_frame(self, state: State, save_particles: bool) -> History:
+        """One saved frame of a run: time, diagnostics and (``save_particles``) the particle
+        positions, velocities and the saved fields the terms declare."""
+        saved = {f.name for f in self.particle_fields() if f.save}
+        materials = self.material_fields
+        return History(
+            time=state.time,
+            x=state.x if save_particles else None,
+            v=state.v if save_particles else None,
+            fields={k: v for k, v in state.fields.items() if k in saved} if save_particles else {},
+            by_material={} if materials == 1 else
+            diag.by_material(state, self.material, state.fields["material"], materials),
+            totals={name: value for term in self.terms for name, value in term.totals(self, state).items()},
+            **self.diagnostics(state),
+        )
+
+    # ----------------------------------------------------- the driver's entry points
+    def rollout(self, state: State, dt, frames: int, save_every: int = 1, save_particles: bool = True,
+                checkpoint=True, history_gradients: bool = True):
+        """See :func:`jaxmpm.run.driver.rollout`."""
+        return rollout(self, state, dt, frames, save_every, save_particles, checkpoint, history_gradients)
+
+    def run(self, state: State, dt, steps: int, save_every: int = 1, **options):
+        """See :func:`jaxmpm.run.driver.run`."""
+        return run(self, state, dt, steps, save_every, **options)
+
+    @property
+    def dim(self) -> int:
+        return self.grid.dim

@@ -1,0 +1,411 @@
+"""Transport: heat conduction and diffusion on the particles (001 §8-9), as physics terms.
+
+Conduction is the scalar analogue of the momentum equation (001 §8).  With thermal mass
+m_Tp = M_p C_p on the particle (C_p the heat capacity per unit mass) and temperature T_p:
+
+* thermal mass and thermal momentum on the nodes, in the step's one P2G scatter
+      m_Ti = sum_p m_Tp S_ip,   p_Ti = sum_p m_Tp T_p S_ip                    (001 eqs. 133, 138)
+  (001 eq. 138 writes m_p for m_Tp; the thermal mass is meant), and T_i = p_Ti / m_Ti;
+* the heat flux at the particle from the nodal temperatures
+      q_p = -k grad T_p = -k sum_i T_i G_ip                                   (001 eq. 137)
+  (k a scalar or a D x D tensor), and the nodal heat flow, a second scatter
+      Q_i = sum_p V_p (q_p . G_ip + q_s,p S_ip)                              (001 eq. 135)
+  with V_p = J_p V0_p the current volume and q_s the heat source per unit volume;
+* the thermal momentum update and nodal rate a_Ti = (Q_i + Q_i,q) / m_Ti     (001 eqs. 139-140)
+  where Q_i,q is the heat entering through a boundary (001 eq. 136, :class:`Neumann`);
+* the particle update by FLIP, T_p += sum_i a_Ti S_ip dt                     (001 eqs. 141, 143)
+
+001 §8 updates temperatures "always ... using FLIP": the PIC update T_p = sum_i (T_i + a_Ti dt) S_ip
+(001 eq. 142) replaces the particle values by their grid projection every step, which smooths
+(conducts) the field even with k = 0.  ``update="pic"`` is offered only to show that.
+``update="xpic:M"`` is XPIC(m) for transport (000 §3.6): T^{n+1} = beta T^n + (1 - beta) S t(m) +
+S a_T dt with t(m) = m (t - t*) the XPIC series of the nodal values under S+ weighted by the
+capacity (000 eqs. 3.53-3.58); it removes particle-scale (null-space) noise that FLIP keeps,
+without PIC's smoothing of what the grid resolves.  ``beta`` blends in FLIP (default 1 for
+"flip", 0 otherwise); m = 1 is the blend of 000 eq. (3.60).
+
+Diffusion (001 §9) is the same with the concentration potential mu = c / c_sat for T, the
+current particle volume as the "mass" (rho = 1, C_p = 1), the diffusivity D for k
+(001 eqs. 146-150): :class:`Diffusion`.
+
+Boundary conditions (the term's ``boundary=``): :class:`Dirichlet` holds the field at a value on
+nodes (a fixed temperature or concentration: T_i is the held value in the gradient and in PIC's
+projection, and a_Ti = 0 there -- the nodal value does not change -- except at the first step,
+where the FLIP particles take the switch-on jump, held value minus the ``initial`` field at the
+node, once: :meth:`Transport.switch_on`); :class:`Neumann` adds a prescribed
+inward flux per unit area, Q_i,q = flux h^(D-1) on its nodes (the lumped surface integral of 001
+eq. 136 for a boundary through a node plane).  Without conditions the boundary is adiabatic /
+sealed.
+
+Coupling to mechanics: with ``expansion`` alpha the material sees the elastic part of F,
+F_e = F / (1 + alpha (T - T_ref)) (a multiplicative thermal stretch; for small strains the stress
+of eps - alpha dT I).  The stable time step of explicit conduction on lumped nodes is
+dt <= h^2 / (2 D a) with a = k / (rho C_p) the diffusivity (D the dimension; 1D linear elements:
+the largest eigenvalue of the lumped conduction matrix is 4 a / h^2); ``Simulation.stable_dt``
+takes the smaller of it and the CFL limit.
+
+The transport runs per velocity field: in multimaterial mode each material conducts within
+itself (no heat crosses a contact interface).
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Union
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+from .conditions import NodeSet, _select, mirror_nodes, node_plane
+from ..core.errors import check
+from ..core.fields import ParticleField
+from ..core.registry import Parameter, register_term
+from .term import Term
+from ..transfer.operators import safe_divide, scatter_planar
+from ..core.validate import FINITE, FRACTION, NON_NEGATIVE, POSITIVE, concrete, positive_int
+
+Selector = Union[str, Callable, NodeSet]
+
+
+class Dirichlet(eqx.Module):
+    """Hold the transported field at ``value`` on the nodes ``where`` selects (a grid face such
+    as ``"x-"`` or a callable of node coordinates (n, D) -> bool): a fixed temperature or
+    concentration.
+
+    ``mirror=(axis, position)``: the boundary is the node plane x_axis = position; the selected
+    nodes on it hold ``value``, and the selected nodes beyond it are its odd (mirror) extension,
+    T_ghost = 2 value - T_mirror, with a_ghost = -a_mirror -- what B-spline shape functions, whose
+    stencils reach past the boundary, need for a second-order boundary (held ghosts are first
+    order).  Linear shapes do not reach past the plane; for them it changes nothing."""
+
+    where: Selector
+    value: jnp.ndarray
+    layers: int = eqx.field(static=True, default=1)
+    mirror: tuple | None = eqx.field(static=True, default=None)
+
+    def __init__(self, where: Selector, value, layers: int = 1, mirror: tuple | None = None):
+        self.where = where
+        self.value = FINITE.leaf("Dirichlet", "value", value)
+        self.layers = positive_int("Dirichlet", "layers", layers, fix="node layers from the face")
+        if mirror is not None:
+            ok = isinstance(mirror, tuple) and len(mirror) == 2 and isinstance(mirror[0], int) and mirror[0] >= 0
+            check(ok, f"Dirichlet: mirror = {mirror!r}; give (axis, position) of the boundary's node plane, "
+                      "e.g. (0, 0.0)")
+            mirror = (mirror[0], FINITE.real("Dirichlet", "mirror position", mirror[1]))
+        self.mirror = mirror
+
+
+class Neumann(eqx.Module):
+    """A prescribed inward ``flux`` per unit area (heat: W/m^2; diffusion: mu m/s) through the nodes
+    ``where`` selects: Q_i,q = flux h^(D-1) (001 eq. 136, lumped)."""
+
+    where: Selector
+    flux: jnp.ndarray
+    layers: int = eqx.field(static=True, default=1)
+
+    def __init__(self, where: Selector, flux, layers: int = 1):
+        self.where = where
+        self.flux = FINITE.leaf("Neumann", "flux", flux)
+        self.layers = positive_int("Neumann", "layers", layers, fix="node layers from the face")
+
+
+def _nodes(grid, condition, copies: int) -> np.ndarray:
+    """The condition's node mask on every velocity field's copy of the grid, (copies n,)."""
+    return np.tile(_select(grid, condition.where, condition.layers), copies)
+
+
+def _parse_update(owner: str, update: str, name: str = "update") -> tuple:
+    """(XPIC order, default beta) of an update spec: "flip" (1, 1), "pic" (1, 0), "xpic:M" (M, 0)."""
+    spec = update.strip().lower() if isinstance(update, str) else update
+    if spec == "flip":
+        return 1, 1.0
+    if spec == "pic":
+        return 1, 0.0
+    if isinstance(spec, str) and spec.startswith("xpic:"):
+        try:
+            order = int(spec[5:])
+        except ValueError:
+            order = 0
+        check(order >= 1, f"{owner}: {name} = {update!r}; the XPIC order M in 'xpic:M' must be a positive integer")
+        return order, 0.0
+    check(False, f"{owner}: {name} = {update!r}; choose 'flip' (001 §8), 'pic' (a comparison) or 'xpic:M' "
+                 "(000 §3.6)")
+
+
+class Transport(Term):
+    """Scalar transport by conduction/diffusion (module docstring).  Subclasses name the field and
+    the particle capacity: :class:`Heat` (temperature, m_Tp = M_p C_p) and :class:`Diffusion`
+    (concentration potential, m_Tp = V_p)."""
+
+    conductivity: jnp.ndarray  # k (heat) or D (diffusion): a scalar or a (D, D) tensor
+    capacity: jnp.ndarray  # C_p per unit mass (heat); 1 (diffusion)
+    source: jnp.ndarray  # per unit volume and time
+    expansion: jnp.ndarray  # alpha: the thermal (moisture) stretch per unit field
+    reference: jnp.ndarray  # the field at which the stretch is zero
+    boundary: tuple
+    beta: jnp.ndarray  # the FLIP fraction of the particle update (000 eq. 3.58)
+    order: int = eqx.field(static=True)  # XPIC(m) order of the update (1: FLIP/PIC)
+    initial: float | Callable = eqx.field(static=True)
+
+    FIELD = ""  # the particle field
+    MASS = ""  # the nodal capacity ("thermal mass") column
+    MOMENTUM = ""  # the nodal field-times-capacity ("thermal momentum") column
+    TOTAL = ""  # the saved total sum_p m_Tp T_p
+
+    def _setup(self, owner, conductivity, capacity, source, expansion, reference, boundary, update, beta, initial,
+               conductivity_name):
+        fix = "a scalar >= 0 or a symmetric positive semi-definite D x D tensor"
+        scalar = np.ndim(conductivity) == 0
+        self.conductivity = (NON_NEGATIVE if scalar else FINITE).leaf(owner, conductivity_name, conductivity, fix=fix)
+        check(self.conductivity.ndim in (0, 2),
+              f"{owner}: {conductivity_name} has shape {self.conductivity.shape}; give a scalar or a D x D tensor")
+        if self.conductivity.ndim == 2:
+            k = concrete(self.conductivity)
+            check(k is None or (k.shape[0] == k.shape[1] and np.allclose(k, k.T)
+                                and np.all(np.linalg.eigvalsh(k) >= 0)),
+                  f"{owner}: {conductivity_name} tensor must be square, symmetric and positive semi-definite")
+        self.capacity = POSITIVE.leaf(owner, "heat_capacity" if owner == "Heat" else "capacity", capacity)
+        self.source = FINITE.leaf(owner, "source", source)
+        self.expansion = FINITE.leaf(owner, "expansion", expansion)
+        self.reference = FINITE.leaf(owner, "reference", reference)
+        conditions = () if boundary is None else (boundary,) if isinstance(boundary, (Dirichlet, Neumann)) \
+            else tuple(boundary)
+        for c in conditions:
+            check(isinstance(c, (Dirichlet, Neumann)),
+                  f"{owner}: boundary holds {c!r}; use jm.Dirichlet(where, value) or jm.Neumann(where, flux)")
+        self.boundary = conditions
+        self.order, default_beta = _parse_update(owner, update)
+        self.beta = FRACTION.leaf(owner, "beta", default_beta if beta is None else beta,
+                                 fix="the FLIP fraction of the update, in [0, 1]")
+        check(callable(initial) or np.isfinite(np.asarray(initial, dtype=float)).all(),
+              f"{owner}: initial = {initial!r}; give a finite number or a function f(x) -> (N,)")
+        self.initial = initial
+
+    # ------------------------------------------------------------------ per particle
+    def particle_fields(self) -> tuple:
+        return (ParticleField(self.FIELD, initial=self.initial, doc=f"{self.FIELD} of the particle (001 §8-9)"),)
+
+    def particle_capacity(self, state):
+        """m_Tp: the particle's capacity (heat: M_p C_p; diffusion: the current volume)."""
+        raise NotImplementedError
+
+    def stretch(self, state):
+        """The isotropic stretch 1 + alpha (T_p - T_ref) the field imposes on the particle, (N,)."""
+        return 1.0 + self.expansion * (state.fields[self.FIELD] - self.reference)
+
+    def diffusivity(self, state):
+        """a_p = k / (rho_p C_p) per particle (diffusion: D), the largest eigenvalue for a tensor."""
+        k = self.conductivity if self.conductivity.ndim == 0 else jnp.max(jnp.linalg.eigvalsh(self.conductivity))
+        volume = state.volume0 * jnp.linalg.det(state.F)
+        return k * volume / self.particle_capacity(state)
+
+    def time_step_limit(self, sim, state):
+        """dt <= h^2 / (2 D a_max) (module docstring)."""
+        a = jnp.max(self.diffusivity(state))
+        bound = sim.grid.h**2 / (2.0 * sim.grid.dim)
+        return jnp.where(a > 0, bound / jnp.where(a > 0, a, 1.0), jnp.inf)
+
+    def totals(self, sim, state) -> dict:
+        """sum_p m_Tp T_p: the total thermal energy (heat) or solute (diffusion)."""
+        return {self.TOTAL: jnp.sum(self.particle_capacity(state) * state.fields[self.FIELD])}
+
+    # ------------------------------------------------------------------ the step
+    def p2g_columns(self, sim, state, stencil) -> dict:
+        capacity = self.particle_capacity(state)
+        return {self.MASS: stencil.weight * capacity,  # 001 eq. (138)
+                self.MOMENTUM: stencil.weight * (capacity * state.fields[self.FIELD])}  # 001 eq. (133)
+
+    def held(self, sim, dtype):
+        """(mask, value) of the Dirichlet nodes on every field's copy of the grid."""
+        copies = sim.material_fields
+        mask = np.zeros(sim.field_nodes, dtype=bool)
+        value = jnp.zeros(sim.field_nodes, dtype)
+        for c in self.boundary:
+            if isinstance(c, Dirichlet):
+                nodes = _nodes(sim.grid, c, copies)
+                mask |= nodes
+                value = jnp.where(nodes, c.value.astype(dtype), value)
+        return jnp.asarray(mask), value
+
+    def mirror_map(self, sim) -> tuple:
+        """(ghost nodes, their mirror nodes) of the mirrored Dirichlet conditions, as field-node
+        indices on every field's copy (NumPy int arrays; empty without a mirror)."""
+        grid = sim.grid
+        ghosts, mirrors = [], []
+        index = grid.node_index_grid()
+        for c in self.boundary:
+            if not (isinstance(c, Dirichlet) and c.mirror is not None):
+                continue
+            axis, position = c.mirror  # the index map of jm.Mirror's images (jaxmpm.physics.conditions)
+            plane = node_plane(grid, axis, position, "Dirichlet")
+            beyond = _select(grid, c.where, c.layers) & (index[:, axis] != plane)
+            ghost, mirror = mirror_nodes(grid, axis, plane, beyond, "Dirichlet")
+            ghosts.append(ghost)
+            mirrors.append(mirror)
+        if not ghosts:
+            return np.zeros(0, int), np.zeros(0, int)
+        n = grid.num_nodes
+        copies = np.arange(sim.material_fields)[:, None] * n
+        return ((np.concatenate(ghosts)[None] + copies).ravel(), (np.concatenate(mirrors)[None] + copies).ravel())
+
+    def boundary_flow(self, sim, dtype):
+        """Q_i,q: the Neumann conditions' inward flux times the nodal face area h^(D-1)."""
+        flow = jnp.zeros(sim.field_nodes, dtype)
+        for c in self.boundary:
+            if isinstance(c, Neumann):
+                flow = flow + jnp.where(_nodes(sim.grid, c, sim.material_fields),
+                                        c.flux.astype(dtype) * sim.grid.h ** (sim.grid.dim - 1), 0.0)
+        return flow
+
+    def nodal_field(self, sim, mass, momentum):
+        """(T_i, m_Ti, held mask, ghosts, mirrors): T_i = p_Ti / m_Ti (001 eq. 138), the held value on
+        Dirichlet nodes.  Beyond a mirrored boundary the particles' odd images are folded in first
+        (a ghost's accumulated m and 2 v m - p added to its mirror node: what the mirrored particles
+        would give it), then the ghosts take the odd extension 2 v - T_mirror."""
+        held, value = self.held(sim, mass.dtype)
+        ghosts, mirrors = self.mirror_map(sim)
+        if ghosts.size:
+            momentum = momentum.at[mirrors].add(2.0 * value[ghosts] * mass[ghosts] - momentum[ghosts])
+            mass = mass.at[mirrors].add(mass[ghosts])
+        t_nodes = jnp.where(held, value, safe_divide(momentum, mass))
+        if ghosts.size:
+            t_nodes = t_nodes.at[ghosts].set(2.0 * value[ghosts] - t_nodes[mirrors])
+        return t_nodes, mass, held, ghosts, mirrors
+
+    def nodal_rate(self, sim, state, transfer, fields_mass, fields_momentum, dt):
+        """(T_i, a_Ti) on every node: 001 eqs. (135)-(140), T_i the held value on Dirichlet nodes
+        (where a_Ti = 0: the value stays; its switch-on jump is :meth:`switch_on`); beyond a
+        mirrored boundary the heat flow is folded like the mass and a_ghost = -a_mirror."""
+        t_nodes, m_T, held, ghosts, mirrors = self.nodal_field(sim, fields_mass, fields_momentum)
+        stencil = transfer.stencil
+        grad = transfer.gradient(t_nodes)  # sum_i T_i G_ip, (N, D)
+        k = self.conductivity.astype(m_T.dtype)
+        d = grad.shape[-1]
+        check(k.ndim == 0 or k.shape == (d, d), f"{type(self).__name__}: the conductivity tensor has shape {k.shape}; "
+                                                f"this model is {d}D: give a scalar or a {d} x {d} tensor")
+        flux = -(k * grad if k.ndim == 0 else grad @ k.T)  # 001 eq. (137)
+        volume = state.volume0 * jnp.linalg.det(state.F)
+        g = stencil.gradient  # (D, K, N)
+        per_slot = sum(g[a] * (volume * flux[:, a]) for a in range(g.shape[0])) \
+            + stencil.weight * (volume * self.source.astype(m_T.dtype))  # 001 eq. (135)
+        flow = scatter_planar(stencil.index, per_slot, transfer.num_nodes) + self.boundary_flow(sim, m_T.dtype)
+        if ghosts.size:  # the mirrored particles' flow: odd, as the field
+            flow = flow.at[mirrors].add(-flow[ghosts])
+        rate = jnp.where(held, 0.0, safe_divide(flow, m_T))  # 001 eq. (140); held nodes keep their value
+        if ghosts.size:
+            rate = rate.at[ghosts].set(-rate[mirrors])
+        return t_nodes, rate
+
+    def switch_on(self, sim, state, dtype):
+        """At the first step (state.step = 0), the held values' jump from the initial field on the
+        held nodes, value - T0(x_i) with T0 the term's ``initial`` (0 elsewhere and later): FLIP
+        particles take it once, as the change of the nodal field when the condition switches on
+        (a heated end: the particles beside it see the step).  T0 comes from ``initial``: a field
+        given to ``sim.init`` instead is not seen here, so give the initial field as ``initial=``
+        when a held value differs from it."""
+        held, value = self.held(sim, dtype)
+        x = sim.grid.node_coordinates()
+        t0 = np.asarray(self.initial(x), dtype=float) if callable(self.initial) else np.full(len(x), float(self.initial))
+        t0 = jnp.asarray(np.tile(np.broadcast_to(t0, (len(x),)), sim.material_fields), dtype)
+        target = value
+        ghosts, mirrors = self.mirror_map(sim)
+        if ghosts.size:  # a ghost switches on to the odd extension of the initial field
+            target = target.at[ghosts].set(2.0 * value[ghosts] - t0[mirrors])
+        return jnp.where(held & (state.step == 0), target - t0, 0.0)
+
+    def grid_value(self, sim, state):
+        """T_{g->p} = sum_i T_i S_ip (001 eq. 145): the field on the particles as the grid sees it,
+        T_i = p_Ti / m_Ti (the held value on Dirichlet nodes).  001 §8 recommends it wherever a
+        feature needs the local temperature: FLIP particle values keep within-cell variations (a
+        null-space part the grid does not see), which this projection removes."""
+        from ..model.step import p2g
+
+        fields = p2g(sim, state)  # the terms' columns, these among them
+        nodal = self.nodal_field(sim, fields.values[self.MASS], fields.values[self.MOMENTUM])[0]
+        return fields.transfer.gather(nodal)
+
+    def grid_action(self, sim, fields, solution, dt):
+        """Keep the nodal capacity and field-times-capacity for the transport stage."""
+        return type(solution)({**solution.values, self.MASS: fields.values[self.MASS],
+                               self.MOMENTUM: fields.values[self.MOMENTUM]})
+
+    def particle_action(self, sim, old, new, transfer, solution, dt):
+        """The transport stage: the nodal rate from the start-of-step particles (001 eqs. 135-140),
+        then the particle update (:meth:`particle_update`)."""
+        mass = solution.values[self.MASS]
+        t_nodes, rate = self.nodal_rate(sim, old, transfer, mass, solution.values[self.MOMENTUM], dt)
+        value = self.particle_update(sim, old, transfer, mass, t_nodes, rate, dt)
+        return eqx.tree_at(lambda s: s.fields, new, {**new.fields, self.FIELD: value})
+
+    def particle_update(self, sim, state, transfer, mass, t_nodes, rate, dt):
+        """T^{n+1} = beta T^n + (1 - beta) S t(m) + S a_T dt, t(m) the XPIC(m) series of the nodal
+        values with S+ weighted by the capacity (000 eqs. 3.53-3.58; m(t~ - t*) = t(m) + m a_T dt
+        collects the a_T terms).  m = 1 is the FLIP/PIC blend of 000 eq. (3.60); beta = 1 FLIP,
+        T_p += S a_T dt (001 eq. 141); beta = 0, m = 1 PIC, T_p = S (t + a_T dt) (001 eq. 142)."""
+        T = state.fields[self.FIELD]
+        Sa = transfer.gather(rate)
+        if any(isinstance(c, Dirichlet) for c in self.boundary):  # the held values switch on at t = 0
+            T = T + transfer.gather(self.switch_on(sim, state, T.dtype))
+        if self.order == 1:
+            if self.is_flip():
+                return T + Sa * dt  # 001 eqs. (141), (143)
+            St = transfer.gather(t_nodes)
+        else:
+            from ..schemes.xpic import _series  # the XPIC(m) series of the velocity schemes, 000 eqs. (3.22)-(3.25)
+            from ..transfer.operators import Transfer
+
+            capacity = Transfer(transfer.stencil, self.particle_capacity(state), mass, transfer.num_nodes)  # 000 eq. (3.53)
+            tm = _series(t_nodes[:, None], self.order, capacity, lambda w: w, "binomial")[:, 0]  # m (t - t*)
+            St = transfer.gather(tm)
+        beta = self.beta.astype(T.dtype)
+        return beta * T + (1.0 - beta) * St + Sa * dt  # 000 eq. (3.58)
+
+    def is_flip(self) -> bool:
+        """True when the update is concretely pure FLIP (beta = 1, m = 1): no projection to compute."""
+        b = concrete(self.beta)
+        return self.order == 1 and b is not None and float(b) == 1.0
+
+
+class Heat(Transport):
+    """Heat conduction (001 §8): ``conductivity`` k (W/(m K); scalar or D x D tensor),
+    ``heat_capacity`` C_p (J/(kg K)), ``source`` q_s (W/m^3), ``expansion`` alpha_T (1/K) about
+    ``reference`` T_ref, ``boundary`` (jm.Dirichlet: fixed temperature, jm.Neumann: heat flux in),
+    ``initial`` temperature (a number or f(x) -> (N,)); particle field ``temperature``."""
+
+    FIELD, MASS, MOMENTUM, TOTAL = "temperature", "thermal_mass", "thermal_momentum", "thermal_energy"
+
+    def __init__(self, conductivity, heat_capacity=1.0, source=0.0, expansion=0.0, reference=0.0, boundary=None,
+                 update: str = "flip", beta=None, initial=0.0):
+        self._setup("Heat", conductivity, heat_capacity, source, expansion, reference, boundary, update, beta, initial,
+                    "conductivity")
+
+    def particle_capacity(self, state):
+        return state.mass * self.capacity  # m_Tp = M_p C_p (001 §8)
+
+
+class Diffusion(Transport):
+    """Diffusion (001 §9) of the concentration potential mu = c / c_sat: ``diffusivity`` D (m^2/s;
+    scalar or tensor), ``source`` (1/s), ``expansion`` (moisture expansion per unit mu) about
+    ``reference``, ``boundary`` (jm.Dirichlet: fixed concentration, jm.Neumann: flux in),
+    ``initial``; particle field ``concentration``; the particle's "mass" is its volume."""
+
+    FIELD, MASS, MOMENTUM, TOTAL = "concentration", "solvent_mass", "solvent_momentum", "solute"
+
+    def __init__(self, diffusivity, source=0.0, expansion=0.0, reference=0.0, boundary=None, update: str = "flip",
+                 beta=None, initial=0.0):
+        self._setup("Diffusion", diffusivity, 1.0, source, expansion, reference, boundary, update, beta, initial,
+                    "diffusivity")
+
+    def particle_capacity(self, state):
+        return state.volume0 * jnp.linalg.det(state.F)  # V_p (001 eq. 146)
+
+
+register_term("heat", Heat, doc="heat conduction, FLIP temperature update (001 §8)", parameters=[
+    Parameter("conductivity", lambda t: t.conductivity, "thermal conductivity k", "positive", valid="non-negative"),
+    Parameter("heat_capacity", lambda t: t.capacity, "heat capacity C_p per unit mass", "positive", valid="positive"),
+    Parameter("thermal_expansion", lambda t: t.expansion, "thermal expansion coefficient alpha_T"),
+])
+register_term("diffusion", Diffusion, doc="diffusion of the concentration potential (001 §9)", parameters=[
+    Parameter("diffusivity", lambda t: t.conductivity, "diffusivity D", "positive", valid="non-negative"),
+    Parameter("moisture_expansion", lambda t: t.expansion, "moisture expansion coefficient per unit mu"),
+])

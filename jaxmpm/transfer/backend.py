@@ -1,0 +1,193 @@
+"""Backend policy: where XLA may fuse, decided per backend at trace time, in this one module.
+
+Physics code marks *stage boundaries* -- "this per-particle quantity is evaluated once, before
+its consumers" -- with :func:`materialise` and :func:`evaluate_once`; what a boundary does is the
+policy's business:
+
+* ``"cpu"`` (the CPU's default): a boundary is a real materialisation point.  XLA on the CPU fuses
+  cheap elementwise producers into every consumer, so without it the 1D shape-function kernels,
+  the stress and APIC's C_p are recomputed for every (particle, node, component) of every
+  transfer (measured 3x slower mpm88 step).  ``lax.optimization_barrier`` is removed before
+  fusion on the CPU, so the boundary is a conditional whose predicate, ``not (x > +inf)``, is true
+  for every float (NaN included) but cannot be folded: the taken branch is the identity and the
+  values are exactly the inputs (under ``vmap`` the cond becomes a select that picks them).
+* ``"gpu"`` (every other backend's default): boundaries are identities.  On a GPU the
+  conditional costs a device-to-host round trip of its predicate per boundary (measured on an
+  H100: 1.56x slower 3D step at 1M particles, 7x at 8k), and fusion is what one wants there.
+
+The policy also sets the row width of the transfer layer's one scatter-add
+(:func:`scatter_row_width`: a power of two on the CPU, the natural width elsewhere).
+
+``Simulation(..., backend="auto" | "cpu" | "gpu")`` picks the policy; ``"auto"`` resolves from
+``jax.default_backend()`` when the step is traced.  Both policies give the same numbers: a
+boundary changes where values are computed, not how (tests/test_open_core.py, 1e-12).
+
+The *adjoint* (``Simulation(..., adjoint=...)``) picks how reverse mode differentiates the
+transfer layer; it too changes speed, never results (tests/test_adjoint.py, 1e-10):
+
+* ``"structured"`` (default): the transfer layer's building blocks carry their own JVP rules
+  (:func:`derivative_rule`), written so that their transposes are the cheap adjoint operations --
+  a broadcast for a sum over the stencil, row products and adds for the tensor-product shape
+  functions, boundaries that hold only primal values, and (:func:`hold_tangent`) a boundary on
+  the scatter's tangent, so that its transpose evaluates the nodal cotangent once before the
+  gather.  JAX transposes the rest as usual.
+* ``"autodiff"``: JAX differentiates the forward code as written (the reference path).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import contextvars
+from functools import partial, wraps
+
+import jax
+import jax.numpy as jnp
+
+from ..core.errors import check
+
+POLICIES = ("auto", "cpu", "gpu")
+
+_active = contextvars.ContextVar("jaxmpm_backend_policy", default="auto")
+
+
+def resolve(policy: str) -> str:
+    """``"cpu"`` or ``"gpu"`` for a policy name (``"auto"``: from the default JAX backend)."""
+    check(policy in POLICIES, f"backend = {policy!r}; choose one of {', '.join(POLICIES)}")
+    if policy == "auto":
+        return "cpu" if jax.default_backend() == "cpu" else "gpu"
+    return policy
+
+
+@contextlib.contextmanager
+def use_policy(policy: str):
+    """Trace the enclosed code under ``policy`` (see the module docstring)."""
+    token = _active.set(resolve(policy))
+    try:
+        yield
+    finally:
+        _active.reset(token)
+
+
+def active() -> str:
+    """The policy in force for code being traced now: ``"cpu"`` or ``"gpu"``."""
+    return resolve(_active.get())
+
+
+def materialise(arrays):
+    """Stage boundary: ``arrays`` (a pytree of arrays) unchanged, evaluated once before their
+    consumers under the CPU policy; the identity under the GPU policy."""
+    if active() != "cpu":
+        return arrays
+    return _held(arrays) if structured() else _barrier(lambda a: a, arrays)
+
+
+def evaluate_once(fn, *args):
+    """Stage boundary around a computation: ``fn(*args)``, evaluated into its own buffers under the
+    CPU policy (like :func:`materialise`, but without copying the result); ``fn(*args)`` inline
+    under the GPU policy."""
+    if active() != "cpu":
+        return fn(*args)
+    if not structured():
+        return _barrier(lambda a: fn(*a), args)
+    closed, consts = jax.closure_convert(fn, *args)
+    return _held_computation(closed, tuple(consts), args)
+
+
+def scatter_row_width(width: int) -> int:
+    """How many columns a scatter-add of ``width`` columns per (node) row is given: under the CPU
+    policy the next power of two (the extra columns are zeros, sliced off after), ``width``
+    under the GPU policy.  XLA:CPU (jax 0.10) adds rows of 3, 5, 6 or 7 columns 2-4x slower
+    than rows of 4 or 8 when consecutive updates hit the same node, as they do for particles
+    laid out in rows (a 2D P2G of mass, momentum and force is 5 columns: the disks step 1.4x
+    faster in float64, 1.7x in float32, benchmarks/throughput.py); on a GPU the extra columns
+    would be extra atomic adds.  Each column is summed on its own, so the values are the same."""
+    if active() != "cpu" or width & (width - 1) == 0:
+        return width
+    return 1 << (width - 1).bit_length()
+
+
+def _barrier(fn, operands, witness=None):
+    """``fn(operands)`` inside a conditional that is always taken (see the module docstring); its
+    predicate reads ``witness`` (default: the first float of ``operands``)."""
+    if witness is None:
+        witness = next(leaf for leaf in jax.tree_util.tree_leaves(operands) if jnp.issubdtype(leaf.dtype, jnp.floating))
+    out = jax.eval_shape(fn, operands)
+    return jax.lax.cond(_always_true(witness), fn,
+                        lambda _: jax.tree_util.tree_map(lambda o: jnp.zeros(o.shape, o.dtype), out), operands)
+
+
+def _always_true(x):
+    """``not (x[0] > +inf)``: true for every float, NaN included, and not foldable by XLA."""
+    return jnp.logical_not(x.reshape(-1)[0] > jnp.inf)
+
+
+# Boundaries under the structured adjoint.  Under differentiation a boundary holds the primal
+# values only; tangents (and so, transposed, cotangents) pass by ordinary fusion.  A conditional in
+# the linearised program would make every residual leave it through a buffer of its own, and its
+# transpose would be a second conditional that runs the branch again.
+
+
+@jax.custom_jvp
+def _held(arrays):
+    return _barrier(lambda a: a, arrays)
+
+
+@_held.defjvp
+def _held_jvp(primals, tangents):
+    (arrays,), (arrays_dot,) = primals, tangents
+    return _held(arrays), arrays_dot
+
+
+@partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _held_computation(closed, consts, args):
+    return _barrier(lambda ca: closed(*ca[1], *ca[0]), (consts, args))
+
+
+@_held_computation.defjvp
+def _held_computation_jvp(closed, primals, tangents):
+    out, out_dot = jax.jvp(lambda c, a: closed(*a, *c), primals, tangents)
+    return _held(out), out_dot
+
+
+def hold_tangent(tangent, primal):
+    """A stage boundary for a tangent (a linear function of the inputs' tangents): ``tangent``
+    unchanged, inside an always-taken conditional whose predicate comes from ``primal`` under the
+    CPU policy.  Its transpose is the same conditional on the cotangent, so reverse mode evaluates
+    that cotangent once before its consumers (e.g. the gather that transposes a scatter) instead
+    of fusing its computation into them."""
+    if active() != "cpu":
+        return tangent
+    return _barrier(lambda t: t, tangent, witness=primal)  # the predicate must not read the tangent
+
+
+# ------------------------------------------------------------------ the adjoint
+ADJOINTS = ("structured", "autodiff")
+
+_adjoint = contextvars.ContextVar("jaxmpm_adjoint", default="structured")
+
+
+@contextlib.contextmanager
+def use_adjoint(adjoint: str):
+    """Trace the enclosed code with the derivative rules of ``adjoint`` (see the module docstring)."""
+    check(adjoint in ADJOINTS, f"adjoint = {adjoint!r}; choose one of {', '.join(ADJOINTS)}")
+    token = _adjoint.set(adjoint)
+    try:
+        yield
+    finally:
+        _adjoint.reset(token)
+
+
+def structured() -> bool:
+    """Whether code being traced now uses the structured derivative rules."""
+    return _adjoint.get() == "structured"
+
+
+def derivative_rule(plain, ruled):
+    """``ruled`` (a ``jax.custom_jvp`` of the same function as ``plain``) under the structured
+    adjoint, ``plain`` under ``"autodiff"``; both give the same values."""
+
+    @wraps(plain)
+    def dispatch(*args):
+        return (ruled if structured() else plain)(*args)
+
+    return dispatch

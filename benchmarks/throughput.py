@@ -33,7 +33,7 @@ import equinox as eqx  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
 import jaxmpm as jm  # noqa: E402
-from jaxmpm.schemes.xpic import scheme_from_name  # noqa: E402
+from jaxmpm.core.registry import scheme_from_name  # noqa: E402
 
 DEFAULT_CSV = Path(__file__).resolve().parent / "results" / "throughput.csv"
 

@@ -22,7 +22,7 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 import jaxmpm as jm  # noqa: E402
-from jaxmpm.schemes.xpic import UNLUMPED_MODES  # noqa: E402
+from jaxmpm.transfer.series import UNLUMPED_MODES  # noqa: E402
 
 MODES = ("iterates", "result", "lumped") + UNLUMPED_MODES
 ORDERS = (2, 4)

@@ -50,7 +50,7 @@ def energy(sim, state) -> float:
 
 def run_scheme(spec: str, spacing: float, cfl: float, dtype: str) -> dict:
     import jaxmpm as jm
-    from jaxmpm.schemes.xpic import scheme_from_name
+    from jaxmpm.core.registry import scheme_from_name
 
     setup = jm.scene("rings", scheme=scheme_from_name(spec), spacing=spacing, cfl=cfl, dtype=dtype)
     sim, state = setup.sim, setup.state

@@ -86,7 +86,7 @@ def _show(value) -> str:
 def build_parser() -> argparse.ArgumentParser:
     import jaxmpm  # noqa: F401  (registers the schemes and shapes)
     from jaxmpm.core.registry import SCHEMES, SHAPES
-    from jaxmpm.physics.term import DAMPING_APPROACHES
+    from jaxmpm.physics.damping import DAMPING_APPROACHES
     from jaxmpm.scenes import SCENES
     from jaxmpm.scenes._common import CONTACT_OPTIONS
 

@@ -30,7 +30,7 @@ import pytest
 import jaxmpm as jm
 from jaxmpm.schemes.affine import affine_angular_momentum, affine_weights, inertia_tensor
 from jaxmpm.physics.conditions import Constraint
-from jaxmpm.schemes.xpic import GridSolution
+from jaxmpm.core.fields import GridSolution
 from jaxmpm.transfer.operators import Transfer
 from cases import AFFINE_GRIDS, FOUR_SHAPES, random_particles
 
@@ -203,7 +203,7 @@ def test_tpic_conserves_linear_momentum_and_p2g_angular_momentum(shape_name, dim
 def test_scheme_names_and_initial_field(name):
     """``scheme_from_name`` knows apic/tpic; the affine field starts at zero with shape (N, D, D) and
     ``with_velocity_gradient`` sets B_p = L D_p (APIC) or grad v_p = L (TPIC)."""
-    from jaxmpm.schemes.xpic import scheme_from_name
+    from jaxmpm.core.registry import scheme_from_name
 
     scheme = scheme_from_name(name)
     assert type(scheme) is type(SCHEMES[name])

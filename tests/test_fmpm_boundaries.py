@@ -30,7 +30,7 @@ import pytest
 
 import jaxmpm as jm
 from jaxmpm.physics.conditions import build_constraint
-from jaxmpm.schemes.xpic import UNLUMPED_MODES, mass_matrix_series
+from jaxmpm.transfer.series import UNLUMPED_MODES, mass_matrix_series
 from jaxmpm.transfer.operators import Transfer
 from cases import UNIT_GRIDS, dense_weights
 

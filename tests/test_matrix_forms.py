@@ -26,7 +26,9 @@ import pytest
 
 import jaxmpm as jm
 from jaxmpm.physics.conditions import build_constraint
-from jaxmpm.schemes.xpic import Damping, GridSolution, mass_matrix_series
+from jaxmpm.core.fields import GridSolution
+from jaxmpm.physics.damping import Damping
+from jaxmpm.transfer.series import mass_matrix_series
 from jaxmpm.transfer.operators import Transfer
 from cases import FOUR_SHAPES, UNIT_GRIDS, at_cells, dense_weights, interior_cells
 

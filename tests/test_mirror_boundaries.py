@@ -29,7 +29,7 @@ import numpy as np
 import pytest
 
 import jaxmpm as jm
-from jaxmpm.schemes.xpic import mass_matrix_series
+from jaxmpm.transfer.series import mass_matrix_series
 
 
 @eqx.filter_jit

@@ -18,7 +18,6 @@ import pytest
 
 import jaxmpm as jm
 from jaxmpm.schemes.base import dissipated_energy
-from jaxmpm.physics.term import damping_acceleration
 
 
 # ------------------------------------------------------------------ a scheme in one file
@@ -32,7 +31,7 @@ class NewPIC(jm.Scheme):
 
     def update(self, V, X, transfer, constraint, grid, damping, dt):
         Sv, Sa, Svt = transfer.gather(grid.v), transfer.gather(grid.a), transfer.gather(grid.v_tilde)
-        V_new = self.theta * (V + Sa * dt) + (1.0 - self.theta) * Svt - damping_acceleration(damping, Sv, V) * dt
+        V_new = self.theta * (V + Sa * dt) + (1.0 - self.theta) * Svt - damping.acceleration(Sv, V) * dt
         X_new = X + 0.5 * (V_new + V) * dt  # 003 eq. (2.17)
         diss = dissipated_energy(transfer.particle_mass, Sa, Sv, V_new - V, X_new - X, dt)
         return jm.ParticleUpdate(V_new, X_new, grid.v_tilde, diss)

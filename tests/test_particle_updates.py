@@ -25,9 +25,9 @@ import numpy as np
 import pytest
 
 import jaxmpm as jm
-from jaxmpm.schemes.affine import rigid_inertia
+from jaxmpm.schemes.rpic import rigid_inertia
 from jaxmpm.physics.conditions import Constraint
-from jaxmpm.schemes.xpic import GridSolution
+from jaxmpm.core.fields import GridSolution
 from jaxmpm.transfer.operators import Transfer
 from cases import dense_weights, particle_major
 

@@ -303,7 +303,7 @@ def test_temperature_and_thermal_energy_are_written(tmp_path):
 def test_xpic_stress_matches_its_matrix_form(order):
     """tau~ = tau - (I - S S+)^m tau per stress component (000 eqs. 3.64-3.67), S+ mass-weighted;
     2D, quadratic B-splines, random stresses and masses."""
-    from jaxmpm.physics.term import xpic_stress
+    from jaxmpm.physics.stress import xpic_stress
 
     rng = np.random.default_rng(5)
     grid = jm.Grid((0.0, 0.0), (1.0, 1.0), (6, 6))

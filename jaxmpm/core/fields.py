@@ -67,6 +67,15 @@ class GridFields(_Named):
         """p_i + f_i dt, when scattered in place of p and f (:func:`jaxmpm.folds_force`)."""
         return self.get("updated_momentum")
 
+    @property
+    def mass(self):
+        """The lumped nodal mass m_i (n,)."""
+        return self.transfer.nodal_mass
+
+    def replace(self, **values) -> "GridFields":
+        """A copy with the named fields replaced or added."""
+        return GridFields(self.transfer, {**self.values, **values})
+
 
 class GridSolution(_Named):
     """Grid results of one step, by name: lumped v = p/m, a = f/m and v_tilde = v + a dt (with the

@@ -1,0 +1,8 @@
+"""Constitutive models, one law per module; ``base`` is the :class:`Material` protocol with its
+elastic and inelastic bases and the :class:`Increment` a strain update hands the law."""
+
+from .base import ElasticMaterial, Increment, InelasticMaterial, Material  # noqa: F401
+from .linear import LinearElastic  # noqa: F401
+from .hypoelastic import HypoElastic  # noqa: F401
+from .neohookean import NeoHookean  # noqa: F401
+from .fluid import NoStress, VolumetricFluid  # noqa: F401

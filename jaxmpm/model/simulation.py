@@ -14,26 +14,29 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..core import measures as diag
-from ..transfer.backend import ADJOINTS, POLICIES, use_adjoint, use_policy
-from ..physics.conditions import as_conditions, build_constraint
-from ..physics.contact import Contact
-from ..run.driver import History, StableTimeStepWarning, rollout, run  # noqa: F401  (re-exported)
 from ..core.errors import check
-from ..core.limits import require_memory
 from ..core.grid import Grid
-from ..materials.base import Material
+from ..core.limits import require_memory
 from ..core.particles import Particles
 from ..core.registry import MATERIALS, SCHEMES, SHAPES, scheme_from_name, shape_from_name
-from ..schemes.base import Scheme
-from ..transfer.shapes import UGIMP, ShapeFunction
 from ..core.state import State
-from .step import step as _step
-from ..physics.term import BodyForce, Damping, StressDivergence, Term
 from ..core.validate import FINITE, concrete
+from ..core.warn import warn
+from ..materials.base import Material
+from ..physics.body_force import BodyForce
+from ..physics.conditions import as_conditions, build_constraint
+from ..physics.damping import Damping
+from ..physics.stress import StressDivergence
+from ..physics.term import Term, overrides
+from ..run.driver import History, StableTimeStepWarning, rollout, run  # noqa: F401  (re-exported)
+from ..schemes.base import Scheme
+from ..transfer.backend import ADJOINTS, POLICIES, use_adjoint, use_policy
+from ..transfer.shapes import UGIMP, ShapeFunction, field_stencil
+from .step import step as _step
 
 UPDATES = {"USF": "USF", "USL": "USL", "USL-": "USL", "MUSL": "MUSL", "USL+": "MUSL",
            "USAVG-": "USAVG-", "USAVG+": "USAVG+", "usavg-": "USAVG-", "usavg+": "USAVG+"}  # 003 §2.2
-KINEMATICS = ("linear", "exponential")  # the deformation-gradient increment dF (jaxmpm.model.step.update_deformation)
+KINEMATICS = ("linear", "exponential")  # the deformation-gradient increment dF (jaxmpm.model.step.deformation_increment)
 
 
 class Simulation(eqx.Module):
@@ -127,12 +130,24 @@ class Simulation(eqx.Module):
         self._check_terms()
 
     def _check_terms(self):
-        """The terms fit together and with the model (also after :meth:`with_term`)."""
+        """The terms fit together and with the model (also after :meth:`with_term`): each particle
+        field declared once; at most one term splits the grid into velocity fields and at most one
+        exchanges momentum between them (the exchange phase does not commute); a term still using
+        the deprecated whole-solution hook ``grid_action`` is named in a DeprecationWarning."""
         names = [f.name for t in self.terms for f in t.particle_fields()]
         check(len(names) == len(set(names)), f"Simulation: two terms declare the same particle field: {names}")
-        if self.material_fields > 1:
-            check(self.update == "USL", f"Simulation: update = {self.update!r} with contact; multimaterial mode runs "
-                                        "USL (USF and MUSL would need contact on their extra extrapolations)")
+        splitting = [type(t).__name__ for t in self.terms if t.velocity_fields() > 1]
+        check(len(splitting) <= 1, f"Simulation: {' and '.join(splitting)} both split the grid into velocity fields; "
+                                   "a model has one multimaterial term")
+        exchanging = [type(t).__name__ for t in self.terms if overrides(t, "exchange_momentum")]
+        check(len(exchanging) <= 1, f"Simulation: {' and '.join(exchanging)} both exchange momentum between velocity "
+                                    "fields; the exchange does not commute, so a model has one exchanging term "
+                                    "(combine their laws in one term)")
+        for t in self.terms:
+            if overrides(t, "grid_action"):
+                warn(f"{type(t).__name__} overrides Term.grid_action, which is deprecated (its rewrite of the grid "
+                     "solution runs after the readers and can overwrite other terms' results); use the phase hooks "
+                     "grid_force, exchange_momentum or read_grid (docs/extending.md)", DeprecationWarning)
 
     # ------------------------------------------------------------- the parts
     def term(self, cls):
@@ -186,19 +201,47 @@ class Simulation(eqx.Module):
 
     # ------------------------------------------------------------------ state
     @property
+    def velocity_fields(self) -> int:
+        """Velocity fields per node: what a term declares (``Term.velocity_fields``: the contact
+        term's materials, multimaterial mode), else 1."""
+        return max((t.velocity_fields() for t in self.terms), default=1)
+
+    @property
     def material_fields(self) -> int:
-        """Velocity fields per node: the contact term's materials (multimaterial mode), else 1."""
-        contact = self.term(Contact)
-        return 1 if contact is None else contact.materials
+        """Deprecated name of :attr:`velocity_fields`."""
+        return self.velocity_fields
+
+    @property
+    def exchange_term(self):
+        """The term that exchanges momentum between velocity fields (contact), or None."""
+        for t in self.terms:
+            if overrides(t, "exchange_momentum"):
+                return t
+        return None
 
     @property
     def field_nodes(self) -> int:
         """Rows of a nodal field: the grid's nodes times the velocity fields."""
-        return self.grid.num_nodes * self.material_fields
+        return self.grid.num_nodes * self.velocity_fields
+
+    def field_index(self, state):
+        """(N,) integer: each particle's velocity field (zeros with one field)."""
+        for t in self.terms:
+            if t.velocity_fields() > 1:
+                return t.field_index(state)
+        return None
+
+    def stencil(self, state, x=None, shape=None):
+        """S_pi, G_pi at the particles (001 eqs. 16-17), or at points ``x`` (N, D) that stand for them
+        (a traction's edge points), with ``shape`` in place of the model's (a traction's grid basis);
+        with several velocity fields each particle's nodes are those of its own field."""
+        stencil = (self.shape if shape is None else shape).stencil(self.grid, state.x if x is None else x)
+        field = self.field_index(state)
+        return stencil if field is None else field_stencil(stencil, field, self.grid.num_nodes)
 
     def constraint(self, dtype):
         """The velocity conditions on every velocity field's nodes."""
-        return build_constraint(self.grid, self.boundary, dtype).tile(self.material_fields)
+        return build_constraint(self.grid, self.boundary, dtype).tile(self.velocity_fields)
 
     def init(self, particles: Particles, fields: dict | None = None) -> State:
         """Initial state from :func:`jaxmpm.fill` output (or any :class:`Particles`); the fields
@@ -297,6 +340,16 @@ class Simulation(eqx.Module):
                 limits[type(term).__name__.lower()] = cfl * limit
         return limits
 
+    def stretch(self, state: State):
+        """The isotropic stretch (N,) the terms impose on the particles (thermal / moisture
+        expansion, jaxmpm.physics.transport): the product of theirs, or None without any."""
+        total = None
+        for term in self.terms:
+            s = term.stretch(state)
+            if s is not None:
+                total = s if total is None else total * s
+        return total
+
     def elastic_deformation(self, state: State):
         """The deformation gradient the material sees: F, divided by the isotropic stretch of any
         term that imposes one (thermal / moisture expansion, jaxmpm.physics.transport)."""
@@ -333,14 +386,14 @@ class Simulation(eqx.Module):
         """One saved frame of a run: time, diagnostics and (``save_particles``) the particle
         positions, velocities and the saved fields the terms declare."""
         saved = {f.name for f in self.particle_fields() if f.save}
-        materials = self.material_fields
+        materials = self.velocity_fields
         return History(
             time=state.time,
             x=state.x if save_particles else None,
             v=state.v if save_particles else None,
             fields={k: v for k, v in state.fields.items() if k in saved} if save_particles else {},
             by_material={} if materials == 1 else
-            diag.by_material(state, self.material, state.fields["material"], materials),
+            diag.by_material(state, self.material, self.field_index(state), materials),
             totals={name: value for term in self.terms for name, value in term.totals(self, state).items()},
             **self.diagnostics(state),
         )

@@ -3,16 +3,30 @@
 ``step`` reads as the algorithm:
 
 1. shape functions S_pi, G_pi at the particles               (001 eqs. 16-17)
-2. ``p2g``: the nodal fields the scheme and the terms request, in one scatter-add --
-   lumped mass m_i, momentum p_i (003 eq. 2.1, plus APIC/TPIC's affine terms) and the terms'
-   columns (force f_i: stress divergence and body force, 001 eq. 20, 003 eq. 2.10)
-3. ``grid_solve``: v = p/m, a = f/m, v_tilde = v + a dt, velocity conditions; terms' grid actions
-4. ``g2p``: the scheme's particle update (000 eq. 3.28, 003 eq. 2.17, 002 eq. 4); terms' particle
-   actions; the strain update (USL-: the update's grid velocity; MUSL: re-extrapolated, 003
-   §2.1.6) and the material's state update
+2. ``p2g``: the nodal fields the scheme and the terms request, in one pass of the transfer
+   kernel -- lumped mass m_i, momentum p_i (003 eq. 2.1, plus APIC/TPIC/RPIC's affine part) and
+   the terms' quantities (the force f_i: stress divergence and body force, 001 eq. 20, 003 eq.
+   2.10; a traction's surface integral, 001 eq. 21)
+3. the grid solve, an ordered pipeline of phases (:func:`grid_phases`):
+   a. **forces**: the terms' nodal forces from the assembled grid (force-form damping,
+      001 eqs. 58-60), added to f;
+   b. **exchange**: momentum exchange between velocity fields (contact), on p and on p + f dt
+      (003 eqs. 3.9, 3.12, 3.19);
+   c. **velocity conditions**: v = p/m, a = f/m, v_tilde = v + a dt with the conditions imposed
+      (:func:`impose_conditions`: the model's one :class:`jaxmpm.Constraint`);
+   d. **readers**: named results for later stages (reaction forces, a transport's nodal fields)
+4. ``g2p``: the scheme's particle update (000 eq. 3.28, 003 eq. 2.17, 002 eq. 4) with the terms'
+   damping; the strain update (USL-: the update's grid velocity; MUSL: re-extrapolated, with the
+   exchange and the conditions, 003 §2.1.6); the terms' particle actions; the material's state
+   update with the increment (:class:`jaxmpm.materials.Increment`)
 
-USF computes the strain increment before the forces (from the start-of-step velocities);
-USAVG-/USAVG+ do both, each over dt/2: USF's before the forces, then USL-'s resp. MUSL's (003 §2.2).
+USF computes the strain increment before the forces (from the start-of-step velocities, after the
+exchange and the conditions); USAVG-/USAVG+ do both, each over dt/2: USF's before the forces, then
+USL-'s resp. MUSL's (003 §2.2).
+
+The forces add up, so their order does not matter; a model has at most one exchanging term; the
+readers only add names.  So a model's physics does not depend on the order its terms were given
+in, except for the particle actions, which run in term order (each term owns what it changes).
 """
 
 from __future__ import annotations
@@ -20,21 +34,29 @@ from __future__ import annotations
 import equinox as eqx
 import jax.numpy as jnp
 
-from ..physics.conditions import Constraint
-from ..physics.contact import material_stencil
+from ..core.errors import check
 from ..core.fields import GridFields, GridSolution
-from ..transfer.shapes import StencilBase as Stencil
-from ..physics.term import damping_at
-from ..transfer.operators import Transfer, safe_divide, scatter_columns
+from ..materials.base import Increment
+from ..physics.term import overrides
+from ..schemes.base import combine_damping
+from ..transfer.contractions import Weighted, as_terms
+from ..transfer.operators import Transfer, gather, p2g as scatter_quantities, safe_divide
+
+# the lumped grid quantities a part may need apart ("grid_reads"); P2G folds p and f otherwise
+LUMPED = frozenset({"v", "a", "momentum", "force"})
+# the grid solution's own names: the phases' results may not take them
+SOLUTION_NAMES = ("v", "a", "v_tilde", "v_tilde_unconstrained")
 
 
 def folds_force(sim) -> bool:
     """Whether P2G may scatter the updated momentum p + f dt in place of p and f ((1 + D) numbers
-    per stencil slot instead of 1 + 2D): when nothing downstream needs v and a apart -- a scheme
-    that reads only v_tilde (APIC, TPIC), no damping in the model (``damping=False``), and a USL
-    or MUSL update (USF needs v before the force)."""
-    return (sim.update in ("USL", "MUSL") and sim.damping is None and not sim.scheme.uses_lumped_velocity
-            and sim.material_fields == 1)  # contact needs p and f apart (003 eqs. 3.19-3.22)
+    per stencil slot instead of 1 + 2D): when no part of the model needs v, a, p or f apart -- the
+    scheme reads only v_tilde (APIC, TPIC, RPIC), no term declares those quantities among its
+    ``grid_reads`` (damping reads v; contact and force damping read p and f) -- and the update is
+    USL or MUSL (USF needs v before the force)."""
+    if sim.update not in ("USL", "MUSL") or sim.scheme.uses_lumped_velocity:
+        return False
+    return not any(term.grid_reads(sim) & LUMPED for term in sim.terms)
 
 
 def strain_dt(sim, dt):
@@ -43,16 +65,21 @@ def strain_dt(sim, dt):
     return 0.5 * dt if sim.update in ("USAVG-", "USAVG+") else dt
 
 
-def update_deformation(F, grad_v, dt, kinematics: str = "linear"):
-    """F <- dF F with dF = I + grad v dt (``kinematics="linear"``, the first-order increment) or
-    dF = exp(grad v dt) (``"exponential"``, 001 eq. 26: exact for a velocity gradient constant over
-    the step, so a pure spin gives an exact rotation, det dF = 1)."""
+def deformation_increment(grad_v, dt, kinematics: str = "linear"):
+    """dF = I + grad v dt (``kinematics="linear"``, the first-order increment) or dF = exp(grad v dt)
+    (``"exponential"``, 001 eq. 26: exact for a velocity gradient constant over the step, so a pure
+    spin gives an exact rotation, det dF = 1)."""
     if kinematics == "exponential":
         from jax.scipy.linalg import expm
 
-        return expm(grad_v * dt) @ F  # 001 eq. (26)
-    eye = jnp.eye(F.shape[-1], dtype=F.dtype)
-    return (eye + grad_v * dt) @ F
+        return expm(grad_v * dt)  # 001 eq. (26)
+    eye = jnp.eye(grad_v.shape[-1], dtype=grad_v.dtype)
+    return eye + grad_v * dt
+
+
+def update_deformation(F, grad_v, dt, kinematics: str = "linear"):
+    """F <- dF F with dF of :func:`deformation_increment`."""
+    return deformation_increment(grad_v, dt, kinematics) @ F
 
 
 def strain_rate(sim, transfer: Transfer, v):
@@ -63,8 +90,6 @@ def strain_rate(sim, transfer: Transfer, v):
     grad = transfer.velocity_gradient(v)
     if not sim.grid.axisymmetric:
         return grad
-    from ..transfer.operators import gather
-
     hoop = gather(transfer.stencil.hoop_view(), v[:, 0])  # sum_i v_ri T_ip, (N,)
     zero = jnp.zeros_like(grad[:, :, :1])
     top = jnp.concatenate([grad, zero], axis=2)  # (N, 2, 3)
@@ -72,39 +97,48 @@ def strain_rate(sim, transfer: Transfer, v):
     return jnp.concatenate([top, bottom], axis=1)
 
 
-def term_columns(sim, state, stencil: Stencil) -> dict:
-    """The terms' per-slot columns, summed by name in term order."""
+# ------------------------------------------------------------------------------------------- P2G
+def term_quantities(sim, state, stencil, terms=None) -> dict:
+    """The terms' P2G quantities, {name: tuple of contractions}, quantities of one name in term order."""
     columns = {}
-    for term in sim.terms:
-        for name, c in term.p2g_columns(sim, state, stencil).items():
-            columns[name] = columns[name] + c if name in columns else c
+    for term in sim.terms if terms is None else terms:
+        for name, column in term.p2g_quantities(sim, state, stencil).items():
+            columns[name] = columns.get(name, ()) + as_terms(column)
     return columns
+
+
+def _scaled(column: tuple, factor) -> tuple:
+    return tuple(type(c)(factor * c.value) for c in column)
 
 
 def p2g(sim, state, force: bool = True, dt=None) -> GridFields:
     """Lumped mass m_i = sum_p S_pi M_p, momentum p_i = sum_p S_pi M_p V_p (003 eq. 2.1) plus the
-    scheme's affine terms (APIC/TPIC), and (``force=True``) the terms' columns (the nodal force),
-    all in one scatter-add.  With ``dt`` (see :func:`folds_force`) momentum and force are
-    scattered as one updated momentum p + f dt."""
-    stencil = particle_stencil(sim, state)
-
-    def columns(stencil, state, dt):
-        out = {"mass": stencil.weight * state.mass,
-               "momentum": sim.scheme.momentum_contributions(stencil, state)}
-        if force or dt is not None:
-            out.update(term_columns(sim, state, stencil))
-        if dt is not None:
-            out["updated_momentum"] = out.pop("momentum") + dt * out.pop("force")
-        return out
-
-    nodal = scatter_columns(stencil, columns, sim.field_nodes, stencil, state, dt)
+    scheme's affine part (APIC/TPIC/RPIC), and (``force=True``) the terms' quantities (the nodal
+    force), all in one pass of the transfer kernel.  With ``dt`` (see :func:`folds_force`)
+    momentum and force are scattered as one updated momentum p + f dt.  Without the force (USF's
+    first P2G) the exchanging term's quantities (contact's mass gradients) are scattered too."""
+    stencil = sim.stencil(state)
+    columns = {"mass": Weighted(state.mass), "momentum": as_terms(sim.scheme.momentum_contributions(stencil, state))}
+    exchanger = sim.exchange_term
+    terms = sim.terms if force or dt is not None else ([] if exchanger is None else [exchanger])
+    columns.update(term_quantities(sim, state, stencil, terms))
+    if dt is not None:
+        columns["updated_momentum"] = columns.pop("momentum") + _scaled(columns.pop("force"), dt)
+    nodal = scatter_quantities(stencil, columns, sim.field_nodes)
     if force or dt is not None:
         nodal = with_surface_forces(sim, state, nodal, nodal["mass"], dt)
     images = sim.constraint(state.x.dtype).mirror  # jm.Mirror: fold in the particles' mirror images
     if images is not None:
-        nodal = images.fold_columns(nodal)
+        nodal = images.fold_columns(nodal, folded_columns(sim))
     transfer = Transfer(stencil, state.mass, nodal.pop("mass"), sim.field_nodes, images)
     return GridFields(transfer, nodal)
+
+
+def folded_columns(sim) -> tuple:
+    """The nodal fields a symmetry plane folds: the velocity field's mass, momentum and force, and
+    the terms' mass-weighted sums (``Term.folded_columns``)."""
+    return ("mass", "momentum", "updated_momentum", "force") + tuple(
+        name for term in sim.terms for name in term.folded_columns())
 
 
 def with_surface_forces(sim, state, nodal: dict, nodal_mass, dt=None) -> dict:
@@ -119,34 +153,28 @@ def with_surface_forces(sim, state, nodal: dict, nodal_mass, dt=None) -> dict:
     return {**nodal, "force": nodal["force"] + total}
 
 
-def particle_stencil(sim, state, x=None, shape=None):
-    """S_pi, G_pi at the particles (001 eqs. 16-17), or at points ``x`` (N, D) that stand for them
-    (a traction's edge points), with ``shape`` in place of the model's (a traction's grid basis);
-    in multimaterial mode each particle's nodes are those of its material's velocity field
-    (jaxmpm.physics.contact)."""
-    stencil = (sim.shape if shape is None else shape).stencil(sim.grid, state.x if x is None else x)
-    if sim.material_fields == 1:
-        return stencil
-    return material_stencil(stencil, state.fields["material"].astype(stencil.index.dtype), sim.grid.num_nodes)
-
-
 def nodal_terms(sim, state, transfer: Transfer) -> dict:
-    """The terms' nodal fields alone (USF: after the strain update), in one scatter-add."""
-    nodal = scatter_columns(transfer.stencil, lambda s: term_columns(sim, s, transfer.stencil), transfer.num_nodes,
-                            state)
+    """The terms' nodal fields alone (USF: after the strain update), in one pass; the exchanging
+    term's, scattered before the strain update, are not repeated."""
+    exchanger = sim.exchange_term
+    terms = [t for t in sim.terms if t is not exchanger]
+    nodal = transfer.p2g(term_quantities(sim, state, transfer.stencil, terms))
     nodal = with_surface_forces(sim, state, nodal, transfer.nodal_mass)
-    return nodal if transfer.images is None else transfer.images.fold_columns(nodal)  # as in p2g
+    return nodal if transfer.images is None else transfer.images.fold_columns(nodal, folded_columns(sim))
 
 
-def grid_solve(fields: GridFields, force, dt, constraint: Constraint) -> GridSolution:
-    """v = p/m, a = f/m (0 where m = 0), v_tilde = v + a dt, with velocity conditions imposed.
-    From a folded P2G (:func:`folds_force`) only v_tilde = (p + f dt)/m exists (v, a are None);
-    it is the same v_tilde: the conditions act on v + a dt in both cases."""
-    m = fields.transfer.nodal_mass
+# ------------------------------------------------------------------------------------------ grid
+def impose_conditions(fields: GridFields, dt, constraint) -> GridSolution:
+    """Phase "velocity conditions": v = p/m, a = f/m (0 where m = 0), v_tilde = v + a dt, with the
+    conditions imposed (two-sided ones on v and a; one-sided walls on v_tilde, as contact:
+    :meth:`jaxmpm.Constraint.contact`).  From a folded P2G (:func:`folds_force`) only
+    v_tilde = (p + f dt)/m exists (v, a are None); it is the same v_tilde: the conditions act on
+    v + a dt in both cases.  ``v_tilde_unconstrained`` is p+/m before any condition (FMPM's
+    unlumped boundary variants start from it, 003 §2.4)."""
+    m = fields.mass
     if fields.updated_momentum is not None:
         return GridSolution(v=None, a=None, v_tilde=constraint.apply(safe_divide(fields.updated_momentum, m)))
-    v_lumped, a_lumped = safe_divide(fields.momentum, m), safe_divide(force, m)
-    # p+/m before any condition: FMPM's unlumped boundary variants start from it (003 §2.4)
+    v_lumped, a_lumped = safe_divide(fields.momentum, m), safe_divide(fields.force, m)
     unconstrained = v_lumped + a_lumped * dt
     if constraint.wall is not None:  # one-sided walls act on v_tilde, as contact (jm.Wall)
         v, a, v_tilde = constraint.contact(constraint.apply_two_sided(v_lumped), constraint.zero(a_lumped), dt)
@@ -156,6 +184,95 @@ def grid_solve(fields: GridFields, force, dt, constraint: Constraint) -> GridSol
     return GridSolution(v=v, a=a, v_tilde=constraint.apply(v + a * dt), v_tilde_unconstrained=unconstrained)
 
 
+def grid_solve(fields: GridFields, force, dt, constraint) -> GridSolution:
+    """The velocity conditions alone on P2G's fields with the nodal force ``force``
+    (:func:`impose_conditions`); the model's whole grid solve, with its terms, is :func:`grid_phases`."""
+    return impose_conditions(fields if force is None else fields.replace(force=force), dt, constraint)
+
+
+def _add_results(results: dict, new: dict, term) -> None:
+    """Record a phase's named results, refusing a name already taken (two terms would overwrite)."""
+    for name, value in (new or {}).items():
+        check(name not in results and name not in SOLUTION_NAMES,
+              f"{type(term).__name__}: the grid result {name!r} is already set by another term of this model "
+              "or is one of the grid solution's own names (v, a, v_tilde); rename it")
+        results[name] = value
+
+
+def exchange(sim, term, fields: GridFields, dt, constraint):
+    """Phase "exchange": the exchanging term's law on the momenta p and on the updated momenta
+    p' + f dt (003 eqs. 3.9, 3.12, 3.19: the second change Dp+ = f^C dt is the exchange force),
+    giving p' and f' = (p+' - p')/dt.  Results: ``exchange_acceleration`` (f' - f)/m, each
+    velocity field's exchange force per mass, and -- for the XPIC/FMPM series term of 003 eqs.
+    3.18, 3.22 -- ``exchange_dv`` = Dp/m, the first change as a velocity."""
+    m, force = fields.mass, fields.force
+    p, dp = term.exchange_momentum(sim, fields, fields.momentum)
+    p_plus, _ = term.exchange_momentum(sim, fields, p + force * dt)
+    safe_dt = jnp.where(dt > 0, dt, 1.0)
+    results = {"exchange_acceleration": safe_divide(p_plus - p - force * dt, m) / safe_dt}
+    if term.series_correction:
+        results["exchange_dv"] = constraint.zero(safe_divide(dp, m))
+    return fields.replace(momentum=p, force=(p_plus - p) / safe_dt), results
+
+
+def grid_phases(sim, fields: GridFields, dt, constraint) -> GridSolution:
+    """The grid solve of one step: the phases forces -> exchange -> velocity conditions -> readers
+    (module docstring), each term acting in the phase its hooks name."""
+    results = {}
+    for term in sim.terms:  # 1. nodal forces from the assembled grid; they add up
+        out = term.grid_force(sim, fields, dt)
+        if out:
+            out = dict(out)
+            force = out.pop("force", None)
+            if force is not None:
+                fields = fields.replace(force=fields.force + force)
+            _add_results(results, out, term)
+    exchanger = sim.exchange_term  # 2. momentum exchange between velocity fields
+    if exchanger is not None:
+        fields, out = exchange(sim, exchanger, fields, dt, constraint)
+        _add_results(results, out, exchanger)
+    solution = impose_conditions(fields, dt, constraint)  # 3. velocity conditions
+    for term in sim.terms:  # 4. readers
+        _add_results(results, term.read_grid(sim, fields, solution, dt), term)
+    solution = GridSolution({**solution.values, **results})
+    for term in sim.terms:  # deprecated whole-solution hooks, after the readers
+        if overrides(term, "grid_action"):
+            solution = term.grid_action(sim, fields, solution, dt)
+    return solution
+
+
+def lumped_velocity(sim, fields: GridFields, momentum, constraint):
+    """(v, Dv): the lumped grid velocity of nodal momenta (USF's start-of-step velocity, MUSL's
+    re-extrapolated one) after the momentum exchange and with the velocity conditions, and the
+    exchange's change as a velocity (None without an exchange or its series term)."""
+    exchanger = sim.exchange_term
+    dv = None
+    if exchanger is not None:
+        momentum, dp = exchanger.exchange_momentum(sim, fields, momentum)
+        if exchanger.series_correction:
+            dv = constraint.zero(safe_divide(dp, fields.mass))
+    return constraint.apply(safe_divide(momentum, fields.mass)), dv
+
+
+def strain_velocity(sim, v, transfer, constraint, exchange_dv=None):
+    """The grid velocity of a USF/MUSL strain update: the scheme's (FMPM: its series), with the
+    exchange's series term when velocity fields exchange momentum (003 §2.1.2, §2.1.6)."""
+    if exchange_dv is None:
+        return sim.scheme.strain_grid_velocity(v, transfer, constraint)
+    return sim.scheme.strain_grid_velocity(v, transfer, constraint, exchange_dv=exchange_dv)
+
+
+# ------------------------------------------------------------------------------------------ step
+def material_update(sim, F_old, F_new, dF, material_state, old, new, dt):
+    """The material's state after a strain update from F_old to F_new = dF F_old, with the terms'
+    isotropic stretch removed from the increment: dF s(old) / s(new) (thermal strain is part of
+    the increment, not of the elastic deformation)."""
+    s_old, s_new = sim.stretch(old), sim.stretch(new)
+    if s_old is not None:
+        dF = dF * (s_old / s_new)[:, None, None]
+    return sim.material.update_state(Increment(dF, F_new, dt), material_state)
+
+
 def step(sim, state, dt):
     """One full time step; returns the new state.  Pure: jit, grad and vmap apply."""
     dt = jnp.asarray(dt, state.x.dtype)
@@ -163,50 +280,59 @@ def step(sim, state, dt):
     if sim.update in ("USF", "USAVG-", "USAVG+"):  # stress first, with the start-of-step velocity
         fields = p2g(sim, state, force=False)
         transfer = fields.transfer
-        v0 = constraint.apply(safe_divide(fields.momentum, transfer.nodal_mass))
-        v_strain = sim.scheme.strain_grid_velocity(v0, transfer, constraint)
-        F = update_deformation(state.F, strain_rate(sim, transfer, v_strain), strain_dt(sim, dt), sim.kinematics)
-        material_state = sim.material.update_state(F, state.material_state, strain_dt(sim, dt))
-        state = eqx.tree_at(lambda s: (s.F, s.material_state), state, (F, material_state),
-                            is_leaf=lambda x: x is None)
+        v0, dv = lumped_velocity(sim, fields, fields.momentum, constraint)
+        v_strain = strain_velocity(sim, v0, transfer, constraint, dv)
+        dF = deformation_increment(strain_rate(sim, transfer, v_strain), strain_dt(sim, dt), sim.kinematics)
+        F = dF @ state.F
+        moved = eqx.tree_at(lambda s: s.F, state, F)
+        material_state = material_update(sim, state.F, F, dF, state.material_state, state, state, strain_dt(sim, dt))
+        state = eqx.tree_at(lambda s: s.material_state, moved, material_state, is_leaf=lambda x: x is None)
         fields = GridFields(transfer, {**fields.values, **nodal_terms(sim, state, transfer)})
     else:  # USL, MUSL: the stress of the step's start, scattered with the mass and momentum
         fields = p2g(sim, state, dt=dt if folds_force(sim) else None)
-    transfer = fields.transfer
-
-    solution = grid_solve(fields, fields.force, dt, constraint)
-    for term in sim.terms:
-        solution = term.grid_action(sim, fields, solution, dt)
-    return g2p(sim, state, transfer, constraint, solution, dt)
+    solution = grid_phases(sim, fields, dt, constraint)
+    return g2p(sim, state, fields.transfer, constraint, solution, dt, fields)
 
 
-def g2p(sim, state, transfer: Transfer, constraint: Constraint, grid: GridSolution, dt):
-    """Particle update by the scheme, the terms' particle actions, then the USL-/MUSL strain
-    update and the material's state update."""
-    damping = damping_at(sim.damping, state, transfer, grid)  # alpha(t, x), 001 §5.3 (default: sim.damping)
+def g2p(sim, state, transfer: Transfer, constraint, grid: GridSolution, dt, fields: GridFields | None = None):
+    """Particle update by the scheme (with the terms' damping), the USL-/MUSL strain update, the
+    terms' particle actions, then the material's state update with the step's increment.
+    ``fields`` (the step's P2G fields) is needed by MUSL/USAVG+ when velocity fields exchange
+    momentum (the exchange of the re-extrapolated momenta)."""
+    damping = combine_damping(term.particle_damping(sim, state, transfer, grid) for term in sim.terms)
     upd = sim.scheme.update(state.v, state.x, transfer, constraint, grid, damping, dt)
     scheme_state = sim.scheme.next_state(state, upd, transfer, grid)
-    F = state.F
+    F, dF = state.F, None
     if sim.update in ("USL", "USAVG-"):  # USL-: the velocity the update just used (USAVG-: for dt/2)
-        F = update_deformation(F, strain_rate(sim, transfer, upd.strain_velocity), strain_dt(sim, dt), sim.kinematics)
+        dF = deformation_increment(strain_rate(sim, transfer, upd.strain_velocity), strain_dt(sim, dt), sim.kinematics)
     elif sim.update in ("MUSL", "USAVG+"):  # USL+: re-extrapolate p = S^T M V^{n+1} (003 §2.1.6), affine terms too
         updated = eqx.tree_at(lambda s: (s.v, s.scheme_state), state, (upd.velocity, scheme_state),
                               is_leaf=lambda x: x is None)
-        v_new = constraint.apply(safe_divide(transfer.fold(sim.scheme.momentum(transfer, updated)),
-                                             transfer.nodal_mass))
-        v_strain = sim.scheme.strain_grid_velocity(v_new, transfer, constraint)
-        F = update_deformation(F, strain_rate(sim, transfer, v_strain), strain_dt(sim, dt), sim.kinematics)
-    material_state = state.material_state
-    if sim.update != "USF":  # (USF updated the material state before the forces; USAVG+- do both halves)
-        material_state = sim.material.update_state(F, material_state, strain_dt(sim, dt))
-    F = sim.material.keep_deformation(F)  # F itself except for fluids (VolumetricFluid: J^(1/D) I)
+        momentum = transfer.fold(sim.scheme.momentum(transfer, updated))
+        if fields is None:
+            check(sim.exchange_term is None, f"g2p: under {sim.update} a model whose terms exchange momentum "
+                                             "(jm.Contact) needs the step's P2G fields: g2p(..., fields=...)")
+            fields = GridFields(transfer, {})
+        v_new, dv = lumped_velocity(sim, fields, momentum, constraint)
+        v_strain = strain_velocity(sim, v_new, transfer, constraint, dv)
+        dF = deformation_increment(strain_rate(sim, transfer, v_strain), strain_dt(sim, dt), sim.kinematics)
+    if dF is not None:
+        F = dF @ F
     new = eqx.tree_at(
-        lambda s: (s.x, s.v, s.F, s.time, s.step, s.dissipated, s.scheme_state, s.material_state),
+        lambda s: (s.x, s.v, s.F, s.time, s.step, s.dissipated, s.scheme_state),
         state,
         (upd.position, upd.velocity, F, state.time + dt, state.step + 1, state.dissipated + upd.dissipated,
-         scheme_state, material_state),
+         scheme_state),
         is_leaf=lambda x: x is None,
     )
     for term in sim.terms:
         new = term.particle_action(sim, state, new, transfer, grid, dt)
+    material_state = state.material_state
+    if dF is not None:  # the material's state with the step's (second-half) increment
+        material_state = material_update(sim, state.F, F, dF, material_state, state, new, strain_dt(sim, dt))
+    elif sim.stretch(state) is not None:  # USF: the step's stretch change alone, at its end
+        eye = jnp.eye(F.shape[-1], dtype=F.dtype)
+        material_state = material_update(sim, F, F, jnp.broadcast_to(eye, F.shape), material_state, state, new, dt)
+    new = eqx.tree_at(lambda s: (s.F, s.material_state), new, (sim.material.keep_deformation(F), material_state),
+                      is_leaf=lambda x: x is None)
     return new

@@ -150,12 +150,11 @@ class MirrorMap(eqx.Module):
             u = u.at[ghosts.array].set(self.reflect(u[mirrors.array], axis))
         return u
 
-    def fold_columns(self, nodal: dict) -> dict:
-        """``fold`` of the velocity field's nodal columns (mass, momentum, force, and the force
-        approach's damping rate, a mass-weighted sum divided by the folded mass, 001 eq. 107); the
-        terms' own columns (transport) keep their own conditions."""
-        return {k: self.fold(v) if k in ("mass", "momentum", "updated_momentum", "force", "damping_rate") else v
-                for k, v in nodal.items()}
+    def fold_columns(self, nodal: dict, names) -> dict:
+        """``fold`` of the nodal columns ``names`` (the velocity field's mass, momentum and force,
+        and the terms' mass-weighted sums, e.g. the force approach's damping rate, 001 eq. 107);
+        the other columns (a transport's) keep their own conditions."""
+        return {k: self.fold(v) if k in names else v for k, v in nodal.items()}
 
 
 class Constraint(eqx.Module):

@@ -62,18 +62,13 @@ import numpy as np
 from ..core.errors import check
 from ..core.fields import ParticleField
 from ..core.registry import Parameter, register_term
-from .term import Term
+from ..transfer.contractions import Gradient, Weighted
 from ..transfer.operators import safe_divide
+from .term import Term
 from ..core.validate import FINITE, NON_NEGATIVE, concrete, positive_int
 
 LAWS = ("stick", "frictionless", "coulomb")
 NORMALS = ("average", "first")
-
-
-def material_stencil(stencil, material, num_nodes: int):
-    """The stencil with each particle's node numbers moved to its material's copy of the grid:
-    i -> material_p n + i (material ids 0..M-1)."""
-    return eqx.tree_at(lambda s: s.index, stencil, stencil.index + material[None, :] * num_nodes)
 
 
 def _safe_unit(u):
@@ -136,18 +131,18 @@ class Contact(Term):
                               doc="contact force on the particle, M_p (S Dp^a+ / (m^a dt))_p; summed over a "
                                   "material it is the material's contact force sum_i Dp^a+_i / dt"))
 
-    def p2g_columns(self, sim, state, stencil) -> dict:
-        """Per-slot M_p G_pi: the material mass gradients (000 §4.2), for the contact normals; with a
-        ``separation`` criterion also S_pi M_p X_p, the materials' nodal mass moments."""
-        out = {"mass_gradient": state.mass[None, None, :] * stencil.gradient}
+    def p2g_quantities(self, sim, state, stencil) -> dict:
+        """sum_p M_p G_pi: the material mass gradients (000 §4.2), for the contact normals; with a
+        ``separation`` criterion also sum_p S_pi M_p X_p, the materials' nodal mass moments."""
+        out = {"mass_gradient": Gradient(state.mass)}
         if self.separation is not None:
-            out["mass_moment"] = stencil.weight[None] * (state.mass[:, None] * state.x).T[:, None, :]
+            out["mass_moment"] = Weighted(state.mass[:, None] * state.x)
         return out
 
     def touching(self, fields, m0, m1, normal, h):
         """The separation criterion: True where the materials' nodal centres of mass x^a = (S^T M X)^a / m^a
         are closer along n than ``separation`` cells, (x^1 - x^0) . n <= separation h."""
-        x0, x1 = (safe_divide(q, mass) for q, mass in zip(self.split(fields.values["mass_moment"]), (m0, m1)))
+        x0, x1 = (safe_divide(q, mass) for q, mass in zip(self.split(fields["mass_moment"]), (m0, m1)))
         return jnp.sum((x1 - x0) * normal, axis=-1) <= self.separation * h
 
     # ------------------------------------------------------------------ the contact law
@@ -221,44 +216,38 @@ class Contact(Term):
     def touching_rest(self, fields, m, normals, h):
         """The separation criterion for M materials, (M, n): material a against the rest's nodal
         centre of mass, (x^rest - x^a) . n^a <= separation h."""
-        ma, q = self.per_material(m), self.per_material(fields.values["mass_moment"])
+        ma, q = self.per_material(m), self.per_material(fields["mass_moment"])
         m_all, q_all = jnp.sum(ma, axis=0), jnp.sum(q, axis=0)
         x_own = safe_divide(q, ma)
         x_rest = safe_divide(q_all - q, m_all - ma)
         return jnp.sum((x_rest - x_own) * normals, axis=-1) <= self.separation * h
 
-    def grid_action(self, sim, fields, solution, dt):
-        """The grid solution with contact: lumped contact on p and on p + f dt, then the velocity
-        conditions (module docstring).  Adds ``contact_dv`` = Dp^a / m^a, the first change as a
-        velocity, which XPIC/FMPM need (003 eqs. 3.18, 3.22)."""
-        m = fields.transfer.nodal_mass
-        constraint = sim.constraint(m.dtype)  # on every material's field
+    # ------------------------------------------------------------------ the term's hooks
+    def velocity_fields(self) -> int:
+        return self.materials
+
+    def field_index(self, state):
+        return state.fields["material"]
+
+    def grid_reads(self, sim) -> frozenset:
+        return frozenset({"momentum", "force"})  # the law acts on p and on p + f dt (003 eq. 3.19)
+
+    def exchange_momentum(self, sim, fields, p):
+        """The contact law on stacked nodal momenta ``p`` (M n, D): (p after contact, the change)
+        (module docstring; 003 eqs. 3.9, 3.12).  The exchange phase applies it to p and to
+        p + f dt, then the velocity conditions follow."""
+        m = fields.mass
         if self.materials == 2:
-            normal = self.contact_normal(fields.values["mass_gradient"])
+            normal = self.contact_normal(fields["mass_gradient"])
             touching = None if self.separation is None else self.touching(fields, *self.split(m), normal, sim.grid.h)
         else:
-            normal = self.material_normals(fields.values["mass_gradient"], m)
+            normal = self.material_normals(fields["mass_gradient"], m)
             touching = None if self.separation is None else self.touching_rest(fields, m, normal, sim.grid.h)
-        p, dp = self.apply(fields.momentum, m, normal, touching)
-        p_plus, _ = self.apply(p + fields.force * dt, m, normal, touching)  # Dp^a+ = f^aC dt
-        safe_dt = jnp.where(dt > 0, dt, 1.0)
-        a = safe_divide(p_plus - p, m) / safe_dt
-        if constraint.wall is None:  # then the velocity conditions, as jaxmpm.model.step.grid_solve
-            v = constraint.apply(safe_divide(p, m))
-            a = constraint.zero(a)
-            v_tilde = constraint.apply(v + a * dt)
-        else:  # one-sided walls act on v_tilde (jm.Wall, Constraint.contact)
-            v, a, v_tilde = constraint.contact(constraint.apply_two_sided(safe_divide(p, m)), constraint.zero(a), dt)
-        out = {**solution.values, "v": v, "a": a, "v_tilde": v_tilde,
-               "contact_acceleration": safe_divide(p_plus - p - fields.force * dt, m) / safe_dt,
-               "v_tilde_unconstrained": safe_divide(p_plus, m)}  # after contact, before the conditions
-        if self.series_correction:  # XPIC/FMPM's Dv term (003 eqs. 3.18, 3.22); else their series of v alone
-            out["contact_dv"] = constraint.zero(safe_divide(dp, m))
-        return type(solution)(out)
+        return self.apply(p, m, normal, touching)
 
     def particle_action(self, sim, old, new, transfer, solution, dt):
         """Record each particle's share of the contact force, M_p S (Dp^a+ / (m^a dt))."""
-        force = transfer.particle_share(solution.values["contact_acceleration"])
+        force = transfer.particle_share(solution["exchange_acceleration"])
         return eqx.tree_at(lambda s: s.fields, new, {**new.fields, "contact_force": force})
 
 

@@ -31,10 +31,11 @@ from ..core.errors import check
 from ..core.fields import ParticleField
 from ..core.grid import parse_face
 from ..core.registry import register_term
-from ..model.step import particle_stencil
-from .term import Term
-from ..transfer.operators import particle_force_contributions, scatter_planar
 from ..core.validate import FINITE
+from ..transfer.backend import materialise
+from ..transfer.contractions import PerSlot, Weighted
+from ..transfer.operators import p2g
+from .term import Term
 
 
 def _load(owner: str, name: str, value):
@@ -116,11 +117,11 @@ class Traction(Term):
         load = _at(self.traction, state.time, dim, state.x.dtype)
         forces = (state.fields[self.name] * area)[:, None] * load[None, :]
         basis = sim.shape.grid_basis() if self.basis == "grid" else None  # 001 eq. (21): N_i at the edge
-        stencil = particle_stencil(sim, state, edge, basis)  # on the particle's own material's field
+        stencil = sim.stencil(state, edge, basis)  # on the particle's own velocity field
         carried = jnp.where(nodal_mass[stencil.index] > 0, stencil.weight, 0.0)  # (K, N)
         total = jnp.sum(carried, axis=0)
         weight = carried / jnp.where(total > 0, total, 1.0)
-        return scatter_planar(stencil.index, weight[None] * forces.T[:, None, :], sim.field_nodes)
+        return p2g(stencil, {"force": PerSlot(weight[None] * forces.T[:, None, :])}, sim.field_nodes)["force"]
 
 
 class ParticleForce(Term):
@@ -141,9 +142,9 @@ class ParticleForce(Term):
         return (ParticleField(self.name, initial=_chosen("ParticleForce", self.where), save=False,
                               doc="1 on the particles the point force acts on"),)
 
-    def p2g_columns(self, sim, state, stencil) -> dict:
+    def p2g_quantities(self, sim, state, stencil) -> dict:
         load = _at(self.force, state.time, sim.grid.dim, state.x.dtype)
-        return {"force": particle_force_contributions(stencil, state.fields[self.name][:, None] * load[None, :])}
+        return {"force": Weighted(materialise(state.fields[self.name][:, None] * load[None, :]))}
 
 
 register_term("traction", Traction, doc="traction on a body's face, int N_i T dS (001 eq. 21)")

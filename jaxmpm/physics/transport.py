@@ -56,13 +56,15 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from .conditions import NodeSet, _select, mirror_nodes, node_plane
 from ..core.errors import check
 from ..core.fields import ParticleField
 from ..core.registry import Parameter, register_term
-from .term import Term
-from ..transfer.operators import safe_divide, scatter_planar
 from ..core.validate import FINITE, FRACTION, NON_NEGATIVE, POSITIVE, concrete, positive_int
+from ..transfer.contractions import Divergence, Weighted
+from ..transfer.operators import Transfer, gather, p2g, safe_divide
+from ..transfer.series import series
+from .conditions import NodeSet, _select, mirror_nodes, node_plane
+from .term import Term
 
 Selector = Union[str, Callable, NodeSet]
 
@@ -210,10 +212,10 @@ class Transport(Term):
         return {self.TOTAL: jnp.sum(self.particle_capacity(state) * state.fields[self.FIELD])}
 
     # ------------------------------------------------------------------ the step
-    def p2g_columns(self, sim, state, stencil) -> dict:
+    def p2g_quantities(self, sim, state, stencil) -> dict:
         capacity = self.particle_capacity(state)
-        return {self.MASS: stencil.weight * capacity,  # 001 eq. (138)
-                self.MOMENTUM: stencil.weight * (capacity * state.fields[self.FIELD])}  # 001 eq. (133)
+        return {self.MASS: Weighted(capacity),  # 001 eq. (138)
+                self.MOMENTUM: Weighted(capacity * state.fields[self.FIELD])}  # 001 eq. (133)
 
     def held(self, sim, dtype):
         """(mask, value) of the Dirichlet nodes on every field's copy of the grid."""
@@ -277,7 +279,6 @@ class Transport(Term):
         (where a_Ti = 0: the value stays; its switch-on jump is :meth:`switch_on`); beyond a
         mirrored boundary the heat flow is folded like the mass and a_ghost = -a_mirror."""
         t_nodes, m_T, held, ghosts, mirrors = self.nodal_field(sim, fields_mass, fields_momentum)
-        stencil = transfer.stencil
         grad = transfer.gradient(t_nodes)  # sum_i T_i G_ip, (N, D)
         k = self.conductivity.astype(m_T.dtype)
         d = grad.shape[-1]
@@ -285,10 +286,9 @@ class Transport(Term):
                                                 f"this model is {d}D: give a scalar or a {d} x {d} tensor")
         flux = -(k * grad if k.ndim == 0 else grad @ k.T)  # 001 eq. (137)
         volume = state.volume0 * jnp.linalg.det(state.F)
-        g = stencil.gradient  # (D, K, N)
-        per_slot = sum(g[a] * (volume * flux[:, a]) for a in range(g.shape[0])) \
-            + stencil.weight * (volume * self.source.astype(m_T.dtype))  # 001 eq. (135)
-        flow = scatter_planar(stencil.index, per_slot, transfer.num_nodes) + self.boundary_flow(sim, m_T.dtype)
+        heat_flow = (Divergence((volume[:, None] * flux)[:, None, :]),  # sum_p V_p q_p . G_ip (001 eq. 135)
+                     Weighted((volume * self.source.astype(m_T.dtype))[:, None]))  # + sum_p V_p q_s,p S_ip
+        flow = transfer.p2g({"flow": heat_flow})["flow"][:, 0] + self.boundary_flow(sim, m_T.dtype)
         if ghosts.size:  # the mirrored particles' flow: odd, as the field
             flow = flow.at[mirrors].add(-flow[ghosts])
         rate = jnp.where(held, 0.0, safe_divide(flow, m_T))  # 001 eq. (140); held nodes keep their value
@@ -318,22 +318,19 @@ class Transport(Term):
         T_i = p_Ti / m_Ti (the held value on Dirichlet nodes).  001 §8 recommends it wherever a
         feature needs the local temperature: FLIP particle values keep within-cell variations (a
         null-space part the grid does not see), which this projection removes."""
-        from ..model.step import p2g
+        stencil = sim.stencil(state)
+        nodal = p2g(stencil, self.p2g_quantities(sim, state, stencil), sim.field_nodes)
+        return gather(stencil, self.nodal_field(sim, nodal[self.MASS], nodal[self.MOMENTUM])[0])
 
-        fields = p2g(sim, state)  # the terms' columns, these among them
-        nodal = self.nodal_field(sim, fields.values[self.MASS], fields.values[self.MOMENTUM])[0]
-        return fields.transfer.gather(nodal)
-
-    def grid_action(self, sim, fields, solution, dt):
+    def read_grid(self, sim, fields, solution, dt):
         """Keep the nodal capacity and field-times-capacity for the transport stage."""
-        return type(solution)({**solution.values, self.MASS: fields.values[self.MASS],
-                               self.MOMENTUM: fields.values[self.MOMENTUM]})
+        return {self.MASS: fields[self.MASS], self.MOMENTUM: fields[self.MOMENTUM]}
 
     def particle_action(self, sim, old, new, transfer, solution, dt):
         """The transport stage: the nodal rate from the start-of-step particles (001 eqs. 135-140),
         then the particle update (:meth:`particle_update`)."""
-        mass = solution.values[self.MASS]
-        t_nodes, rate = self.nodal_rate(sim, old, transfer, mass, solution.values[self.MOMENTUM], dt)
+        mass = solution[self.MASS]
+        t_nodes, rate = self.nodal_rate(sim, old, transfer, mass, solution[self.MOMENTUM], dt)
         value = self.particle_update(sim, old, transfer, mass, t_nodes, rate, dt)
         return eqx.tree_at(lambda s: s.fields, new, {**new.fields, self.FIELD: value})
 
@@ -351,11 +348,9 @@ class Transport(Term):
                 return T + Sa * dt  # 001 eqs. (141), (143)
             St = transfer.gather(t_nodes)
         else:
-            from ..schemes.xpic import _series  # the XPIC(m) series of the velocity schemes, 000 eqs. (3.22)-(3.25)
-            from ..transfer.operators import Transfer
-
-            capacity = Transfer(transfer.stencil, self.particle_capacity(state), mass, transfer.num_nodes)  # 000 eq. (3.53)
-            tm = _series(t_nodes[:, None], self.order, capacity, lambda w: w, "binomial")[:, 0]  # m (t - t*)
+            # the transfer layer's XPIC series (000 eqs. 3.22-3.25), S+ weighted by the capacity (000 eq. 3.53)
+            capacity = Transfer(transfer.stencil, self.particle_capacity(state), mass, transfer.num_nodes)
+            tm = series(t_nodes[:, None], self.order, capacity, None, "binomial")[:, 0]  # m (t - t*)
             St = transfer.gather(tm)
         beta = self.beta.astype(T.dtype)
         return beta * T + (1.0 - beta) * St + Sa * dt  # 000 eq. (3.58)

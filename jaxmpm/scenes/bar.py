@@ -20,9 +20,10 @@ import numpy as np
 from ..physics.conditions import Fixed, Mirror
 from ..core.errors import check
 from ..core.grid import Grid
-from ..materials.base import LinearElastic
+from ..materials import LinearElastic
 from ..core.particles import Box, fill
-from ..schemes.xpic import Damping, FLIP
+from ..schemes import FLIP
+from ..physics.damping import Damping
 from ..transfer.shapes import Linear
 from ..model.simulation import Simulation
 from ._common import Setup, cast_state, resolve_dtype, schedule

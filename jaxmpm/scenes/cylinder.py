@@ -37,9 +37,10 @@ from ..physics.conditions import Slip
 from ..core.errors import check
 from ..core.grid import Grid
 from ..physics.loads import Traction
-from ..materials.base import LinearElastic
+from ..materials import LinearElastic
 from ..core.particles import Box, fill
-from ..schemes.xpic import Damping, FLIP
+from ..schemes import FLIP
+from ..physics.damping import Damping
 from ..transfer.shapes import UGIMP
 from ..model.simulation import Simulation
 from ._common import Setup, cast_state, resolve_dtype, schedule

@@ -19,9 +19,10 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from ..core.grid import Grid
-from ..materials.base import LinearElastic
+from ..materials import LinearElastic
 from ..core.particles import Disk, fill
-from ..schemes.xpic import Damping, FLIP
+from ..schemes import FLIP
+from ..physics.damping import Damping
 from ..transfer.shapes import UGIMP
 from ..model.simulation import Simulation
 from ._common import Setup, cast_state, contact_model, material_ids, resolve_dtype, schedule

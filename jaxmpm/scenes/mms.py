@@ -85,9 +85,10 @@ from ..physics.conditions import Mirror, Slip
 from ..core.errors import check
 from ..core.limits import require_steps
 from ..core.grid import Grid
-from ..materials.base import NeoHookean
+from ..materials import NeoHookean
 from ..core.particles import Box, Particles, fill
-from ..schemes.xpic import FLIP, Damping
+from ..schemes import FLIP
+from ..physics.damping import Damping
 from ..transfer.shapes import Linear
 from ..model.simulation import Simulation
 from ._common import Setup, cast_state, resolve_dtype

@@ -45,9 +45,9 @@ from ..physics.conditions import Slip
 from ..core.errors import check
 from ..core.grid import Grid
 from ..physics.loads import Traction
-from ..materials.base import NeoHookean
+from ..materials import NeoHookean
 from ..core.particles import Box, fill
-from ..schemes.xpic import FLIP
+from ..schemes import FLIP
 from ..transfer.shapes import Linear
 from ..model.simulation import Simulation
 from ._common import Setup, resolve_dtype

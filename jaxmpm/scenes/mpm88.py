@@ -31,12 +31,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..schemes.affine import APIC
+from ..schemes import APIC
 from ..physics.conditions import Wall
 from ..core.grid import Grid
-from ..materials.base import VolumetricFluid
+from ..materials import VolumetricFluid
 from ..core.particles import Particles
-from ..schemes.xpic import Damping
+from ..physics.damping import Damping
 from ..transfer.shapes import QuadraticBSpline
 from ..model.simulation import Simulation
 from ._common import Setup, cast_state, resolve_dtype, schedule

@@ -14,9 +14,10 @@ import jax.numpy as jnp
 
 from ..core.errors import check
 from ..core.grid import Grid
-from ..materials.base import NeoHookean
+from ..materials import NeoHookean
 from ..core.particles import Ring, fill
-from ..schemes.xpic import FLIP, Damping
+from ..schemes import FLIP
+from ..physics.damping import Damping
 from ..transfer.shapes import QuadraticBSpline
 from ..model.simulation import Simulation
 from ._common import Setup, cast_state, contact_model, material_ids, resolve_dtype, schedule

@@ -44,9 +44,10 @@ import numpy as np
 from ..physics.conditions import Fixed
 from ..core.errors import check
 from ..core.grid import Grid
-from ..materials.base import LinearElastic
+from ..materials import LinearElastic
 from ..core.particles import Box, fill
-from ..schemes.xpic import Damping, FLIP
+from ..schemes import FLIP
+from ..physics.damping import Damping
 from ..transfer.shapes import UGIMP
 from ..model.simulation import Simulation
 from ._common import Setup, cast_state, contact_model, material_ids, resolve_dtype, schedule

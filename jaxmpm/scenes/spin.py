@@ -20,12 +20,13 @@ import math
 
 import numpy as np
 
-from ..schemes.affine import with_velocity_gradient
+from ..schemes import with_velocity_gradient
 from ..core.errors import check
 from ..core.grid import Grid
-from ..materials.base import NeoHookean, NoStress
+from ..materials import NeoHookean, NoStress
 from ..core.particles import Disk, fill
-from ..schemes.xpic import FLIP, Damping
+from ..schemes import FLIP
+from ..physics.damping import Damping
 from ..transfer.shapes import QuadraticBSpline
 from ..model.simulation import Simulation
 from ._common import Setup, cast_state, resolve_dtype, schedule

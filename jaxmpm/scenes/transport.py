@@ -26,9 +26,10 @@ import numpy as np
 
 from ..physics.conditions import NodeSet
 from ..core.grid import Grid
-from ..materials.base import LinearElastic, NoStress
+from ..materials import LinearElastic, NoStress
 from ..core.particles import Box, fill
-from ..schemes.xpic import Damping, FLIP
+from ..schemes import FLIP
+from ..physics.damping import Damping
 from ..transfer.shapes import Linear, UGIMP
 from ..model.simulation import Simulation
 from ..physics.transport import Diffusion, Dirichlet, Heat

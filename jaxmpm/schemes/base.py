@@ -4,10 +4,15 @@ Every scheme is the generic update of 000 §2.3 / 003 §2.3,
 
     V^{n+1} = V^n + A dt,      X^{n+1} = X^n + VV dt + 1/2 A dt^2,
 
-written in its own module (``_schemes``: XPIC/FLIP/PIC and FMPM; ``_affine``: APIC, TPIC and
-RPIC) and registered with :func:`jaxmpm.register_scheme`.  A scheme owns its per-particle state
-(``State.scheme_state``: APIC's B_p, TPIC's grad v_p, RPIC's L_p) through
-:meth:`Scheme.initial_state` and :meth:`Scheme.next_state`.
+each family in its own module of this package (``xpic``: XPIC/FLIP/PIC; ``fmpm``: FMPM;
+``affine``: APIC and TPIC; ``rpic``: RPIC) and registered with :func:`jaxmpm.register_scheme`.  A
+scheme owns its per-particle state (``State.scheme_state``: APIC's B_p, TPIC's grad v_p, RPIC's
+L_p) through :meth:`Scheme.initial_state` and :meth:`Scheme.next_state`.
+
+Damping reaches the update through :class:`ParticleDamping`, the acceleration
+A_damp = alpha_g S v + alpha_p V^n every scheme subtracts (000 eq. 2.77): the model resolves the
+step's damping from its terms (``jm.Damping`` and any term with a ``particle_damping`` hook) and
+passes :data:`NO_DAMPING` when there is none, so a scheme never asks whether damping exists.
 """
 
 from __future__ import annotations
@@ -15,9 +20,85 @@ from __future__ import annotations
 import equinox as eqx
 import jax.numpy as jnp
 
+import abc
+
+from ..core.errors import check
 from ..core.measures import angular_momentum
-from ..transfer.shapes import StencilBase as Stencil
-from ..transfer.operators import Transfer, momentum_contributions, scatter_planar
+from ..core.state import with_scheme_state
+from ..transfer.contractions import Weighted
+from ..transfer.operators import Transfer
+
+
+class ParticleDamping(eqx.Module):
+    """The damping one step applies in the particle update: A_damp, subtracted from the
+    acceleration (000 eq. 2.77; 001 §5.1.2-5.3).  ``acts``: False when A_damp = 0 (a scheme may
+    then skip it); ``reads_grid_velocity``: whether :meth:`acceleration` uses S v (a scheme that
+    reads only v_tilde gathers S v only then)."""
+
+    acts = True
+    reads_grid_velocity = True
+
+    @abc.abstractmethod
+    def acceleration(self, Sv, V):
+        """A_damp per particle from the extrapolated grid velocity S v and V^n (both (N, D))."""
+
+
+class NoDamping(ParticleDamping):
+    """No damping: A_damp = 0."""
+
+    acts = False
+    reads_grid_velocity = False
+
+    def acceleration(self, Sv, V):
+        return 0.0
+
+
+NO_DAMPING = NoDamping()
+
+
+class RateDamping(ParticleDamping):
+    """A_damp = alpha_g u + alpha_p V^n with u = S v, or the extrapolated velocity p_{g->p}/m_{g->p}
+    (``extrapolated``, 001 eqs. 72-73, 76) when given; ``grid`` None: no grid part (it acts on the
+    nodal force instead, 001 eqs. 61-62).  Rates are scalars or per particle (N, 1) (001 eqs. 30, 107)."""
+
+    grid: jnp.ndarray | None
+    particle: jnp.ndarray
+    extrapolated: jnp.ndarray | None = None
+
+    @property
+    def reads_grid_velocity(self) -> bool:
+        return self.grid is not None and self.extrapolated is None
+
+    def acceleration(self, Sv, V):
+        """001 eqs. (33), (40), (107); 000 eq. (2.77)."""
+        particle = self.particle * V
+        if self.grid is None:
+            return particle
+        return self.grid * (Sv if self.extrapolated is None else self.extrapolated) + particle
+
+
+class CombinedDamping(ParticleDamping):
+    """The sum of several terms' damping accelerations."""
+
+    parts: tuple
+
+    @property
+    def reads_grid_velocity(self) -> bool:
+        return any(p.reads_grid_velocity for p in self.parts)
+
+    def acceleration(self, Sv, V):
+        total = self.parts[0].acceleration(Sv, V)
+        for part in self.parts[1:]:
+            total = total + part.acceleration(Sv, V)
+        return total
+
+
+def combine_damping(parts) -> ParticleDamping:
+    """One :class:`ParticleDamping` for the terms' contributions (None entries dropped)."""
+    parts = tuple(p for p in parts if p is not None)
+    if not parts:
+        return NO_DAMPING
+    return parts[0] if len(parts) == 1 else CombinedDamping(parts)
 
 
 class ParticleUpdate(eqx.Module):
@@ -50,29 +131,31 @@ def dissipated_energy(mass, Sa, Sv, dV, dX, dt):
 
 class Scheme(eqx.Module):
     """Base class of particle updates.  A subclass defines
-    ``update(V, X, transfer, constraint, grid, damping, dt) -> ParticleUpdate`` and may override
-    the hooks below."""
+    ``update(V, X, transfer, constraint, grid, damping, dt) -> ParticleUpdate`` (``damping`` a
+    :class:`ParticleDamping`; ``grid`` the :class:`jaxmpm.GridSolution`) and may override the
+    hooks below."""
 
     # the update reads the lumped v and a (not only v_tilde = v + a dt); schemes that read only
-    # v_tilde (APIC, TPIC) let P2G scatter p + f dt in place of p and f when there is no damping
+    # v_tilde (APIC, TPIC) let P2G scatter p + f dt in place of p and f when nothing else needs them
     uses_lumped_velocity = True
 
-    def update(self, V, X, transfer: Transfer, constraint, grid, damping, dt) -> ParticleUpdate:
-        raise NotImplementedError(f"{type(self).__name__} must define update(...)")
+    @abc.abstractmethod
+    def update(self, V, X, transfer: Transfer, constraint, grid, damping: ParticleDamping, dt) -> ParticleUpdate:
+        """The particle update of one step (000 eq. 2.22 / 003 eq. 2.17 in the scheme's form)."""
 
     def strain_grid_velocity(self, v, transfer: Transfer, constraint):
         """Grid velocity used for the strain update, from lumped velocities (USF, MUSL)."""
         return v
 
-    def momentum_contributions(self, stencil: Stencil, state):
-        """S_pi M_p V_p per stencil slot, planar (D, K, N), summed over p into p_i (003 eq. 2.1);
-        APIC/TPIC add their affine terms.  P2G scatters it together with the mass and the force."""
-        return momentum_contributions(stencil, state.mass, state.v)
+    def momentum_contributions(self, stencil, state):
+        """The P2G column of the nodal momentum p_i = sum_p S_pi M_p V_p (003 eq. 2.1): a
+        contraction or a tuple of them (:mod:`jaxmpm.transfer.contractions`); APIC/TPIC/RPIC add
+        their affine part.  P2G scatters it together with the mass and the force."""
+        return Weighted(state.mass[:, None] * state.v)
 
     def momentum(self, transfer: Transfer, state):
         """Nodal momentum p_i (one scatter of :meth:`momentum_contributions`)."""
-        return scatter_planar(transfer.stencil.index, self.momentum_contributions(transfer.stencil, state),
-                              transfer.num_nodes)
+        return transfer.p2g({"momentum": self.momentum_contributions(transfer.stencil, state)})["momentum"]
 
     def angular_momentum(self, state):
         """sum_p X_p x M_p V_p (000 ch. 5); APIC adds its particle term (002 def. 5.1)."""
@@ -85,3 +168,23 @@ class Scheme(eqx.Module):
     def next_state(self, state, update: ParticleUpdate, transfer: Transfer, grid):
         """The scheme's per-particle state after the step (``state`` is the start of the step)."""
         return state.scheme_state
+
+    def state_for_velocity_gradient(self, stencil, state, L):
+        """The scheme state of particles moving with the velocity field of gradient L (N, D, D)
+        (:func:`with_velocity_gradient`); the scheme's state unchanged by default."""
+        return state.scheme_state
+
+
+def with_velocity_gradient(sim, state, gradient):
+    """``state`` with the scheme state set for a particle velocity field of gradient ``gradient``
+    ((D, D) or (N, D, D)): B_p = L_p D_p under APIC (D_p from the stencil), grad v_p = L_p under
+    TPIC, and under RPIC L_p = K_p omega with omega the rotation of the skew part of L_p (the rigid
+    part, 002 prop. 4.1); unchanged for schemes without such a state
+    (:meth:`Scheme.state_for_velocity_gradient`)."""
+    d = state.x.shape[-1]  # the grid's dimension (F is 3x3 on an r-z grid; the affine state is d x d)
+    L = jnp.asarray(gradient, state.x.dtype)
+    check(L.shape[-2:] == (d, d), f"with_velocity_gradient: gradient has shape {L.shape}; give a ({d}, {d}) "
+          f"matrix or one per particle ({state.x.shape[0]}, {d}, {d}), in the grid's coordinates")
+    L = jnp.broadcast_to(L, (state.x.shape[0], d, d))
+    stencil = sim.shape.stencil(sim.grid, state.x)
+    return with_scheme_state(state, sim.scheme.state_for_velocity_gradient(stencil, state, L))

@@ -432,3 +432,9 @@ register_shape("linear", Linear)
 register_shape("ugimp", UGIMP, parse=_parse_ugimp)
 register_shape("quadratic", QuadraticBSpline)
 register_shape("cubic", CubicBSpline)
+
+
+def field_stencil(stencil, field, num_nodes: int):
+    """The stencil on stacked velocity fields: each particle's node numbers moved to its field's
+    copy of the grid, i -> field_p n + i (``field`` (N,) integers 0..M-1; multimaterial mode)."""
+    return eqx.tree_at(lambda s: s.index, stencil, stencil.index + field.astype(stencil.index.dtype)[None, :] * num_nodes)

@@ -1,0 +1,70 @@
+"""The weakly compressible fluid of Taichi's mpm88, and the stress-free material."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+from ..core.registry import register_material
+from ..core.validate import POSITIVE
+from .base import ElasticMaterial, identity
+from .linear import DENSITY, E
+from .neohookean import log_det
+
+
+class VolumetricFluid(ElasticMaterial):
+    """The weakly compressible fluid of Taichi's mpm88: Kirchhoff stress tau = E (J - 1) I
+    (mpm88: ``stress = -dt * 4 * E * p_vol * (J - 1) / dx**2``, i.e. V0 tau D^-1 with D = dx^2/4),
+    J = det F.  Stored energy W(J) = E (J - 1 - ln J), so that tau = J W'(J) I; bulk modulus E,
+    wave speed sqrt(E / rho)."""
+
+    E: jnp.ndarray
+    density: jnp.ndarray
+
+    def __init__(self, E, density=1.0):
+        self.E = POSITIVE.leaf("VolumetricFluid", "E", E)
+        self.density = POSITIVE.leaf("VolumetricFluid", "density", density)
+
+    def kirchhoff_stress(self, F):
+        J = jnp.linalg.det(F)
+        return (self.E * (J - 1.0))[..., None, None] * identity(F)
+
+    def energy_density(self, F):
+        J = jnp.linalg.det(F)
+        return self.E * (J - 1.0 - log_det(F))
+
+    def keep_deformation(self, F):
+        """F <- J^(1/D) I after each step (Taichi mpm99's fluid reset): the stress depends on J
+        only, so this changes no stress, but it drops the shear a fluid accumulates without bound,
+        which otherwise makes det F of a float32 F meaningless within t ~ 0.3 of mpm88 (|F| ~ 1e3
+        and growing; J = det F then comes out <= 0)."""
+        J = jnp.linalg.det(F)
+        positive = J > 0
+        iso = (jnp.where(positive, J, 1.0) ** (1.0 / F.shape[-1]))[..., None, None] * identity(F)
+        return jnp.where(positive[..., None, None], iso, F)  # J <= 0 stays visible to the instability check
+
+    def wave_speed(self, dim: int):
+        return jnp.sqrt(self.E / self.density)
+
+
+class NoStress(ElasticMaterial):
+    """No stress at all: tau = 0, W = 0 (force-free particles, e.g. the ``spin`` scene's freely
+    flying disk).  Only the density is needed; the wave speed is 0, so the stable time step is set
+    by the particle speed alone."""
+
+    density: jnp.ndarray
+
+    def __init__(self, density=1.0):
+        self.density = POSITIVE.leaf("NoStress", "density", density)
+
+    def kirchhoff_stress(self, F):
+        return jnp.zeros_like(F)
+
+    def energy_density(self, F):
+        return jnp.zeros(F.shape[:-2], F.dtype)
+
+    def wave_speed(self, dim: int):
+        return jnp.zeros((), self.density.dtype)
+
+
+register_material("fluid", VolumetricFluid, parameters=[E, DENSITY])
+register_material("nostress", NoStress, parameters=[DENSITY])

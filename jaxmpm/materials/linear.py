@@ -1,0 +1,45 @@
+"""Small-strain linear elasticity (Hooke's law on sym(F) - I)."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+from ..core.registry import Parameter, register_material
+from ..core.validate import POISSON, POSITIVE
+from .base import ElasticMaterial, hooke, identity
+
+
+E = Parameter("E", lambda m: m.E, "Young's modulus (bulk modulus of VolumetricFluid)", "positive", valid=POSITIVE)
+NU = Parameter("nu", lambda m: m.nu, "Poisson's ratio", (-1.0, 0.5), valid=POISSON)
+DENSITY = Parameter("density", lambda m: m.density, "reference density (re-run sim.init for particle masses)",
+                    "positive", valid=POSITIVE)
+
+
+class LinearElastic(ElasticMaterial):
+    """Small-strain linear elasticity, eps = sym(F) - I.
+
+    tau = lambda tr(eps) I + 2 mu eps (2D plane strain, 3D); tau = E eps in 1D (uniaxial stress).
+    """
+
+    E: jnp.ndarray
+    nu: jnp.ndarray
+    density: jnp.ndarray
+    uniaxial = True
+
+    def __init__(self, E, nu=0.0, density=1.0):
+        self.E = POSITIVE.leaf("LinearElastic", "E", E)
+        self.nu = POISSON.leaf("LinearElastic", "nu", nu)
+        self.density = POSITIVE.leaf("LinearElastic", "density", density)
+
+    def strain(self, F):
+        return 0.5 * (F + jnp.swapaxes(F, -1, -2)) - identity(F)
+
+    def kirchhoff_stress(self, F):
+        return hooke(self.E, self.nu, self.strain(F))
+
+    def energy_density(self, F):
+        eps = self.strain(F)
+        return 0.5 * jnp.sum(self.kirchhoff_stress(F) * eps, axis=(-1, -2))
+
+
+register_material("linear", LinearElastic, parameters=[E, NU, DENSITY])

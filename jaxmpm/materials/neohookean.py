@@ -1,0 +1,44 @@
+"""Compressible neo-Hookean hyperelasticity."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+from ..core.registry import register_material
+from ..core.validate import POISSON, POSITIVE
+from .base import ElasticMaterial, identity, lame
+from .linear import DENSITY, E, NU
+
+
+def log_det(F):
+    """ln det F, NaN-safe: J <= 0 is reported as an instability by the run; the log stays finite."""
+    J = jnp.linalg.det(F)
+    return jnp.log(jnp.where(J > 0, J, 1.0))
+
+
+class NeoHookean(ElasticMaterial):
+    """Compressible neo-Hookean: tau = mu (F F^T - I) + lambda ln(J) I,
+    W = mu/2 (tr(F^T F) - D) - mu ln J + lambda/2 (ln J)^2.
+    In 2D this is plane strain (F_zz = 1); in 1D, uniaxial strain."""
+
+    E: jnp.ndarray
+    nu: jnp.ndarray
+    density: jnp.ndarray
+
+    def __init__(self, E, nu=0.3, density=1.0):
+        self.E = POSITIVE.leaf("NeoHookean", "E", E)
+        self.nu = POISSON.leaf("NeoHookean", "nu", nu)
+        self.density = POSITIVE.leaf("NeoHookean", "density", density)
+
+    def kirchhoff_stress(self, F):
+        lam, mu = lame(self.E, self.nu)
+        b = F @ jnp.swapaxes(F, -1, -2)
+        return mu * (b - identity(F)) + lam * log_det(F)[..., None, None] * identity(F)
+
+    def energy_density(self, F):
+        lam, mu = lame(self.E, self.nu)
+        lj = log_det(F)
+        return 0.5 * mu * (jnp.sum(F * F, axis=(-1, -2)) - F.shape[-1]) - mu * lj + 0.5 * lam * lj**2
+
+
+register_material("neohookean", NeoHookean, parameters=[E, NU, DENSITY])

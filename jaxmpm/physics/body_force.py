@@ -1,0 +1,41 @@
+"""Gravity and body forces, f_i += sum_p S_pi M_p b_p (001 eq. 20)."""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import jax.numpy as jnp
+
+from ..core.errors import check
+from ..core.registry import Parameter, register_term
+from ..transfer.backend import materialise
+from ..transfer.contractions import Weighted
+from .term import Term
+
+
+class BodyForce(Term):
+    """Body force per unit mass b = g + b(x, t) on every particle: f_i += sum_p S_pi M_p b_p
+    (001 eq. 20).  ``gravity`` (D,) is a differentiable leaf; ``field`` an optional callable
+    b(x, t) -> (N, D) of the current positions and time (a function or an equinox module)."""
+
+    gravity: jnp.ndarray
+    field: Callable | None = None
+
+    def __init__(self, gravity, field: Callable | None = None):
+        self.gravity = gravity
+        check(field is None or callable(field), "Simulation: body_force must be a callable b(x, t) -> (N, D)")
+        self.field = field
+
+    def acceleration(self, state):
+        """b_p = g + b(X_p, t), (N, D)."""
+        body = jnp.broadcast_to(self.gravity.astype(state.x.dtype), state.x.shape)
+        if self.field is not None:
+            body = body + self.field(state.x, state.time)
+        return body
+
+    def p2g_quantities(self, sim, state, stencil):
+        return {"force": Weighted(materialise(state.mass[:, None] * self.acceleration(state)))}
+
+
+register_term("body_force", BodyForce, doc="gravity and body force sum_p S_pi M_p b_p (001 eq. 20)",
+              parameters=[Parameter("gravity", lambda t: t.gravity, "gravity vector", valid="finite")])

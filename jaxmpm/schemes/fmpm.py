@@ -1,0 +1,81 @@
+"""FMPM(k), full-mass-matrix MPM (003 §2.2-2.3.1, Table 2.1):
+
+    v+ = m~_k^{-1} p+ = sum_{l=1}^{k} (-1)^{l+1} C(k,l) (S+S)^{l-1} v_tilde   (003 eqs. 1.23, 2.13)
+    V^{n+1} = S v+ - A_damp dt,    X^{n+1} = X^n + (V^{n+1} + V^n) dt / 2     (003 eq. 2.17)
+
+with the velocity-condition variants of 003 §1.5 and §2.4 (``boundary=``), all evaluated by the
+transfer layer's series (:mod:`jaxmpm.transfer.series`).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax.numpy as jnp
+
+from ..core.errors import check
+from ..core.registry import register_scheme
+from ..transfer.series import BOUNDARY_MODES, SERIES_FORMS, UNLUMPED_MODES, exchange_series, mass_matrix_series
+from .base import ParticleUpdate, Scheme, dissipated_energy
+from .xpic import BETA, XPIC, _check_beta, _check_order, _number
+
+
+class FMPM(Scheme):
+    """FMPM(k), full-mass-matrix MPM (003 §2.2-2.3.1, Table 2.1):
+
+        v+ = m~_k^{-1} p+ = sum_{l=1}^{k} (-1)^{l+1} C(k,l) (S+S)^{l-1} v_tilde   (003 eqs. 1.23, 2.13)
+        V^{n+1} = S v+ - A_damp dt,    X^{n+1} = X^n + (V^{n+1} + V^n) dt / 2     (003 eq. 2.17)
+
+    ``beta`` (default 0) is jaxmpm's generalisation, not the seeds': a FLIP fraction
+    V^{n+1} = beta (V^n + S a dt) + (1 - beta) S v+ - A_damp dt.  FMPM(1) is the "new PIC" of
+    003 eq. (2.40).  The strain update uses the full-mass velocities.
+
+    FMPM(0) is FLIP (003 Table 2.1, "FMPM(0)/XPIC(0)": V += a dt, X += (S v_tilde - a dt/2) dt,
+    the second-order FLIP of 000 eqs. 2.48-2.49 with VV = S v), computed by the same update as
+    ``FLIP()``; its strain update uses the lumped velocities, as FLIP's.
+    """
+
+    beta: jnp.ndarray
+    order: int = eqx.field(static=True)
+    boundary: str = eqx.field(static=True)
+    series: str = eqx.field(static=True)
+
+    def __init__(self, order: int = 2, beta=0.0, boundary: str = "iterates", series: str = "binomial"):
+        self.order = _check_order(order, "FMPM")
+        self.beta = _check_beta(beta, "FMPM")
+        check(boundary in BOUNDARY_MODES, f"FMPM: boundary = {boundary!r}; choose one of {', '.join(BOUNDARY_MODES)}")
+        check(series in SERIES_FORMS, f"FMPM: series = {series!r}; choose one of {', '.join(SERIES_FORMS)}")
+        self.boundary = boundary
+        self.series = series
+
+    def strain_grid_velocity(self, v, transfer, constraint):
+        if self.order == 0:
+            return v  # FMPM(0) = FLIP: lumped velocities
+        check(self.boundary not in UNLUMPED_MODES,
+              f"FMPM: boundary = {self.boundary!r} is built for the USL update (its series starts from p+/m "
+              "before the conditions); USF/MUSL/USAVG re-extrapolate velocities that have no such start: "
+              "use update='USL' or boundary='iterates'")
+        return mass_matrix_series(v, self.order, transfer, constraint, self.boundary, self.series)  # 003 eq. (2.3)
+
+    def update(self, V, X, transfer, constraint, grid, damping, dt):
+        if self.order == 0:  # 003 Table 2.1: FMPM(0) = XPIC(0) = FLIP
+            return XPIC(order=0).update(V, X, transfer, constraint, grid, damping, dt)
+        Sv = transfer.gather(grid.v)
+        Sa = transfer.gather(grid.a)
+        v_plus = mass_matrix_series(grid.v_tilde, self.order, transfer, constraint, self.boundary, self.series,
+                                    free=grid.values.get("v_tilde_unconstrained"))  # 003 eq. (2.13)
+        correction = exchange_series(grid.get("exchange_dv"), self.order, transfer, constraint, self.boundary,
+                                     self.series)
+        if correction is not None:
+            v_plus = v_plus - correction  # 003 eq. (3.22)
+        beta = self.beta
+        V_new = beta * (V + Sa * dt) + (1.0 - beta) * transfer.gather(v_plus) - damping.acceleration(Sv, V) * dt
+        X_new = X + 0.5 * (V_new + V) * dt  # 003 eq. (2.17)
+        diss = dissipated_energy(transfer.particle_mass, Sa, Sv, V_new - V, X_new - X, dt)
+        return ParticleUpdate(V_new, X_new, v_plus, diss)
+
+
+def _parse_fmpm(arg, beta=None):
+    return FMPM(order=_number(arg, f"fmpm:{arg}", int) if arg else 2, beta=0.0 if beta is None else beta)
+
+
+register_scheme("fmpm", FMPM, parse=_parse_fmpm, spec="fmpm:K", parameters=[BETA])

@@ -1,0 +1,70 @@
+"""Transfer kernels: how P2G scatters the tagged per-particle quantities and how G2P gathers, per backend.
+
+The physics never scatters or gathers by itself: terms and schemes hand the transfer layer
+per-particle quantities tagged with their contraction (:mod:`jaxmpm.transfer.contractions`) and
+ask for nodal fields back at the particles (``Transfer.gather``, ``velocity_gradient``, ...).  A
+:class:`Kernel` does the work; one is registered per backend policy ("cpu", "gpu"; see
+:mod:`jaxmpm.transfer.backend`) and the policy in force when a step is traced picks it.  Each
+kernel brings its own derivative rules: P2G's transpose is a G2P gather and vice versa, so
+``jax.grad``, ``jax.vmap`` and the XPIC/FMPM series run through the same kernel.
+
+Today's kernel, :class:`~jaxmpm.transfer.kernels.xla.XLAKernel`, forms the per-slot values
+from the stencil's per-axis factors and scatters every column in one ``lax.scatter_add``; it is
+registered for both policies.  A new kernel (a Pallas GPU kernel, say) is one file defining a
+:class:`Kernel` subclass and one :func:`register_kernel` call.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+
+from ...core.errors import check
+from ..backend import POLICIES, active
+
+
+class Kernel(eqx.Module):
+    """How P2G and G2P run on a backend.  A subclass defines every method below; all take the
+    particles' stencil (:class:`jaxmpm.StencilBase`) and work on planar per-slot data inside."""
+
+    def p2g(self, stencil, columns: dict, num_nodes: int) -> dict:
+        """{name: nodal array}: each column (a contraction or a tuple of them, summed) scattered
+        over the particles, all in one pass where the kernel can."""
+        raise NotImplementedError
+
+    def gather(self, stencil, u):
+        """(S u)_p = sum_i S_pi u_i for nodal u (n,) or (n, C): (N,) or (N, C)."""
+        raise NotImplementedError
+
+    def velocity_gradient(self, stencil, v):
+        """sum_i v_i (x) G_pi for a nodal vector field v (n, D): (N, D, D)."""
+        raise NotImplementedError
+
+    def scalar_gradient(self, stencil, u):
+        """sum_i u_i G_pi for a nodal scalar u (n,): (N, D)."""
+        raise NotImplementedError
+
+    def affine_moment(self, stencil, v):
+        """sum_i S_pi v_i (x_i - X_p)^T for a nodal vector field v (n, D): (N, D, D)."""
+        raise NotImplementedError
+
+
+_KERNELS: dict = {}
+
+
+def register_kernel(policy: str, kernel: Kernel) -> Kernel:
+    """Use ``kernel`` for the transfers traced under ``policy`` ("cpu" or "gpu")."""
+    check(policy in POLICIES and policy != "auto",
+          f"register_kernel: policy = {policy!r}; choose 'cpu' or 'gpu' (jaxmpm.transfer.backend)")
+    check(isinstance(kernel, Kernel), f"register_kernel: {kernel!r} is not a jaxmpm Kernel")
+    _KERNELS[policy] = kernel
+    return kernel
+
+
+def kernel() -> Kernel:
+    """The kernel of the policy in force for the code being traced."""
+    return _KERNELS[active()]
+
+
+from .xla import XLAKernel  # noqa: E402  (registers itself for both policies)
+
+__all__ = ["Kernel", "XLAKernel", "kernel", "register_kernel"]

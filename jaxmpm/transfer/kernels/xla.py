@@ -1,0 +1,234 @@
+"""The XLA kernel: per-slot values formed from the stencil, one ``lax.scatter_add`` for all of P2G,
+gathers one component at a time.  Registered for both backend policies.
+
+Arrays are **planar**, particles last: a per-slot quantity has shape (K, N) or (C, K, N), so the
+arithmetic of P2G and G2P runs on contiguous particle vectors (on the CPU XLA vectorises along
+them; the per-axis factors of a tensor-product stencil are multiplied out where they are used).
+
+P2G (:meth:`XLAKernel.p2g`) turns each contraction into per-slot values, sums a column's
+contractions slot by slot, stacks the columns into one (C, K, N) buffer -- a stage boundary
+(``evaluate_once``): on the CPU it is evaluated once, into its own buffer -- and scatters
+(node, all columns) rows in ONE ``lax.scatter_add`` (:func:`scatter_planar`; under the CPU policy
+its rows are widened to a power of two, :func:`jaxmpm.transfer.backend.scatter_row_width`).
+
+Derivative rules (the structured adjoint, :mod:`jaxmpm.transfer.backend`): the building blocks
+below carry JVP rules whose transposes are the cheap adjoint operations -- the scatter's
+transpose is a gather of the nodal cotangent evaluated once (:func:`hold_tangent`), a sum over
+the stencil transposes to a broadcast, slot products to row products.
+"""
+
+from __future__ import annotations
+
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+from jax.custom_derivatives import SymbolicZero
+
+from ..backend import derivative_rule, evaluate_once, hold_tangent, materialise, scatter_row_width
+from ..contractions import Affine, Divergence, Gradient, Hoop, PerSlot, Weighted, as_terms
+from ..shapes import rows
+from . import Kernel, register_kernel
+
+
+def _sum_over_stencil(a):
+    """sum_k a[..., k, :] for planar a of shape (..., K, N), unrolled over the (4-64) stencil
+    slots: K-1 elementwise adds of contiguous particle rows, which XLA fuses with their producers."""
+    total = a[..., 0, :]
+    for k in range(1, a.shape[-2]):
+        total = total + a[..., k, :]
+    return total
+
+
+_sum_over_stencil_ruled = jax.custom_jvp(_sum_over_stencil)
+
+
+@_sum_over_stencil_ruled.defjvp
+def _sum_over_stencil_jvp(primals, tangents):
+    # the same sum as one reduction: its transpose broadcasts the cotangent to the K slots, where
+    # that of the unrolled sum pads each row into its own (K, N) array of zeros and adds them up
+    (a,), (a_dot,) = primals, tangents
+    return _sum_over_stencil_ruled(a), jnp.sum(a_dot, axis=-2)
+
+
+sum_over_stencil = derivative_rule(_sum_over_stencil, _sum_over_stencil_ruled)
+
+
+def _per_slot(w, q):
+    """w[k, p] q[c, p] (or w[k, p] q[c, k, p]) for slot values w (K, N) and per-particle values q
+    (C, N) (or per-slot values q (C, K, N)): planar (C, K, N)."""
+    return w * (q if q.ndim == 3 else q[:, None, :])
+
+
+_per_slot_ruled = jax.custom_jvp(_per_slot)
+
+
+@partial(_per_slot_ruled.defjvp, symbolic_zeros=True)
+def _per_slot_jvp(primals, tangents):
+    # the same product, row by row: the transposes of the broadcasts are reductions over the short
+    # slot and component axes, which XLA's CPU backend runs slowly; those of row products are
+    # multiplies and adds (the forward keeps the broadcast, which fuses better)
+    (w, q), (w_dot, q_dot) = primals, tangents
+
+    def slots(a):  # (K, N) -> K rows; a per-slot (K, N) array stays whole (no broadcast needed)
+        return [a] if q.ndim == 3 else rows(a)
+
+    def spread(row_terms):  # K row products -> (K, N)
+        return row_terms[0] if q.ndim == 3 else jnp.stack(row_terms)
+
+    terms = []
+    if not isinstance(w_dot, SymbolicZero):
+        terms.append([spread([wd * qc for wd in slots(w_dot)]) for qc in rows(q)])
+    if not isinstance(q_dot, SymbolicZero):
+        terms.append([spread([wk * qd for wk in slots(w)]) for qd in rows(q_dot)])
+    out = _per_slot_ruled(w, q)
+    if not terms:
+        return out, jnp.zeros_like(out)
+    return out, jnp.stack([sum(t[c] for t in terms) for c in range(q.shape[0])])
+
+
+per_slot = derivative_rule(_per_slot, _per_slot_ruled)
+
+
+def _scatter_planar(index, contributions, num_nodes: int):
+    """sum_p sum_k c[..., k, p] into node ``index[k, p]``: ``contributions`` (K, N) -> (n,) or
+    (C, K, N) -> (n, C).  The one scatter-add of the library; its rows are (node, components)."""
+    if contributions.ndim == 2:
+        rows = contributions.reshape(-1)
+    else:
+        rows = contributions.reshape(contributions.shape[0], -1).T
+    width = rows.shape[1] if rows.ndim == 2 else 1
+    padded = scatter_row_width(width)  # backend tuning: zero columns that XLA:CPU adds faster
+    if padded > width:
+        rows = jnp.concatenate([rows, jnp.zeros((rows.shape[0], padded - width), rows.dtype)], axis=1)
+    dims = jax.lax.ScatterDimensionNumbers(update_window_dims=tuple(range(1, rows.ndim)), inserted_window_dims=(0,),
+                                           scatter_dims_to_operand_dims=(0,))
+    # in-bounds by construction: shape functions clip node numbers onto the grid (jm.Stencil)
+    nodal = jax.lax.scatter_add(jnp.zeros((num_nodes,) + rows.shape[1:], rows.dtype), index.reshape(-1, 1), rows, dims,
+                                mode=jax.lax.GatherScatterMode.PROMISE_IN_BOUNDS)
+    return nodal[:, :width] if padded > width else nodal
+
+
+_scatter_planar_ruled = jax.custom_jvp(_scatter_planar, nondiff_argnums=(2,))
+
+
+@_scatter_planar_ruled.defjvp
+def _scatter_planar_jvp(num_nodes, primals, tangents):
+    # the same scatter of the tangents, behind a stage boundary: in reverse mode the nodal
+    # cotangent is evaluated once, then gathered (the scatter's transpose); without it XLA fuses
+    # the cotangent's computation into the gather and repeats it for every stencil slot
+    (index, c), (_, c_dot) = primals, tangents
+    out = _scatter_planar_ruled(index, c, num_nodes)
+    return out, hold_tangent(_scatter_planar(index, c_dot, num_nodes), out)
+
+
+scatter_planar = derivative_rule(_scatter_planar, _scatter_planar_ruled)
+
+
+def nodal_values(stencil, u):
+    """u_i at every stencil slot: (n,) -> (K, N), (n, C) -> a list of C arrays (K, N).  One gather
+    of scalars per component (from the transposed (C, n) nodal array): on CPU this is faster than
+    gathering (K N, C) rows and transposing them, and consumers read each component directly."""
+    index = stencil.index  # on the grid (shape functions clip it), so no bounds handling
+    if u.ndim == 1:
+        return materialise(u).at[index].get(mode="promise_in_bounds")
+    # the nodal field is evaluated once first: XLA would otherwise fuse its whole computation
+    # (v = p/m, boundary conditions) into the gather and repeat it for every slot
+    return materialise([uc.at[index].get(mode="promise_in_bounds") for uc in materialise(u.T)])
+
+
+def gather_planar(stencil, u):
+    """(S u)_p for nodal ``u`` (n,) or (n, C), planar result (N,) or (C, N)."""
+    values = nodal_values(stencil, u)
+    if u.ndim == 1:
+        return sum_over_stencil(stencil.weight * values)
+    w = stencil.weight
+    return jnp.stack([sum_over_stencil(w * vc) for vc in values])
+
+
+def to_particle_major(planar):
+    """(C..., N) -> (N, C...), evaluated first: otherwise XLA moves the whole planar computation
+    into the transpose, where it runs element by element instead of on particle vectors."""
+    return jnp.moveaxis(materialise(planar), -1, 0)
+
+
+# ------------------------------------------------------------------ per-slot values of a contraction
+def _slot_values(stencil, contraction):
+    """The per-slot values c_pi of one contraction, planar (K, N) or (C, K, N)."""
+    q = contraction.value
+    if isinstance(contraction, Weighted):
+        return stencil.weight * q if q.ndim == 1 else per_slot(stencil.weight, q.T)
+    if isinstance(contraction, Gradient):  # q_p G_pi, (D, K, N)
+        return q[None, None, :] * stencil.gradient
+    if isinstance(contraction, Divergence):  # sum_b q_p[a, b] G_pi[b], (C, K, N)
+        g = rows(stencil.gradient)
+        planar = [rows(t) for t in rows(materialise(jnp.moveaxis(q, 0, -1))[:, :, None, :])]  # (C, D, 1, N)
+        return jnp.stack([sum(planar[a][b] * g[b] for b in range(len(g))) for a in range(len(planar))])
+    if isinstance(contraction, Affine):  # S_pi sum_b q_p[a, b] (x_i - X_p)[b], (C, K, N)
+        return per_slot(stencil.weight, _planar_matvec(materialise(jnp.moveaxis(q, 0, -1)), stencil.offset))
+    if isinstance(contraction, Hoop):  # T_pi q_p (001 eq. 116)
+        hoop = stencil.hoop_view().weight
+        return hoop * q if q.ndim == 1 else per_slot(hoop, materialise(q.T))
+    if isinstance(contraction, PerSlot):
+        return q
+    raise TypeError(f"P2G: {type(contraction).__name__} is not a contraction the XLA kernel knows")
+
+
+def _planar_matvec(A, x):
+    """A_p x_pk for planar A (C, D, N) and slot vectors x (D, K, N): (C, K, N)."""
+    A, x = [rows(r) for r in rows(A)], rows(x)
+    return jnp.stack([sum(Ai[j][None] * x[j] for j in range(len(x))) for Ai in A])
+
+
+def _column(stencil, column):
+    """A column's per-slot values: its contractions' values summed slot by slot."""
+    terms = [_slot_values(stencil, c) for c in as_terms(column)]
+    return sum(terms[1:], terms[0])
+
+
+class XLAKernel(Kernel):
+    """Per-slot values from the stencil, one ``lax.scatter_add`` for P2G, component-wise gathers
+    for G2P (module docstring)."""
+
+    def p2g(self, stencil, columns: dict, num_nodes: int) -> dict:
+        layout = {}  # name -> (width, scalar), in the order the columns are stacked
+
+        def stacked(stencil, columns):
+            per_slot_columns = {name: _column(stencil, column) for name, column in columns.items()}
+            layout.clear()
+            layout.update({name: (1 if c.ndim == 2 else c.shape[0], c.ndim == 2) for name, c in per_slot_columns.items()})
+            return jnp.concatenate([c[None] if c.ndim == 2 else c for c in per_slot_columns.values()])
+
+        nodal = scatter_planar(stencil.index, evaluate_once(stacked, stencil, columns), num_nodes)
+        out, start = {}, 0
+        for name, (width, scalar) in layout.items():
+            out[name] = nodal[:, start] if scalar else nodal[:, start:start + width]
+            start += width
+        return out
+
+    def gather(self, stencil, u):
+        Su = gather_planar(stencil, u)
+        return Su if u.ndim == 1 else to_particle_major(Su)
+
+    def velocity_gradient(self, stencil, v):
+        values = nodal_values(stencil, v)  # D arrays (K, N)
+        g = rows(stencil.gradient)
+        d = len(g)
+        planar = jnp.stack([jnp.stack([sum_over_stencil(values[a] * g[b]) for b in range(d)]) for a in range(d)])
+        return to_particle_major(planar)
+
+    def scalar_gradient(self, stencil, u):
+        values = nodal_values(stencil, u)  # (K, N)
+        g = rows(stencil.gradient)
+        return to_particle_major(jnp.stack([sum_over_stencil(values * g[b]) for b in range(len(g))]))
+
+    def affine_moment(self, stencil, v):
+        w, a, b = stencil.weight, nodal_values(stencil, v), stencil.offset
+        planar = jnp.stack([jnp.stack([sum_over_stencil(w * a[i] * b[j]) for j in range(len(b))])
+                            for i in range(len(a))])
+        return to_particle_major(planar)
+
+
+XLA = XLAKernel()
+register_kernel("cpu", XLA)
+register_kernel("gpu", XLA)

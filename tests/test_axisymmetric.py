@@ -14,7 +14,7 @@ import pytest
 import jaxmpm as jm
 from jaxmpm.transfer.backend import use_policy
 from jaxmpm.model.step import strain_rate
-from jaxmpm.transfer.operators import Transfer, scatter_planar
+from jaxmpm.transfer.operators import Transfer, p2g
 
 
 @eqx.filter_jit
@@ -151,8 +151,8 @@ def test_internal_force_and_hoop_rate_matrix_form():
     c, d = 0.3, -0.2
     nodes = GRID.node_coordinates()
     with use_policy("gpu"):  # eager: stage boundaries as identities
-        columns = jm.StressDivergence().p2g_columns(sim, state, stencil)["force"]
-        force = np.asarray(scatter_planar(stencil.index, columns, GRID.num_nodes))
+        quantities = jm.StressDivergence().p2g_quantities(sim, state, stencil)
+        force = np.asarray(p2g(stencil, quantities, GRID.num_nodes)["force"])
         L = np.asarray(strain_rate(sim, Transfer.build(stencil, state.mass, GRID.num_nodes),
                                    jnp.asarray(nodes * np.array([c, d]))))
     _, G, T = seed_matrices(GRID, X, basis, half)

@@ -189,7 +189,6 @@ def test_option_the_scene_does_not_take_exits_2(tmp_path, capsys, scene, option,
     (["--contact", "coulomb", "--friction", "-0.5"], ["friction = -0.5", ">= 0"]),
     (["--friction", "0.3"], ["friction = 0.3", "contact='coulomb'"]),  # disks' default contact is none
     (["--contact", "stick", "--friction", "0.3"], ["friction = 0.3", "contact='stick'"]),
-    (["--contact", "frictionless", "--update", "MUSL"], ["update = 'MUSL'"]),
 ])
 def test_bad_contact_options_exit_2_naming_them(tmp_path, capsys, options, words):
     path = tmp_path / "x.h5"

@@ -67,15 +67,12 @@ def trajectory(sim, state, dt, steps):
 
 @eqx.filter_jit
 def grid_stage(sim, state, dt):
-    """The grid solution of one step, as ``jaxmpm.model.step.step`` computes it: P2G, the lumped solve
-    with the velocity conditions, then the terms' grid actions (contact among them)."""
+    """The grid solution of one step, as ``jaxmpm.model.step.step`` computes it: P2G, then the grid
+    phases (forces, the contact exchange, the velocity conditions, the readers)."""
     dt = jnp.asarray(dt, state.x.dtype)
     constraint = sim.constraint(state.x.dtype)
     fields = jm.p2g(sim, state)
-    solution = jm.grid_solve(fields, fields.force, dt, constraint)
-    for term in sim.terms:
-        solution = term.grid_action(sim, fields, solution, dt)
-    return fields, solution
+    return fields, jm.grid_phases(sim, fields, dt, constraint)
 
 
 def split(a, n):
@@ -402,7 +399,7 @@ def test_conditions_win_on_a_contact_node_1d(condition, value):
         for field in ("v", "v_tilde"):
             v0, v1 = split(getattr(sol, field), n)
             assert v0[i, 0] == value and v1[i, 0] == value, (law, field, v0[i], v1[i])
-        dv0, dv1 = split(sol.values["contact_dv"], n)
+        dv0, dv1 = split(sol.values["exchange_dv"], n)
         assert dv0[i, 0] == 0.0 and dv1[i, 0] == 0.0
 
 
@@ -616,9 +613,3 @@ def test_bad_material_ids(ids):
         sim.init(particles, fields={"material": jnp.asarray(bad)})
 
 
-@pytest.mark.parametrize("options, name", [(dict(update="USF"), "update"), (dict(update="MUSL"), "update")])
-def test_bad_simulation_with_contact(options, name):
-    grid, a, b = _bars()
-    with pytest.raises(jm.InputError, match=name):
-        two_bodies(grid, jm.Linear(), a, b, jm.FLIP(), "frictionless", **options)
-    two_bodies(grid, jm.Linear(), a, b, jm.FLIP(), None, **options)  # fine without contact

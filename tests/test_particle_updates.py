@@ -25,6 +25,7 @@ import numpy as np
 import pytest
 
 import jaxmpm as jm
+from jaxmpm.schemes import NO_DAMPING
 from jaxmpm.schemes.rpic import rigid_inertia
 from jaxmpm.physics.conditions import Constraint
 from jaxmpm.core.fields import GridSolution
@@ -231,7 +232,7 @@ def rpic_transfers(scheme, stencil, state, v_tilde, dt, num_nodes):
     transfer = Transfer.build(stencil, state.mass, num_nodes)
     p = scheme.momentum(transfer, state)
     sol = GridSolution(v=v_tilde, a=jnp.zeros_like(v_tilde), v_tilde=v_tilde)
-    upd = scheme.update(state.v, state.x, transfer, no_constraint_n(num_nodes, state.x.shape[1]), sol, None, dt)
+    upd = scheme.update(state.v, state.x, transfer, no_constraint_n(num_nodes, state.x.shape[1]), sol, NO_DAMPING, dt)
     L = scheme.next_state(state, upd, transfer, sol)
     K = rigid_inertia(stencil, state.mass)
     return p, transfer.nodal_mass, upd.velocity, upd.position, L, K

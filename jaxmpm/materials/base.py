@@ -26,6 +26,8 @@ axisymmetric grid (001 §7) F is 3x3 in (r, z, theta) and every law is its 3D fo
 from __future__ import annotations
 
 import abc
+import inspect
+import warnings
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -73,7 +75,7 @@ class Material(eqx.Module):
     """The constitutive-model protocol (module docstring).  Subclass :class:`ElasticMaterial` or
     :class:`InelasticMaterial`; register with :func:`jaxmpm.register_material`."""
 
-    density: eqx.AbstractVar[jnp.ndarray]
+    density: jnp.ndarray  # the reference density rho_0
 
     # 1D is uniaxial stress (wave speed sqrt(E / rho)); otherwise uniaxial strain in 1D
     uniaxial = False
@@ -114,6 +116,27 @@ class Material(eqx.Module):
     def particle_stress(self, F, state):
         """Deprecated name of :meth:`stress`."""
         return self.stress(F, state)
+
+    def __init_subclass__(cls, **kwargs):
+        """A law written against the protocol before core v2 keeps working for a release, with a
+        DeprecationWarning: ``particle_stress(F, state)`` serves as :meth:`stress`, and
+        ``update_state(F, state, dt)`` (the total F after the update) is called with the
+        increment's ``F`` and ``dt``."""
+        super().__init_subclass__(**kwargs)
+        legacy = []
+        if "particle_stress" in cls.__dict__ and "stress" not in cls.__dict__:
+            cls.stress = cls.__dict__["particle_stress"]
+            legacy.append("particle_stress(F, state) -> stress(F, state)")
+        update = cls.__dict__.get("update_state")
+        if update is not None and len(inspect.signature(update).parameters) == 4:  # (self, F, state, dt)
+            def update_state(self, increment, state, _old=update):
+                return _old(self, increment.F, state, increment.dt)
+
+            cls.update_state = update_state
+            legacy.append("update_state(F, state, dt) -> update_state(increment, state)")
+        if legacy:
+            warnings.warn(f"{cls.__name__}: the material protocol changed in core v2 ({'; '.join(legacy)}); "
+                          "the old names work for one release (docs/extending.md)", DeprecationWarning, stacklevel=2)
 
     def lame(self):
         """(lambda, mu) of the material's E and nu."""

@@ -18,7 +18,6 @@ class VolumetricFluid(ElasticMaterial):
     wave speed sqrt(E / rho)."""
 
     E: jnp.ndarray
-    density: jnp.ndarray
 
     def __init__(self, E, density=1.0):
         self.E = POSITIVE.leaf("VolumetricFluid", "E", E)
@@ -51,7 +50,6 @@ class NoStress(ElasticMaterial):
     flying disk).  Only the density is needed; the wave speed is 0, so the stable time step is set
     by the particle speed alone."""
 
-    density: jnp.ndarray
 
     def __init__(self, density=1.0):
         self.density = POSITIVE.leaf("NoStress", "density", density)

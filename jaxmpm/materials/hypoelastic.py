@@ -29,7 +29,6 @@ class HypoElastic(InelasticMaterial):
 
     E: jnp.ndarray
     nu: jnp.ndarray
-    density: jnp.ndarray
     uniaxial = True
 
     def __init__(self, E, nu=0.0, density=1.0):

@@ -23,7 +23,6 @@ class NeoHookean(ElasticMaterial):
 
     E: jnp.ndarray
     nu: jnp.ndarray
-    density: jnp.ndarray
 
     def __init__(self, E, nu=0.3, density=1.0):
         self.E = POSITIVE.leaf("NeoHookean", "E", E)

@@ -142,7 +142,7 @@ class Contact(Term):
     def touching(self, fields, m0, m1, normal, h):
         """The separation criterion: True where the materials' nodal centres of mass x^a = (S^T M X)^a / m^a
         are closer along n than ``separation`` cells, (x^1 - x^0) . n <= separation h."""
-        x0, x1 = (safe_divide(q, mass) for q, mass in zip(self.split(fields["mass_moment"]), (m0, m1)))
+        x0, x1 = (safe_divide(q, mass) for q, mass in zip(self.split(fields.values["mass_moment"]), (m0, m1)))
         return jnp.sum((x1 - x0) * normal, axis=-1) <= self.separation * h
 
     # ------------------------------------------------------------------ the contact law
@@ -216,7 +216,7 @@ class Contact(Term):
     def touching_rest(self, fields, m, normals, h):
         """The separation criterion for M materials, (M, n): material a against the rest's nodal
         centre of mass, (x^rest - x^a) . n^a <= separation h."""
-        ma, q = self.per_material(m), self.per_material(fields["mass_moment"])
+        ma, q = self.per_material(m), self.per_material(fields.values["mass_moment"])
         m_all, q_all = jnp.sum(ma, axis=0), jnp.sum(q, axis=0)
         x_own = safe_divide(q, ma)
         x_rest = safe_divide(q_all - q, m_all - ma)

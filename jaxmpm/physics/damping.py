@@ -11,7 +11,7 @@ import numpy as np
 from ..core.errors import check
 from ..core.registry import Parameter, register_term
 from ..core.validate import DAMPING, concrete
-from ..schemes.base import RateDamping, flip_energy_increment
+from ..schemes.base import ParticleDamping, RateDamping, flip_energy_increment
 from ..transfer.contractions import Weighted
 from ..transfer.operators import safe_divide
 from .term import Term
@@ -42,7 +42,7 @@ class Schedule(eqx.Module):
         return jnp.interp(t, self.times.astype(t.dtype), self.factors.astype(t.dtype))
 
 
-class Damping(Term):
+class Damping(Term, ParticleDamping):
     """Grid and particle damping alpha_g, alpha_p in 1/time (001 §5.1.2):
     A_damp = alpha_g S v + alpha_p V^n (000 eq. 2.77), subtracted in the scheme's update.
 
@@ -102,7 +102,8 @@ class Damping(Term):
         return f
 
     def acceleration(self, Sv, V):
-        """A_damp = alpha_g S v + alpha_p V^n of constant rates, velocity approach (000 eq. 2.77)."""
+        """A_damp = alpha_g S v + alpha_p V^n of constant rates, velocity approach (000 eq. 2.77):
+        such a term is itself the :class:`jaxmpm.ParticleDamping` its steps apply."""
         check(self.approach == "velocity" and not self.varies,
               "Damping.acceleration: this damping depends on the step (approach, schedule or region); "
               "its step's damping is particle_damping(sim, state, transfer, solution)")
@@ -149,6 +150,10 @@ class Damping(Term):
             m = transfer.nodal_mass
             extrapolated = safe_divide(transfer.gather(m[:, None] * solution.v), transfer.gather(m))
         return RateDamping(self.grid * f, alpha_p, extrapolated)
+
+    def at(self, state, transfer, grid):
+        """The damping of the step that starts at ``state`` (:meth:`particle_damping`)."""
+        return self.particle_damping(None, state, transfer, grid)
 
     def particle_action(self, sim, old, new, transfer, solution, dt):
         """Under ``approach="force"`` the scheme measures its dissipation (000 eq. 2.43) against a

@@ -187,4 +187,5 @@ def with_velocity_gradient(sim, state, gradient):
           f"matrix or one per particle ({state.x.shape[0]}, {d}, {d}), in the grid's coordinates")
     L = jnp.broadcast_to(L, (state.x.shape[0], d, d))
     stencil = sim.shape.stencil(sim.grid, state.x)
-    return with_scheme_state(state, sim.scheme.state_for_velocity_gradient(stencil, state, L))
+    new = sim.scheme.state_for_velocity_gradient(stencil, state, L)
+    return state if new is state.scheme_state else with_scheme_state(state, new)

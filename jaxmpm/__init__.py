@@ -3,6 +3,7 @@
 FLIP, PIC and their blend, XPIC(m), FMPM(k), APIC and TPIC as pure, jit-able, differentiable steps.
 """
 
+from .core.version import __version__  # noqa: F401
 from .core.errors import InputError, InstabilityError
 from .core.registry import (MATERIALS, SCHEMES, SHAPES, TERMS, Parameter, register_material, register_scheme,
                             register_shape, register_term, scheme_from_name, shape_from_name)
@@ -35,7 +36,6 @@ from .io.hdf5 import H5Writer, load_h5, save_h5
 from .resume import resume
 from .scenes import SCENES, scene
 
-__version__ = "0.1.0"
 
 __all__ = [
     "CalibrationResult", "PARAMETERS", "calibrate", "ensemble", "get_params", "set_params",

@@ -16,30 +16,8 @@ import math
 import sys
 import time
 
-#: command-line option -> keyword argument of the scene builders (``jaxmpm.scenes``)
-SCENE_OPTIONS = {
-    "--cells": "cells",
-    "--spacing": "spacing",
-    "--ppc": "ppc",
-    "--cfl": "cfl",
-    "--dt": "dt",
-    "--t-end": "t_end",
-    "--frames": "frames",
-    "--update": "update",
-    "--shape": "shape",
-    "--scheme": "scheme",
-    "--beta": "scheme",
-    "--alpha-g": "damping",
-    "--alpha-p": "damping",
-    "--damping-approach": "damping",
-    "--dtype": "dtype",
-    "--contact": "contact",
-    "--friction": "friction",
-    "--separation": "separation",
-    "--conductivity": "conductivity",
-    "--diffusivity": "diffusivity",
-    "--transport-xpic": "transport",
-}
+from .scenes.command import SCENE_OPTIONS, build_setup, setup_from_options  # noqa: F401  (re-exported)
+
 
 EXIT_ERROR = 2
 EXIT_SIGNAL = {"SIGINT": 130, "SIGTERM": 143}
@@ -234,7 +212,6 @@ def resume_run(args) -> int:
             fail(f"{args.file} was not written by `jaxmpm run`; resume it from Python with jm.resume(path, setup)")
         options = json.loads(info["command"])
         _with_x64(options.get("dtype", "f64"))
-        import jaxmpm as jm
 
         setup = setup_from_options(options)
     except (ValueError, KeyError) as err:  # InputError is a ValueError
@@ -247,67 +224,6 @@ def options_of(args) -> dict:
     """The scene options of a parsed ``jaxmpm run`` command line, as stored in the HDF5 file
     (attribute ``command``) for ``jaxmpm resume``."""
     return {k: v for k, v in vars(args).items() if k not in RUN_ONLY and v is not None}
-
-
-def setup_from_options(options: dict):
-    """The scene ``Setup`` of stored command-line options (see :func:`options_of`)."""
-    defaults = {_attr(option): None for option in SCENE_OPTIONS} | {"max_steps": None}
-    return build_setup(argparse.Namespace(**{**defaults, "dtype": "f64", **options}))
-
-
-def _attr(option: str) -> str:
-    """The argparse attribute of a command-line option: --t-end -> t_end."""
-    return option[2:].replace("-", "_")
-
-
-def given_options(args) -> list[str]:
-    """The scene options given on the command line (dtype always applies)."""
-    given = ["--dtype"]
-    for option in SCENE_OPTIONS:
-        if option not in given and getattr(args, _attr(option)) is not None:
-            given.append(option)
-    return given
-
-
-def build_setup(args):
-    """Scene builder keyword arguments from ``args``; an option the builder does not take is an error."""
-    import jaxmpm as jm
-    from jaxmpm.core.errors import check
-    from jaxmpm.core.registry import scheme_from_name, shape_from_name
-
-    check(args.scene in jm.SCENES,
-          f"unknown scene {args.scene!r}; choose one of {', '.join(jm.SCENES)} (see `jaxmpm scenes`)")
-    builder = jm.SCENES[args.scene][0]
-    accepted = inspect.signature(builder).parameters
-    options = given_options(args)
-    for option in options:
-        if SCENE_OPTIONS[option] not in accepted:
-            takes = sorted(o for o, k in SCENE_OPTIONS.items() if k in accepted)
-            check(False, f"option {option} does not apply to scene {args.scene!r}; it takes "
-                         f"{', '.join(takes)}")
-    # the values themselves are checked where every caller meets them: the scene builders
-    # (jaxmpm/scenes/_options.py), the damping and the scheme parsers
-    kwargs = dict(dtype=args.dtype)
-    if args.scheme is not None or args.beta is not None:
-        # the scheme's parser rejects a --beta it cannot take (pic, apic, tpic, blend:B)
-        kwargs["scheme"] = scheme_from_name("flip" if args.scheme is None else args.scheme, args.beta)
-    if args.shape is not None:
-        check(args.shape != "ugimp" or "ppc" in accepted, f"--shape ugimp needs a scene with ppc; {args.scene!r} has none")
-        ppc = args.ppc if args.ppc is not None else accepted["ppc"].default if "ppc" in accepted else None
-        kwargs["shape"] = shape_from_name(args.shape, ppc=ppc) if args.shape == "ugimp" else shape_from_name(args.shape)
-    check(args.damping_approach is None or args.alpha_g is not None,
-          f"--damping-approach {args.damping_approach} sets how grid damping acts; give its rate with --alpha-g")
-    if args.alpha_g is not None or args.alpha_p is not None:
-        kwargs["damping"] = jm.Damping(grid=args.alpha_g or 0.0, particle=args.alpha_p or 0.0,
-                                       approach=args.damping_approach or "velocity")
-    if args.transport_xpic is not None:
-        kwargs["transport"] = f"xpic:{args.transport_xpic}"  # checked by the scene (jaxmpm/_transport.py)
-    # the options passed through as they are: those named as their scene keyword (not the parts and dtype,
-    # built above)
-    for name in (k for o, k in SCENE_OPTIONS.items() if _attr(o) == k and k not in ("scheme", "shape", "dtype")):
-        if getattr(args, name) is not None:
-            kwargs[name] = getattr(args, name)
-    return jm.scene(args.scene, **kwargs)
 
 
 def totals(sim, state) -> dict:

@@ -42,7 +42,7 @@ def resume(path, model=None, state=None, *, progress: bool = False, check_stabil
     if model is None:
         check("command" in info, f"resume: {os.fspath(path)} was not written by `jaxmpm run`; pass the Setup "
                                  "(jm.scene(...)) or the Simulation and initial state that made it")
-        from .cli import setup_from_options
+        from .scenes.command import setup_from_options
 
         model = setup_from_options(json.loads(info["command"]))
     if hasattr(model, "sim") and hasattr(model, "dt"):  # a scene's Setup

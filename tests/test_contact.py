@@ -182,7 +182,7 @@ def _mass_gradients(sim, state):
     return np.asarray(fields.values["mass_gradient"]), np.concatenate(g), np.asarray(fields.transfer.nodal_mass)
 
 
-@pytest.mark.parametrize("normal", ["average", "first"])
+@pytest.mark.parametrize("normal", ["average", "first", "max_gradient"])
 def test_contact_normal_1d(normal):
     """Material 0 on [0.5, 1), material 1 on [1, 1.5) (quadratic B-splines: three contact nodes,
     0.9, 1.0, 1.1): g^0 points out of material 0 (+x), g^1 out of material 1 (-x), the normal
@@ -205,13 +205,13 @@ def test_contact_normal_1d(normal):
     np.testing.assert_allclose(nrm[contact], 1.0, rtol=1e-14)
 
 
-@pytest.mark.parametrize("normal", ["average", "first"])
+@pytest.mark.parametrize("normal", ["average", "first", "max_gradient"])
 def test_contact_normal_2d(normal):
     """Two 2D configurations on h = 0.1, quadratic B-splines: a flat interface y = 0.5 (material 0
     below) and a tilted one x + y = 2 (material 0 below-left, a 1.6 x 1.6 box cut along its
     diagonal).  On the contact nodes whose stencil sees the interface only (not the bodies' free
-    edges) the normal is (0, 1), resp. (1, 1)/sqrt 2, to round-off, with both options; g^0 points
-    out of material 0 on them."""
+    edges) the normal is (0, 1), resp. (1, 1)/sqrt 2, to round-off, with every gradient option; g^0
+    points out of material 0 on them."""
     shape = jm.QuadraticBSpline()
     # flat interface
     grid = jm.Grid((0.0, 0.0), (1.0, 1.0), (10, 10))
@@ -490,6 +490,86 @@ def test_gradient_through_coulomb_sliding():
     # notebook 05 on the `slide` scene (tests/test_notebooks.py runs it)
 
 
+def random_gradients(seed=5, n=40):
+    """Mass gradients of two materials on n 2D nodes: random, with exact ties |g^0| = |g^1| (nodes
+    0-4, g^1 a rotation of g^0), zero gradients (nodes 5-7: g^0 = 0; 8-9: both) and masses."""
+    rng = np.random.default_rng(seed)
+    g0, g1 = rng.normal(size=(n, 2)), rng.normal(size=(n, 2))
+    g1[:5] = g0[:5, ::-1] * np.array([1.0, -1.0])
+    g0[5:10] = 0.0
+    g1[8:10] = 0.0
+    m = rng.uniform(0.5, 2.0, (2, n))
+    return g0, g1, m
+
+
+def test_max_gradient_normal_closed_form():
+    """normal="max_gradient" (NairnMPM's maxgrad; Nairn contact notes eq. 3.3): n = g^0/|g^0| if
+    |g^0| >= |g^1| (ties: material 0), else -g^1/|g^1|; 0 where the chosen gradient is 0.  The
+    M-material path with two materials gives (n, -n) bit for bit, so the changes cancel exactly."""
+    g0, g1, m = random_gradients()
+    contact = jm.Contact(law="coulomb", friction=0.3, normal="max_gradient")
+    n = np.asarray(contact.contact_normal(jnp.asarray(np.concatenate([g0, g1]))))
+    unit = lambda u: u / np.maximum(np.linalg.norm(u, axis=-1, keepdims=True), 1e-300)  # noqa: E731
+    own = np.sum(g0 * g0, -1) >= np.sum(g1 * g1, -1)
+    np.testing.assert_allclose(n, np.where(own[:, None], unit(g0), -unit(g1)), rtol=1e-15, atol=1e-15)
+    assert np.all(own[:5]) and np.all(~own[5:8]) and np.all(n[8:10] == 0.0)
+    np.testing.assert_allclose(np.linalg.norm(n[:8], axis=-1), 1.0, rtol=1e-15)
+    stacked = jnp.asarray(np.concatenate([g0, g1]))
+    pair = np.asarray(contact.material_normals(stacked, jnp.asarray(m.reshape(-1))))
+    np.testing.assert_array_equal(pair[0], n)
+    np.testing.assert_array_equal(pair[1], -n)
+
+
+@pytest.mark.parametrize("normal", ["first", "max_gradient", "average", (0.6, 0.8)])
+def test_normals_are_antisymmetric_and_nan_safe(normal):
+    """Every option: the two-material normal and the M-material one for M = 2 agree, n^1 = -n^0
+    (bit for bit except "average", whose M-material form 2 g^a - sum_b g^b rounds differently),
+    the changes of the law sum to zero on every node, and reverse-mode derivatives through the
+    normals are finite where gradients vanish or tie (the _safe_unit/_safe_norm guards)."""
+    g0, g1, m = random_gradients()
+    contact = jm.Contact(law="coulomb", friction=0.3, normal=normal)
+    grad_m, mass = jnp.asarray(np.concatenate([g0, g1])), jnp.asarray(m.reshape(-1))
+    n = np.asarray(contact.contact_normal(grad_m))
+    pair = np.asarray(contact.material_normals(grad_m, mass))
+    if normal == "average":
+        np.testing.assert_allclose(pair[0], n, rtol=0, atol=1e-15)
+        np.testing.assert_allclose(pair[1], -n, rtol=0, atol=1e-15)
+    else:
+        np.testing.assert_array_equal(pair[0], n)
+        np.testing.assert_array_equal(pair[1], -n)
+    if isinstance(normal, tuple):
+        np.testing.assert_array_equal(n, np.broadcast_to(normal, n.shape))
+    p = jnp.asarray(np.random.default_rng(6).normal(size=(2 * len(g0), 2)))
+    _, change = contact.apply(p, mass, jnp.asarray(n))
+    np.testing.assert_allclose(np.asarray(change)[:len(g0)] + np.asarray(change)[len(g0):], 0.0, atol=1e-15)
+
+    def loss(g):
+        p1, _ = contact.apply(p, mass, contact.contact_normal(g))
+        p3, _ = contact.apply(p, mass, contact.material_normals(g, mass)[0])
+        return jnp.sum(p1 ** 2) + jnp.sum(p3 ** 2)
+
+    d = np.asarray(jax.grad(loss)(grad_m))
+    assert np.all(np.isfinite(d))
+
+
+def test_specified_normal():
+    """normal= a vector (NairnMPM's "specify", Nairn contact notes §3.3): made unit, the same on
+    every node from material 0 into material 1; with M materials +n for the lowest-numbered
+    material present on the node and -n for the others; its dimension must be the grid's."""
+    contact = jm.Contact(normal=(0, 2), materials=3)
+    assert contact.normal == (0.0, 1.0)
+    m, _, g = three_material_nodes()
+    stacked = lambda a: jnp.asarray(a.reshape((-1,) + a.shape[2:]))  # noqa: E731
+    normals = np.asarray(contact.material_normals(stacked(g), stacked(m)))
+    sign = np.array([[1, 1, 1, 1, 1, 0], [-1, -1, -1, -1, 0, 1], [-1, -1, -1, 0, -1, 0]], float)
+    for a in range(3):
+        present = m[a] > 0
+        np.testing.assert_array_equal(normals[a, present], sign[a, present, None] * np.array([0.0, 1.0]))
+    with pytest.raises(jm.InputError, match="normal"):
+        jm.Contact(normal=(0.0, 0.0, 1.0)).contact_normal(jnp.zeros((4, 2)))
+    assert jm.scene("slide", normal=[0, 3], t_end=1e-3, frames=1).sim.term(jm.Contact).normal == (0.0, 1.0)
+
+
 # ------------------------------------------------------------ more than two materials
 
 
@@ -505,7 +585,7 @@ def three_material_nodes():
 
 
 @pytest.mark.parametrize("law, mu", [("stick", 0.0), ("frictionless", 0.0), ("coulomb", 0.4)])
-@pytest.mark.parametrize("normal", ["average", "first"])
+@pytest.mark.parametrize("normal", ["average", "first", "max_gradient", (0.6, 0.8)])
 def test_three_materials_each_against_the_rest(law, mu, normal):
     """M = 3: sum_a Dp^a = 0 on every node (000 eq. 4.12); stick moves every material with the
     centre-of-mass velocity; on a node with only two materials the result is the two-material
@@ -586,6 +666,10 @@ def test_three_bars_pass_the_momentum_on():
     (dict(law="frictionless", friction=0.2), "friction"),
     (dict(law="stick", friction=0.2), "friction"),
     (dict(normal="x"), "normal"),
+    (dict(normal=(0.0, 0.0)), "normal"),
+    (dict(normal=(float("nan"), 1.0)), "normal"),
+    (dict(normal=1.0), "normal"),
+    (dict(normal=(1.0, 0.0, 0.0, 0.0)), "normal"),
     (dict(materials=1), "materials"),
     (dict(materials=0), "materials"),
 ])

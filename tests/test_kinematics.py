@@ -97,11 +97,12 @@ def test_hypoelastic_builds_no_stress_under_rotation_and_total_strain_does():
     LinearElastic's total strain sym F - I = (cos theta - 1) I = -2 I at theta = 180 gives the
     compressive stress tau_xx = -4 (lambda + mu) = -384.6 for E = 100, nu = 0.3."""
     hypo = jm.HypoElastic(E=100.0, nu=0.3)
-    state = {"stress": jnp.zeros((1, 2, 2)), "F": jnp.eye(2)[None]}
+    state = {"stress": jnp.zeros((1, 2, 2))}
     F = np.eye(2)
     for _ in range(60):
-        F = rotation(np.radians(3.0)) @ F
-        state = hypo.update_state(jnp.asarray(F[None]), state, 0.01)
+        dF = rotation(np.radians(3.0))
+        F = dF @ F
+        state = hypo.update_state(increment(dF, F), state)
     np.testing.assert_allclose(np.asarray(state["stress"]), 0.0, atol=1e-12)
     tau = np.asarray(jm.LinearElastic(E=100.0, nu=0.3).kirchhoff_stress(jnp.asarray(F[None])))
     lam, mu = 100.0 * 0.3 / (1.3 * 0.4), 100.0 / 2.6
@@ -113,17 +114,26 @@ def test_hypoelastic_rotates_a_preloaded_stress_and_agrees_with_small_strain():
     round-off (the Hughes-Winget rotation is orthogonal); a small uniaxial stretch of 1e-4 in ten
     increments gives LinearElastic's stress to O(eps^2) (measured relative 1e-4)."""
     hypo = jm.HypoElastic(E=100.0, nu=0.3)
-    state = {"stress": jnp.asarray([[[1.0, 0.0], [0.0, 0.0]]]), "F": jnp.eye(2)[None]}
+    state = {"stress": jnp.asarray([[[1.0, 0.0], [0.0, 0.0]]])}
     F = np.eye(2)
     for _ in range(30):
-        F = rotation(np.radians(5.0)) @ F
-        state = hypo.update_state(jnp.asarray(F[None]), state, 0.01)
+        dF = rotation(np.radians(5.0))
+        F = dF @ F
+        state = hypo.update_state(increment(dF, F), state)
     np.testing.assert_allclose(np.linalg.eigvalsh(np.asarray(state["stress"])[0]), [0.0, 1.0], atol=1e-13)
-    state = {"stress": jnp.zeros((1, 2, 2)), "F": jnp.eye(2)[None]}
+    state = {"stress": jnp.zeros((1, 2, 2))}
+    F = np.eye(2)
     for k in range(1, 11):
-        state = hypo.update_state(jnp.asarray(np.diag([1.0 + 1e-5 * k, 1.0])[None]), state, 0.01)
+        F_new = np.diag([1.0 + 1e-5 * k, 1.0])
+        state = hypo.update_state(increment(F_new @ np.linalg.inv(F), F_new), state)
+        F = F_new
     total = np.asarray(jm.LinearElastic(E=100.0, nu=0.3).kirchhoff_stress(jnp.asarray(np.diag([1.0001, 1.0])[None])))
     np.testing.assert_allclose(np.asarray(state["stress"]), total, rtol=2e-4, atol=1e-12)
+
+
+def increment(dF, F, dt=0.01):
+    """The strain update's increment a material receives (jm.Increment): dF, the F after it, dt."""
+    return jm.Increment(jnp.asarray(dF[None]), jnp.asarray(F[None]), jnp.asarray(dt))
 
 
 def spin_with(material):

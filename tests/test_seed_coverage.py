@@ -410,19 +410,20 @@ def test_prescribed_nodes_carry_their_particles():
     assert np.abs(X - X[0] - u * t[:, None]).max() <= 1e-12 * u * t[-1]
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "FLIP particles inside a Prescribed region keep their old velocity: jm.grid_solve imposes the "
-    "condition on v and zeroes a there, so V += S a dt adds nothing, while 003 "
-    "eqs. 2.42 and 2.51 apply the condition as a force on the unconstrained p + f dt, "
-    "a_i = (g_i - v+_i)/dt, which FLIP's increment would carry. Measured: V stays 0 while X moves "
-    "at u = 0.05; the momentum misses rho u (2h) = 0.025."))
 def test_prescribed_nodes_set_flip_particle_velocity():
     """003 eq. (2.51) (lumped mass): the velocity condition is a nodal force
     f_i dt = m_i g_i - p+_i on the unconstrained updated momentum p+ = p + f dt, so on the first
-    step from rest (p = 0, F = I so f = 0) a_i = g_i / dt on the prescribed nodes, and a FLIP
-    particle whose stencil lies on them gets V^1 = sum_i S_pi g_i = u exactly."""
+    step from rest (p = 0, F = I so f = 0) the prescribed nodes' momentum changes by m_i g_i, and
+    a FLIP particle whose stencil lies on them gets V^1 = sum_i S_pi g_i = u exactly: jm.Prescribed
+    hands the particles the nodal velocity change g - p/m (``impulse=True``, the default).  Until
+    core v2 (issue 27) V stayed 0 while X moved at u, and the momentum missed rho u (2h) = 0.025;
+    ``impulse=False`` keeps that convention (checked here too)."""
     u = _PISTON["u"]
     sim, state, _, driven = piston_run("flip", jm.FLIP())
-    first = one_step(sim, state, 0.1 * _PISTON["h"] / math.sqrt(_PISTON["E"] / _PISTON["rho"]))
+    dt = 0.1 * _PISTON["h"] / math.sqrt(_PISTON["E"] / _PISTON["rho"])
+    first = one_step(sim, state, dt)
     V = np.asarray(first.v)[driven, 0]
     assert np.abs(V - u).max() <= 1e-12 * u
+    held = eqx.tree_at(lambda s: s.boundary, sim, tuple(
+        eqx.tree_at(lambda c: c.impulse, c, False) if isinstance(c, jm.Prescribed) else c for c in sim.boundary))
+    assert np.all(np.asarray(one_step(held, state, dt).v)[driven, 0] == 0.0)

@@ -4,6 +4,11 @@
 reads them.  The names come from the registry (``jaxmpm.core.registry``): every registered scheme,
 material, shape and term declares its parameters, each a path to an array leaf, so ``jax.grad``
 and ``jax.vmap`` reach it.  :data:`PARAMETERS` lists them all.
+
+Names are scoped by the part that owns them: ``"material.E"``, ``"contact.friction"``,
+``"damping.alpha_g"`` (terms by their registered name).  The bare name (``E``, ``friction``) works
+wherever one part of the model has it; where two do (a material's and the contact's friction),
+the bare name is an error that names the scoped ones: ``set_params(sim, **{"contact.friction": 0.3})``.
 """
 
 from __future__ import annotations
@@ -14,7 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .errors import check
-from .registry import TERMS, all_parameters, owner_registry, sim_parameters
+from .registry import TERMS, all_parameters, owner_registry, resolve_parameter
 from .validate import fail, traced
 
 
@@ -40,7 +45,7 @@ def _with_owner(sim, name):
     """``sim`` itself, or -- when ``name`` belongs to a term the model does not have, e.g. damping
     in a model built with ``damping=False`` -- a copy with that term added at its neutral
     default, so that the parameter can be read, set and differentiated."""
-    if name in sim_parameters(sim):
+    if resolve_parameter(sim, name) is not None:
         return sim
     owner = owner_registry(name)
     if owner is not None and owner[0] is TERMS:
@@ -54,11 +59,15 @@ def _with_owner(sim, name):
 
 def _where(sim, name):
     known = all_parameters()
-    check(name in known, f"unknown parameter {name!r}; choose one of {', '.join(known)}")
-    present = sim_parameters(sim)
-    check(name in present, f"parameter {name!r} does not exist for scheme {type(sim.scheme).__name__} / "
-                           f"material {type(sim.material).__name__}; this model has {', '.join(present)}")
-    return present[name][0]
+    check(name in known, f"unknown parameter {name!r}; choose one of {', '.join(k for k in known if '.' not in k)} "
+                         "(or scoped, e.g. 'material.E')")
+    found = resolve_parameter(sim, name)
+    if found is None:
+        from ..core.registry import sim_parameters
+
+        check(False, f"parameter {name!r} does not exist for scheme {type(sim.scheme).__name__} / "
+                     f"material {type(sim.material).__name__}; this model has {', '.join(sim_parameters(sim))}")
+    return found[0]
 
 
 def get_params(sim, *names) -> dict:
@@ -76,7 +85,7 @@ def check_value(sim, name, value, owner: str = "set_params", label: str | None =
     shape of the model's leaf.  A traced value passes unchecked."""
     if traced(value):
         return
-    where, p = sim_parameters(sim)[name]
+    where, p = resolve_parameter(sim, name)
     p.check(owner, value, label or name)
     old_shape = np.shape(where(sim))
     if old_shape and np.shape(value) not in ((), old_shape):
@@ -98,7 +107,9 @@ def set_params(sim, **values):
     return sim
 
 
-def default_bounds(name):
-    """The calibration bounds a registered parameter declares (None if unknown or unbounded)."""
-    p = all_parameters().get(name)
+def default_bounds(name, sim=None):
+    """The calibration bounds a registered parameter declares (None if unknown or unbounded); with
+    ``sim``, of the part of that model the name resolves to."""
+    found = None if sim is None else resolve_parameter(sim, name)
+    p = found[1] if found is not None else all_parameters().get(name)
     return None if p is None else p.bounds

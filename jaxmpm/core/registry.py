@@ -22,8 +22,9 @@ from .validate import as_range
 
 @dataclasses.dataclass(frozen=True)
 class Parameter:
-    """A float parameter of a registered part: ``name`` (unique across the library: it is the
-    keyword of :func:`jaxmpm.set_params`), ``get(part)`` the array leaf it names, a one-line
+    """A float parameter of a registered part: ``name`` (the keyword of :func:`jaxmpm.set_params`;
+    scoped by its part, ``"contact.friction"``, where two parts of a model share it), ``get(part)``
+    the array leaf it names, a one-line
     ``doc``, the calibration ``bounds`` (None, ``"positive"`` or ``(lower, upper)``) and the
     validity range ``valid`` that :func:`jaxmpm.set_params` and :func:`jaxmpm.ensemble` check
     concrete values against: a ``jaxmpm.core.validate.Range``, ``"finite"`` (the default),
@@ -72,12 +73,8 @@ class Registry:
         check(isinstance(cls, type), f"register_{self.kind}: {cls!r} is not a class")
         for p in parameters:
             check(isinstance(p, Parameter), f"register_{self.kind}: parameters must be jm.Parameter, got {p!r}")
-            for reg in REGISTRIES.values():
-                for other in reg._entries.values():
-                    clash = any(q.name == p.name for q in other.parameters)
-                    check(not clash or reg is self,
-                          f"register_{self.kind}: parameter {p.name!r} already belongs to {reg.kind} {other.name!r}; "
-                          "choose another name")
+            check(isinstance(p.name, str) and p.name.isidentifier(),
+                  f"register_{self.kind}: parameter name {p.name!r} must be an identifier (it is a keyword)")
         self._entries[name] = Entry(name, cls, parse, spec or name, doc or (cls.__doc__ or "").strip().split("\n")[0],
                                     tuple(parameters))
         return cls
@@ -189,28 +186,67 @@ def parts_of(sim):
     return out
 
 
-def sim_parameters(sim) -> dict:
-    """{name: (where(sim) -> leaf, Parameter)} for the parameters the parts of ``sim`` have."""
+def scope_of(reg, part) -> str:
+    """The scope of a part's parameters: "scheme", "shape", "material", or a term's registered
+    name ("damping", "contact", "heat", ...)."""
+    return reg.name_of(part) if reg is TERMS else reg.kind
+
+
+def scoped_parameters(sim) -> dict:
+    """{"scope.name": (where(sim) -> leaf, Parameter)} for every parameter of the parts of ``sim``."""
     out = {}
     for reg, part in parts_of(sim):
+        cls = type(part)
         for p in reg.parameters_of(part):
-            cls = type(part)
-            out[p.name] = (lambda s, p=p, reg=reg, cls=cls: p.get(reg.owner(s, cls)), p)
+            out[f"{scope_of(reg, part)}.{p.name}"] = (lambda s, p=p, reg=reg, cls=cls: p.get(reg.owner(s, cls)), p)
     return out
 
 
+def sim_parameters(sim) -> dict:
+    """{name: (where(sim) -> leaf, Parameter)} for the parameters the parts of ``sim`` have, by
+    the name they are set by: the bare name (``beta``, ``E``, ``friction``) where one part of the
+    model has it, else the scoped name (``material.friction``, ``contact.friction``)."""
+    scoped = scoped_parameters(sim)
+    counts = {}
+    for key in scoped:
+        counts[key.split(".", 1)[1]] = counts.get(key.split(".", 1)[1], 0) + 1
+    return {(key.split(".", 1)[1] if counts[key.split(".", 1)[1]] == 1 else key): value
+            for key, value in scoped.items()}
+
+
+def resolve_parameter(sim, name: str):
+    """(where(sim) -> leaf, Parameter) of ``name`` in ``sim``: a scoped name "scope.name" or a bare
+    name that one part of the model has.  None if the model has no such parameter; an ambiguous
+    bare name raises, naming the scoped ones."""
+    scoped = scoped_parameters(sim)
+    if name in scoped:
+        return scoped[name]
+    matches = [key for key in scoped if key.split(".", 1)[1] == name]
+    check(len(matches) <= 1, f"parameter {name!r} belongs to several parts of this model; name one: "
+                             f"{', '.join(matches)}")
+    return scoped[matches[0]] if matches else None
+
+
 def all_parameters() -> dict:
-    """{name: Parameter} over every registered part."""
+    """{name: Parameter} over every registered part, by bare name (the first registration of a
+    name shared by parts of different kinds) and by scoped name ("kind.name", terms by their
+    registered name)."""
     out = {}
     for reg in REGISTRIES.values():
-        out.update(reg.all_parameters())
+        for e in reg._entries.values():
+            for p in e.parameters:
+                out.setdefault(p.name, p)
+                out[f"{e.name if reg is TERMS else reg.kind}.{p.name}"] = p
     return out
 
 
 def owner_registry(name: str):
-    """(registry, Parameter, classes) of a registered parameter name, or None."""
+    """(registry, Parameter, classes) of a registered parameter name (bare or scoped), or None."""
+    scope, _, bare = name.rpartition(".")
     for reg in REGISTRIES.values():
-        classes = [e.cls for e in reg._entries.values() if any(p.name == name for p in e.parameters)]
+        classes = [e.cls for e in reg._entries.values() if any(p.name == bare for p in e.parameters)
+                   and (not scope or scope == (e.name if reg is TERMS else reg.kind))]
         if classes:
-            return reg, reg.all_parameters()[name], classes
+            p = next(q for e in reg._entries.values() if e.cls is classes[0] for q in e.parameters if q.name == bare)
+            return reg, p, classes
     return None

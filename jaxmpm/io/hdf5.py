@@ -41,7 +41,7 @@ _SERIES = {
 
 def run_attributes(sim, dt=None, scene: str | None = None, params: dict | None = None, ppc=None) -> dict:
     """The root attributes of docs/design.md for a simulation."""
-    from .. import __version__
+    from ..core.version import __version__
 
     from ..core.registry import sim_parameters
 
@@ -51,10 +51,8 @@ def run_attributes(sim, dt=None, scene: str | None = None, params: dict | None =
         "scheme": type(scheme).__name__,
         "order": int(getattr(scheme, "order", 1)),
         "beta": float(np.asarray(getattr(scheme, "beta", np.nan))),
-        "alpha_g": 0.0 if sim.damping is None else float(np.asarray(sim.damping.grid)),
-        "alpha_p": 0.0 if sim.damping is None else float(np.asarray(sim.damping.particle)),
-        "damping approach": "velocity" if sim.damping is None else sim.damping.approach,
-        "damping varies": int(sim.damping is not None and sim.damping.varies),  # a schedule or region scales the rates
+        # the layout's damping attributes for a model without damping; a damping term's own below
+        "alpha_g": 0.0, "alpha_p": 0.0, "damping approach": "velocity", "damping varies": 0,
         "shape": type(sim.shape).__name__,
         "update": sim.update,
         "dt": float(np.asarray(dt)) if dt is not None else np.nan,
@@ -66,6 +64,8 @@ def run_attributes(sim, dt=None, scene: str | None = None, params: dict | None =
         "jaxmpm version": __version__,
         "scene parameters": json.dumps(params or {}, default=float),
     }
+    for term in sim.terms:  # the terms' descriptive attributes (Term.attributes)
+        attrs.update(term.attributes())
     for name, (where, _) in sim_parameters(sim).items():  # the registered float parameters present
         value = np.asarray(where(sim))
         if np.issubdtype(value.dtype, np.floating):

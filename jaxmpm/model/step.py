@@ -45,7 +45,7 @@ from ..transfer.operators import Transfer, gather, p2g as scatter_quantities, sa
 # the lumped grid quantities a part may need apart ("grid_reads"); P2G folds p and f otherwise
 LUMPED = frozenset({"v", "a", "momentum", "force"})
 # the grid solution's own names: the phases' results may not take them
-SOLUTION_NAMES = ("v", "a", "v_tilde", "v_tilde_unconstrained")
+SOLUTION_NAMES = ("v", "a", "v_tilde", "v_tilde_unconstrained", "condition_dv")
 
 
 def folds_force(sim) -> bool:
@@ -178,10 +178,13 @@ def impose_conditions(fields: GridFields, dt, constraint) -> GridSolution:
     unconstrained = v_lumped + a_lumped * dt
     if constraint.wall is not None:  # one-sided walls act on v_tilde, as contact (jm.Wall)
         v, a, v_tilde = constraint.contact(constraint.apply_two_sided(v_lumped), constraint.zero(a_lumped), dt)
-        return GridSolution(v=v, a=a, v_tilde=v_tilde, v_tilde_unconstrained=unconstrained)
-    v = constraint.apply(v_lumped)
-    a = constraint.zero(a_lumped)
-    return GridSolution(v=v, a=a, v_tilde=constraint.apply(v + a * dt), v_tilde_unconstrained=unconstrained)
+    else:
+        v = constraint.apply(v_lumped)
+        a = constraint.zero(a_lumped)
+        v_tilde = constraint.apply(v + a * dt)
+    solution = GridSolution(v=v, a=a, v_tilde=v_tilde, v_tilde_unconstrained=unconstrained)
+    impulse = constraint.particle_impulse(v, v_lumped, m)  # jm.Prescribed drives the particles
+    return solution if impulse is None else GridSolution({**solution.values, "condition_dv": impulse})
 
 
 def grid_solve(fields: GridFields, force, dt, constraint) -> GridSolution:
@@ -300,7 +303,10 @@ def g2p(sim, state, transfer: Transfer, constraint, grid: GridSolution, dt, fiel
     ``fields`` (the step's P2G fields) is needed by MUSL/USAVG+ when velocity fields exchange
     momentum (the exchange of the re-extrapolated momenta)."""
     damping = combine_damping(term.particle_damping(sim, state, transfer, grid) for term in sim.terms)
-    upd = sim.scheme.update(state.v, state.x, transfer, constraint, grid, damping, dt)
+    V = state.v
+    if "condition_dv" in grid:  # the conditions' impulse on the particles (jm.Prescribed(impulse=True))
+        V = V + transfer.gather(grid["condition_dv"])
+    upd = sim.scheme.update(V, state.x, transfer, constraint, grid, damping, dt)
     scheme_state = sim.scheme.next_state(state, upd, transfer, grid)
     F, dF = state.F, None
     if sim.update in ("USL", "USAVG-"):  # USL-: the velocity the update just used (USAVG-: for dt/2)

@@ -161,7 +161,8 @@ class Constraint(eqx.Module):
     """Constrained components ``mask`` (n, D) and their prescribed ``value`` (n, D); ``wall``
     (n, D) holds the outward normal sign (-1, 0, +1) of one-sided walls, or None without walls;
     ``normal`` (n, D) the unit normal of inclined slip planes on their nodes (0 elsewhere), or None;
-    ``mirror`` the symmetry planes' images (:class:`MirrorMap`), or None."""
+    ``mirror`` the symmetry planes' images (:class:`MirrorMap`), or None; ``impulse`` (n, D) the
+    components whose change the particles take as an impulse (``Prescribed(impulse=True)``), or None."""
 
     mask: jnp.ndarray
     value: jnp.ndarray
@@ -170,6 +171,14 @@ class Constraint(eqx.Module):
     inhomogeneous: bool = eqx.field(static=True, default=False)
     normal: jnp.ndarray | None = None
     mirror: MirrorMap | None = None
+    impulse: jnp.ndarray | None = None
+
+    def particle_impulse(self, v, v_free, mass):
+        """The nodal velocity change the particles take at the start of the step, v - v_free on the
+        ``impulse`` components of nodes with mass (``Prescribed``), or None without such components."""
+        if self.impulse is None:
+            return None
+        return jnp.where(self.impulse & (mass > 0)[:, None], v - v_free, 0.0)
 
     def apply(self, u):
         """Impose the prescribed velocities: u <- value on constrained components; then, with
@@ -216,7 +225,8 @@ class Constraint(eqx.Module):
         check(self.mirror is None, "Mirror: symmetry planes act on one velocity field; they do not combine with "
                                    "jm.Contact (multimaterial mode) yet")
         rep = lambda a: None if a is None else jnp.tile(a, (copies, 1))  # noqa: E731
-        return Constraint(rep(self.mask), rep(self.value), rep(self.wall), self.inhomogeneous, rep(self.normal))
+        return Constraint(rep(self.mask), rep(self.value), rep(self.wall), self.inhomogeneous, rep(self.normal),
+                          impulse=rep(self.impulse))
 
     def zero(self, u):
         """Impose the homogeneous conditions: constrained components set to zero (inclined slip:
@@ -301,20 +311,35 @@ class Slip(eqx.Module):
 
 
 class Prescribed(eqx.Module):
-    """Prescribed velocity on the selected nodes; ``components`` picks which axes (default all)."""
+    """Prescribed velocity on the selected nodes; ``axes`` picks which components (default all).
+
+    ``impulse`` (default True): the condition drives the particles.  The change it makes to the
+    nodal velocity at the start of the step, g - p/m (003 §2.1.1, "change nodal momenta to match
+    velocity boundary conditions", i.e. the momentum m (g - p/m) on the node), is given back to the
+    particles in proportion to their mass share of the node, V_p^n <- V_p^n + sum_i S_pi (g_i - v_i)
+    (the particles' momentum change is the nodal one exactly), before the scheme's update.  So a
+    FLIP particle on prescribed nodes takes the prescribed velocity (003 eqs. 2.42, 2.51 make the
+    condition a force on the updated momentum, which FLIP's increment must carry), and PIC-like
+    updates are unchanged (they read only the grid).  ``impulse=False``: the grid alone holds the
+    velocity, as a jm.Fixed node holds zero (FLIP particles on the nodes keep their own velocity;
+    the convention before core v2)."""
 
     where: Selector = eqx.field(static=True)
     velocity: jnp.ndarray
     axes: tuple | None = eqx.field(static=True, default=None)
     layers: int = eqx.field(static=True, default=1)
+    impulse: bool = eqx.field(static=True, default=True)
 
-    def __init__(self, where, velocity, axes=None, layers: int = 1):
+    def __init__(self, where, velocity, axes=None, layers: int = 1, impulse: bool = True):
         self.where = where
         # an array leaf: jax.grad reaches a wall velocity, and jit does not recompile for a new one
         FINITE.check("Prescribed", "velocity", velocity)
         self.velocity = jnp.atleast_1d(jnp.asarray(velocity, dtype=float))
         self.axes = None if axes is None else tuple(int(a) for a in axes)
         self.layers = layers
+        check(isinstance(impulse, bool), f"Prescribed: impulse = {impulse!r}; use True (the particles take the "
+                                         "prescribed velocity) or False (only the grid holds it)")
+        self.impulse = impulse
 
     def components(self, grid: Grid):
         sel = _select(grid, self.where, self.layers)
@@ -409,16 +434,19 @@ def build_constraint(grid: Grid, conditions, dtype) -> Constraint:
         for w in walls:
             n = w.normal(grid)
             wall = np.where(n != 0, n, wall)
+    impulse = np.zeros((grid.num_nodes, grid.dim), dtype=bool)
     for cond in conditions:
         m, v = cond.components(grid)
         mask = mask | m
         value = jnp.where(m, 0.0 if v is None else v.astype(dtype), value)
+        impulse = np.where(m, getattr(cond, "impulse", False), impulse)  # later conditions win
     inhomogeneous = any(isinstance(c, Prescribed) for c in conditions)
     mirror = MirrorMap(tuple((axis, _Indices(g), _Indices(m), _Indices(p)) for axis, g, m, p in mirrors)) \
         if mirrors else None
     return Constraint(mask=jnp.asarray(mask), value=value,
                       wall=jnp.asarray(wall, dtype) if walls else None, inhomogeneous=inhomogeneous,
-                      normal=None if normal is None else jnp.asarray(normal, dtype), mirror=mirror)
+                      normal=None if normal is None else jnp.asarray(normal, dtype), mirror=mirror,
+                      impulse=jnp.asarray(impulse) if impulse.any() else None)
 
 
 def as_conditions(boundary, grid: Grid | None = None) -> tuple:

@@ -26,10 +26,50 @@ Dp(0) = Dp_n n + Dp_t, the laws are (003 eq. 3.9 with k_i t_i the allowed tangen
 * ``"coulomb"``       where approaching: stick if |Dp_t| <= mu |Dp_n|, else
                       Dp = Dp_n n + mu |Dp_n| Dp_t / |Dp_t| (sliding with friction mu).
 
-The normal comes from the material mass gradients g^a_i = sum_p M_p G_pi (000 §4.2).  G_pi is the
-gradient of S_i at the particle, so g^a points out of material a (a particle on the -x side of
-node i has G_pi > 0).  ``normal="first"`` uses material 0's, n = g^0 / |g^0|; ``normal="average"``
-(default) uses both, n = (g^0 - g^1) / |g^0 - g^1| -- symmetric in the two materials.
+**Normals.**  One normal n per node for the pair, from material 0 into material 1 (material 1
+uses -n), so the two changes are equal and opposite and momentum is conserved (Nairn contact notes
+§3.2: normals found per material that are not equal and opposite do not conserve it).  The
+gradient options use the material mass gradients g^a_i = sum_p M_p G_pi.  G_pi is the gradient of
+S_i at the particle, so g^a points out of material a (a particle on the -x side of node i has
+G_pi > 0).  NairnMPM extrapolates volume gradients sum_p V_p G_pi instead (notes §3.2, for bodies
+of different densities); the two agree for bodies of one density.  ``normal=``
+
+* ``"first"`` (default): material 0's, n = g^0 / |g^0| (notes eq. 3.1 for material 0) -- body 0
+  is the reference ("master") surface: exact where body 0 is flat, so number the flat (or flatter)
+  body 0;
+* ``"max_gradient"``: the material whose gradient is larger on the node, n = g^0 / |g^0| if
+  |g^0| >= |g^1|, else -g^1 / |g^1| (NairnMPM's "maxgrad", notes eq. 3.3) -- independent of the
+  numbering (up to exact ties, which go to material 0);
+* ``"average"``: n = (g^0 - g^1) / |g^0 - g^1| (NairnMPM's "avggrad", notes eq. 3.2, which adds
+  material 0's gradient to material 1's taken towards 1) -- symmetric in the two materials;
+* a vector, e.g. ``normal=(0.0, 1.0)``: that unit vector on every node, from material 0 into
+  material 1 (NairnMPM's "specify", notes §3.3), for contact surfaces of one known orientation.
+
+Near a corner of one body on the face of the other, the gradient of the cornered body tilts (its
+free face adds to it), and a tilted normal counts tangential sliding as approach: the bodies
+plough.  Measured on a block launched at 1 m/s along a flat slab (the ``slide`` scene with
+``theta=0, speed=1``, mu = 0.2, gravity ramped over 0.05 s, FLIP, uGIMP; deceleration / mu g at
+t = 0.15; tests/test_contact_scenes.py runs h = 1/32):
+
+======================  ======  ======  ======  ========  ========
+h                       1/32    1/40    1/48    1/56      1/64
+======================  ======  ======  ======  ========  ========
+"first" (slab = 0)      0.9974  0.9982  1.0025  1.0052    0.9975
+"max_gradient"          0.9972  0.9979  1.0026  unstable  unstable
+"average"               1.446   1.361   1.334   2.151     1.778
+======================  ======  ======  ======  ========  ========
+
+With g = 0 (no normal load) "first", "max_gradient" and the specified (0, 1) leave the block's
+velocity unchanged to round-off; "average" brakes it at 1.75 m/s^2 and lifts it at 0.19 m/s
+(h = 1/32, t = 0.05).  "max_gradient" works where the slab's top lies on a node line (1/32, 1/40,
+1/48) and fails where it lies half a cell off (1/56, 1/64): on the node row half a cell above the
+slab, the block's gradient (its bottom and front faces together) outgrows the slab's tail and the
+block's tilted normal wins.  "first" depends on the numbering: with the block numbered 0 it brakes
+at 4.06 mu g (1/32) and goes unstable (1/64).  No rule on g^0 and g^1 alone tells a flat face from
+a corner; NairnMPM's default, a logistic regression of the particle positions around each node
+(notes §3.4), does, but needs per-node particle moments that this term does not scatter.  On the
+``disks`` impact (frictionless, separation 1 cell) the energy minimum is 0.955 ("average"), 0.951
+("first"), 0.937 ("max_gradient").
 
 Contact nodes are the nodes where both materials have mass -- the bodies then interact from about
 one cell apart.  The optional separation criterion (``separation=s``, in cells) narrows them to
@@ -41,11 +81,13 @@ More than two materials (``materials=M``): each material a meets *the rest* on a
 other materials' mass m - m^a and momentum p - p^a as one body (NairnMPM's multimaterial contact)
 -- with the normal n^a from a into the rest ("average": g^a - sum_{b != a} g^b; "first": the
 gradient of the lowest-numbered material present on the node, +- for that material and the
-others).  The law gives Dp^a for every a; where more than two materials meet, sum_a Dp^a need not
-vanish, and the imbalance r = sum_a Dp^a is taken back in proportion to mass, Dp^a -= m^a r / m:
-the same velocity change r / m for every material, so the relative velocities the law set are
-kept and sum_a Dp^a = 0 (000 eq. 4.12).  With two materials the rest is the other material,
-n^1 = -n^0 and Dp^1 = -Dp^0 exactly; the two-material code path is that special case.
+others; "max_gradient": g^a or -sum_{b != a} g^b, whichever is larger, a tie going to the side of
+the lowest-numbered material present; a vector: +- it as for "first").  The law gives Dp^a for
+every a; where more than two materials meet, sum_a Dp^a need not vanish, and the imbalance
+r = sum_a Dp^a is taken back in proportion to mass, Dp^a -= m^a r / m: the same velocity change
+r / m for every material, so the relative velocities the law set are kept and sum_a Dp^a = 0
+(000 eq. 4.12).  With two materials the rest is the other material, n^1 = -n^0 and
+Dp^1 = -Dp^0 exactly; the two-material code path is that special case.
 
 Order with velocity boundary conditions on the same node: contact first, on momenta, then the
 conditions on the velocities (NairnMPM's order, 003 §2.1 "Reimpose velocity boundary
@@ -53,6 +95,9 @@ conditions"): a fixed node stays fixed whatever contact asked.
 """
 
 from __future__ import annotations
+
+import math
+import numbers
 
 import equinox as eqx
 import jax
@@ -65,10 +110,29 @@ from ..core.registry import Parameter, register_term
 from ..transfer.contractions import Gradient, Weighted
 from ..transfer.operators import safe_divide
 from .term import Term
-from ..core.validate import FINITE, NON_NEGATIVE, concrete, positive_int
+from ..core.validate import FINITE, NON_NEGATIVE, concrete, fail, finite_vector, positive_int, show
 
 LAWS = ("stick", "frictionless", "coulomb")
-NORMALS = ("average", "first")
+NORMALS = ("first", "max_gradient", "average")  # or a vector: the specified normal
+
+
+def normal_option(owner: str, value):
+    """The ``normal`` option checked: one of :data:`NORMALS`, or a vector -- the specified normal,
+    returned as a unit tuple of floats."""
+    if isinstance(value, str):
+        if value not in NORMALS:
+            fail(owner, f"normal = {show(value)}; choose one of {', '.join(map(repr, NORMALS))}, "
+                        "or give a vector (the specified normal from material 0 into material 1)")
+        return value
+    if isinstance(value, (numbers.Number, np.generic)) or (hasattr(value, "ndim") and value.ndim == 0):
+        fail(owner, f"normal = {show(value)}; give a name ({', '.join(map(repr, NORMALS))}) or a vector",
+             "a unit vector from material 0 into material 1, e.g. (0, 1)")
+    items = finite_vector(owner, "normal", value, fix="a unit vector from material 0 into material 1, e.g. (0, 1)")
+    length = math.sqrt(sum(c * c for c in items))
+    if not 1 <= len(items) <= 3 or length == 0:
+        fail(owner, f"normal = {show(value)} must be a non-zero vector of 1 to 3 components",
+             "a unit vector from material 0 into material 1, e.g. (0, 1)")
+    return tuple(c / length for c in items)
 
 
 def _safe_unit(u):
@@ -87,21 +151,22 @@ def _safe_norm(u):
 class Contact(Term):
     """``materials`` (default 2) materials, each with its own velocity field, coupled by a contact
     law on the nodes where two or more have mass (module docstring).  ``law``: "stick",
-    "frictionless" or "coulomb" (with ``friction`` mu >= 0); ``normal``: "average" or "first".
+    "frictionless" or "coulomb" (with ``friction`` mu >= 0); ``normal``: "first" (default),
+    "max_gradient", "average" or a vector (module docstring).
     Particles carry their material id in the field ``material`` (0..M-1;
     ``sim.init(particles, fields={"material": ids})``)."""
 
     law: str = eqx.field(static=True)
-    normal: str = eqx.field(static=True)
+    normal: str | tuple = eqx.field(static=True)  # a name of NORMALS, or the specified unit vector
     materials: int = eqx.field(static=True)
     friction: jnp.ndarray
     separation: float | None = eqx.field(static=True)
     series_correction: bool = eqx.field(static=True)
 
-    def __init__(self, law: str = "frictionless", friction=0.0, normal: str = "average", materials: int = 2,
+    def __init__(self, law: str = "frictionless", friction=0.0, normal="first", materials: int = 2,
                  separation: float | None = None, series_correction: bool = True):
         check(law in LAWS, f"Contact: law = {law!r}; choose one of {', '.join(LAWS)}")
-        check(normal in NORMALS, f"Contact: normal = {normal!r}; choose one of {', '.join(NORMALS)}")
+        normal = normal_option("Contact", normal)
         materials = positive_int("Contact", "materials", materials)
         check(materials >= 2, f"Contact: materials = {materials}; contact needs at least two materials "
                               "(each body its own material id 0..M-1)")
@@ -132,7 +197,8 @@ class Contact(Term):
                                   "material it is the material's contact force sum_i Dp^a+_i / dt"))
 
     def p2g_quantities(self, sim, state, stencil) -> dict:
-        """sum_p M_p G_pi: the material mass gradients (000 §4.2), for the contact normals; with a
+        """sum_p M_p G_pi: the material mass gradients, for the contact normals (Nairn contact notes
+        §3.2; the stacked scatter gives each material's, 000 §4.2); with a
         ``separation`` criterion also sum_p S_pi M_p X_p, the materials' nodal mass moments."""
         out = {"mass_gradient": Gradient(state.mass)}
         if self.separation is not None:
@@ -154,9 +220,20 @@ class Contact(Term):
         """(field of material 0, field of material 1) of a two-material stacked array (2n, ...)."""
         return tuple(self.per_material(a))
 
+    def specified_normal(self, like):
+        """The specified normal (``normal=`` a vector) on every node, shaped and typed as ``like`` (n, D)."""
+        check(len(self.normal) == like.shape[-1], f"Contact: normal = {self.normal} has {len(self.normal)} "
+                                                  f"components but the grid is {like.shape[-1]}D")
+        return jnp.broadcast_to(jnp.asarray(self.normal, dtype=like.dtype), like.shape)
+
     def contact_normal(self, grad_m):
         """Two materials: the unit normal from material 0 into material 1 on every node, (n, D)."""
         g0, g1 = self.split(grad_m)
+        if isinstance(self.normal, tuple):
+            return self.specified_normal(g0)
+        if self.normal == "max_gradient":  # the larger |g^a| defines it; material 0's on a tie
+            own = jnp.sum(g0 * g0, axis=-1) >= jnp.sum(g1 * g1, axis=-1)
+            return _safe_unit(jnp.where(own[:, None], g0, -g1))
         return _safe_unit(g0 if self.normal == "first" else g0 - g1)
 
     def material_normals(self, grad_m, m):
@@ -166,9 +243,20 @@ class Contact(Term):
         if self.normal == "average":
             return _safe_unit(2.0 * g - jnp.sum(g, axis=0))  # g^a - sum_{b != a} g^b
         first = jnp.argmax(self.per_material(m) > 0, axis=0)  # the lowest-numbered material present
-        g_first = jnp.take_along_axis(g, first[None, :, None], axis=0)[0]
-        own = first[None, :] == jnp.arange(self.materials)[:, None]
-        return jnp.where(own[..., None], 1.0, -1.0) * _safe_unit(g_first)[None]
+        own = first[None, :] == jnp.arange(self.materials)[:, None]  # (M, n): a is that material
+        if self.normal == "max_gradient":
+            # the rest's gradient sum_{b != a} g^b as a sum of the others alone (adding exact zeros), so that
+            # with two materials it is the other's g^b bit for bit and n^1 = -n^0 exactly
+            others = ~np.eye(self.materials, dtype=bool)[:, :, None, None]
+            rest = jnp.sum(jnp.where(others, g[None], 0.0), axis=1)
+            g_sq, rest_sq = jnp.sum(g * g, axis=-1), jnp.sum(rest * rest, axis=-1)
+            mine = (g_sq > rest_sq) | ((g_sq == rest_sq) & own)  # a tie goes to the lowest-numbered material's side
+            return _safe_unit(jnp.where(mine[..., None], g, -rest))
+        if isinstance(self.normal, tuple):
+            direction = self.specified_normal(g[0])[None]
+        else:  # "first"
+            direction = _safe_unit(jnp.take_along_axis(g, first[None, :, None], axis=0)[0])[None]
+        return jnp.where(own[..., None], 1.0, -1.0) * direction
 
     def momentum_change(self, m0, m1, p0, p1, normal, touching=None):
         """Dp of material 0 on every node (Dp of material 1 is -Dp): the law applied to the

@@ -151,6 +151,9 @@ class Damping(Term, ParticleDamping):
             extrapolated = safe_divide(transfer.gather(m[:, None] * solution.v), transfer.gather(m))
         return RateDamping(self.grid * f, alpha_p, extrapolated)
 
+    def attributes(self) -> dict:
+        return {"damping approach": self.approach, "damping varies": int(self.varies)}  # a schedule or region
+
     def at(self, state, transfer, grid):
         """The damping of the step that starts at ``state`` (:meth:`particle_damping`)."""
         return self.particle_damping(None, state, transfer, grid)

@@ -129,6 +129,11 @@ class Term(eqx.Module):
         """{name: scalar} sums over the particles saved with every frame (``History.totals``)."""
         return {}
 
+    def attributes(self) -> dict:
+        """{name: str or number}: how the term is set up, written as HDF5 root attributes (its
+        float parameters are written from the registry)."""
+        return {}
+
     # ------------------------------------------------------------------ deprecated hooks
     def grid_action(self, sim, fields, solution, dt):
         """Deprecated: a whole-solution rewrite, which composed by overwriting (issue 27).  A term

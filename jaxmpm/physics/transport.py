@@ -44,8 +44,16 @@ dt <= h^2 / (2 D a) with a = k / (rho C_p) the diffusivity (D the dimension; 1D 
 the largest eigenvalue of the lumped conduction matrix is 4 a / h^2); ``Simulation.stable_dt``
 takes the smaller of it and the CFL limit.
 
-The transport runs per velocity field: in multimaterial mode each material conducts within
-itself (no heat crosses a contact interface).
+Contact interfaces (multimaterial mode, jm.Contact), ``interface=``:
+
+* ``"perfect"`` (default): perfect thermal contact -- the field lives on the grid's nodes whatever
+  material is there (the fields' capacities and flows summed per node), so heat crosses an
+  interface as within one body (NairnMPM's conduction works on the nodes' global temperature);
+* ``"insulated"``: each material conducts within itself, nothing crosses;
+* a number h_c >= 0: an interface conductance (flow h_c A (T^b - T^a), imperfect thermal contact,
+  the thermal analogue of NairnMPM's imperfect interfaces): each material keeps its own nodal
+  field and the fields on a node exchange heat over the interface area the volume gradients give
+  (:meth:`Transport.interface_rate`).
 """
 
 from __future__ import annotations
@@ -60,7 +68,7 @@ from ..core.errors import check
 from ..core.fields import ParticleField
 from ..core.registry import Parameter, register_term
 from ..core.validate import FINITE, FRACTION, NON_NEGATIVE, POSITIVE, concrete, positive_int
-from ..transfer.contractions import Divergence, Weighted
+from ..transfer.contractions import Divergence, Gradient, Weighted
 from ..transfer.operators import Transfer, gather, p2g, safe_divide
 from ..transfer.series import series
 from .conditions import NodeSet, _select, mirror_nodes, node_plane
@@ -134,6 +142,13 @@ def _parse_update(owner: str, update: str, name: str = "update") -> tuple:
                  "(000 §3.6)")
 
 
+def _norm(u):
+    """|u| along the last axis, NaN-safe under autodiff (0 where u = 0)."""
+    sq = jnp.sum(u * u, axis=-1)
+    positive = sq > 0
+    return jnp.where(positive, jnp.sqrt(jnp.where(positive, sq, 1.0)), 0.0)
+
+
 class Transport(Term):
     """Scalar transport by conduction/diffusion (module docstring).  Subclasses name the field and
     the particle capacity: :class:`Heat` (temperature, m_Tp = M_p C_p) and :class:`Diffusion`
@@ -148,6 +163,8 @@ class Transport(Term):
     beta: jnp.ndarray  # the FLIP fraction of the particle update (000 eq. 3.58)
     order: int = eqx.field(static=True)  # XPIC(m) order of the update (1: FLIP/PIC)
     initial: float | Callable = eqx.field(static=True)
+    interface: str = eqx.field(static=True)  # across contact interfaces: "perfect", "insulated" or "conductance"
+    conductance: jnp.ndarray  # the interface conductance h_c (interface="conductance")
 
     FIELD = ""  # the particle field
     MASS = ""  # the nodal capacity ("thermal mass") column
@@ -155,7 +172,7 @@ class Transport(Term):
     TOTAL = ""  # the saved total sum_p m_Tp T_p
 
     def _setup(self, owner, conductivity, capacity, source, expansion, reference, boundary, update, beta, initial,
-               conductivity_name):
+               conductivity_name, interface="perfect"):
         fix = "a scalar >= 0 or a symmetric positive semi-definite D x D tensor"
         scalar = np.ndim(conductivity) == 0
         self.conductivity = (NON_NEGATIVE if scalar else FINITE).leaf(owner, conductivity_name, conductivity, fix=fix)
@@ -182,6 +199,15 @@ class Transport(Term):
         check(callable(initial) or np.isfinite(np.asarray(initial, dtype=float)).all(),
               f"{owner}: initial = {initial!r}; give a finite number or a function f(x) -> (N,)")
         self.initial = initial
+        if isinstance(interface, str):
+            check(interface in ("perfect", "insulated"),
+                  f"{owner}: interface = {interface!r}; choose 'perfect' (one field on shared nodes), 'insulated' "
+                  "(nothing crosses a contact interface) or a conductance h_c >= 0 (heat flow h_c A dT)")
+            self.interface, self.conductance = interface, jnp.zeros(())
+        else:
+            self.interface = "conductance"
+            self.conductance = NON_NEGATIVE.leaf(owner, "interface (conductance h_c)", interface,
+                                                 fix="'perfect', 'insulated' or a conductance >= 0")
 
     # ------------------------------------------------------------------ per particle
     def particle_fields(self) -> tuple:
@@ -219,9 +245,9 @@ class Transport(Term):
 
     def held(self, sim, dtype):
         """(mask, value) of the Dirichlet nodes on every field's copy of the grid."""
-        copies = sim.material_fields
-        mask = np.zeros(sim.field_nodes, dtype=bool)
-        value = jnp.zeros(sim.field_nodes, dtype)
+        copies = self.copies(sim)
+        mask = np.zeros(copies * sim.grid.num_nodes, dtype=bool)
+        value = jnp.zeros(copies * sim.grid.num_nodes, dtype)
         for c in self.boundary:
             if isinstance(c, Dirichlet):
                 nodes = _nodes(sim.grid, c, copies)
@@ -247,15 +273,15 @@ class Transport(Term):
         if not ghosts:
             return np.zeros(0, int), np.zeros(0, int)
         n = grid.num_nodes
-        copies = np.arange(sim.material_fields)[:, None] * n
+        copies = np.arange(self.copies(sim))[:, None] * n
         return ((np.concatenate(ghosts)[None] + copies).ravel(), (np.concatenate(mirrors)[None] + copies).ravel())
 
     def boundary_flow(self, sim, dtype):
         """Q_i,q: the Neumann conditions' inward flux times the nodal face area h^(D-1)."""
-        flow = jnp.zeros(sim.field_nodes, dtype)
+        flow = jnp.zeros(self.copies(sim) * sim.grid.num_nodes, dtype)
         for c in self.boundary:
             if isinstance(c, Neumann):
-                flow = flow + jnp.where(_nodes(sim.grid, c, sim.material_fields),
+                flow = flow + jnp.where(_nodes(sim.grid, c, self.copies(sim)),
                                         c.flux.astype(dtype) * sim.grid.h ** (sim.grid.dim - 1), 0.0)
         return flow
 
@@ -274,12 +300,61 @@ class Transport(Term):
             t_nodes = t_nodes.at[ghosts].set(2.0 * value[ghosts] - t_nodes[mirrors])
         return t_nodes, mass, held, ghosts, mirrors
 
+    # ------------------------------------------------------------------ contact interfaces
+    def shared(self, sim) -> bool:
+        """Whether the field lives on shared nodes across velocity fields (``interface="perfect"``
+        in multimaterial mode): each node has one temperature whatever material is on it."""
+        return sim.velocity_fields > 1 and self.interface == "perfect"
+
+    def copies(self, sim) -> int:
+        """The copies of the grid the field lives on: 1 (one field, or shared nodes), or one per
+        velocity field (each material its own nodal field)."""
+        return 1 if self.shared(sim) else sim.velocity_fields
+
+    def field_transfer(self, sim, state, transfer):
+        """The transfer the field uses: the step's (per velocity field), or on shared nodes the
+        particles' stencil on the single grid."""
+        if not self.shared(sim):
+            return transfer
+        return Transfer(sim.shape.stencil(sim.grid, state.x), transfer.particle_mass, None, sim.grid.num_nodes)
+
+    def on_shared_nodes(self, sim, nodal):
+        """A nodal sum (M n,) of the velocity fields as one sum per node (n,) on shared nodes."""
+        if not self.shared(sim):
+            return nodal
+        return jnp.sum(nodal.reshape((sim.velocity_fields, sim.grid.num_nodes) + nodal.shape[1:]), axis=0)
+
+    def interface_rate(self, sim, state, transfer, t_nodes, m_T, dt):
+        """``interface=h_c``: the heat each velocity field gains across the contact interface per
+        thermal mass, (M n,).  On a node where material a and the rest (the other fields'
+        capacity-weighted temperature) both have capacity, the flow h_c A_i (T^rest - T^a) over
+        the interface area A_i = |g^a - g^rest| / 2, g the fields' volume gradients sum_p V_p G_pi
+        (by the divergence theorem sum_p V_p G_pi ~ -oint N_i n dS: the surface area node i carries),
+        integrated exactly over the step: the two capacities C^a, C^rest relax with rate
+        k = h_c A (1/C^a + 1/C^rest), so the heat passed is C^a C^rest/(C^a + C^rest) (T^rest - T^a)
+        (1 - exp(-k dt)) -- stable for any h_c, and summing to zero over the fields."""
+        M, n = sim.velocity_fields, sim.grid.num_nodes
+        volume = state.volume0 * jnp.linalg.det(state.F)
+        g = transfer.p2g({"g": Gradient(volume)})["g"].reshape(M, n, -1)
+        C = m_T.reshape(M, n)
+        H = (C * t_nodes.reshape(M, n))
+        C_rest, H_rest = jnp.sum(C, 0)[None] - C, jnp.sum(H, 0)[None] - H
+        T_rest = safe_divide(H_rest, C_rest)
+        area = 0.5 * _norm(g - (jnp.sum(g, 0)[None] - g))
+        both = (C > 0) & (C_rest > 0)
+        reduced = jnp.where(both, C * C_rest / jnp.where(both, C + C_rest, 1.0), 0.0)
+        rate_k = jnp.where(both, self.conductance * area * (C + C_rest) / jnp.where(both, C * C_rest, 1.0), 0.0)
+        heat = reduced * (T_rest - t_nodes.reshape(M, n)) * -jnp.expm1(-rate_k * dt)
+        safe_dt = jnp.where(dt > 0, dt, 1.0)
+        return (safe_divide(heat, C) / safe_dt).reshape(-1)
+
     def nodal_rate(self, sim, state, transfer, fields_mass, fields_momentum, dt):
         """(T_i, a_Ti) on every node: 001 eqs. (135)-(140), T_i the held value on Dirichlet nodes
         (where a_Ti = 0: the value stays; its switch-on jump is :meth:`switch_on`); beyond a
         mirrored boundary the heat flow is folded like the mass and a_ghost = -a_mirror."""
         t_nodes, m_T, held, ghosts, mirrors = self.nodal_field(sim, fields_mass, fields_momentum)
-        grad = transfer.gradient(t_nodes)  # sum_i T_i G_ip, (N, D)
+        own = self.field_transfer(sim, state, transfer)
+        grad = own.gradient(t_nodes)  # sum_i T_i G_ip, (N, D)
         k = self.conductivity.astype(m_T.dtype)
         d = grad.shape[-1]
         check(k.ndim == 0 or k.shape == (d, d), f"{type(self).__name__}: the conductivity tensor has shape {k.shape}; "
@@ -288,10 +363,13 @@ class Transport(Term):
         volume = state.volume0 * jnp.linalg.det(state.F)
         heat_flow = (Divergence((volume[:, None] * flux)[:, None, :]),  # sum_p V_p q_p . G_ip (001 eq. 135)
                      Weighted((volume * self.source.astype(m_T.dtype))[:, None]))  # + sum_p V_p q_s,p S_ip
-        flow = transfer.p2g({"flow": heat_flow})["flow"][:, 0] + self.boundary_flow(sim, m_T.dtype)
+        flow = own.p2g({"flow": heat_flow})["flow"][:, 0] + self.boundary_flow(sim, m_T.dtype)
         if ghosts.size:  # the mirrored particles' flow: odd, as the field
             flow = flow.at[mirrors].add(-flow[ghosts])
-        rate = jnp.where(held, 0.0, safe_divide(flow, m_T))  # 001 eq. (140); held nodes keep their value
+        rate = safe_divide(flow, m_T)  # 001 eq. (140)
+        if self.interface == "conductance" and sim.velocity_fields > 1:
+            rate = rate + self.interface_rate(sim, state, transfer, t_nodes, m_T, dt)
+        rate = jnp.where(held, 0.0, rate)  # held nodes keep their value
         if ghosts.size:
             rate = rate.at[ghosts].set(-rate[mirrors])
         return t_nodes, rate
@@ -306,7 +384,7 @@ class Transport(Term):
         held, value = self.held(sim, dtype)
         x = sim.grid.node_coordinates()
         t0 = np.asarray(self.initial(x), dtype=float) if callable(self.initial) else np.full(len(x), float(self.initial))
-        t0 = jnp.asarray(np.tile(np.broadcast_to(t0, (len(x),)), sim.material_fields), dtype)
+        t0 = jnp.asarray(np.tile(np.broadcast_to(t0, (len(x),)), self.copies(sim)), dtype)
         target = value
         ghosts, mirrors = self.mirror_map(sim)
         if ghosts.size:  # a ghost switches on to the odd extension of the initial field
@@ -320,18 +398,23 @@ class Transport(Term):
         null-space part the grid does not see), which this projection removes."""
         stencil = sim.stencil(state)
         nodal = p2g(stencil, self.p2g_quantities(sim, state, stencil), sim.field_nodes)
+        nodal = {k: self.on_shared_nodes(sim, v) for k, v in nodal.items()}
+        if self.shared(sim):
+            stencil = sim.shape.stencil(sim.grid, state.x)
         return gather(stencil, self.nodal_field(sim, nodal[self.MASS], nodal[self.MOMENTUM])[0])
 
     def read_grid(self, sim, fields, solution, dt):
-        """Keep the nodal capacity and field-times-capacity for the transport stage."""
-        return {self.MASS: fields[self.MASS], self.MOMENTUM: fields[self.MOMENTUM]}
+        """Keep the nodal capacity and field-times-capacity for the transport stage (one sum per
+        node on shared nodes)."""
+        return {self.MASS: self.on_shared_nodes(sim, fields[self.MASS]),
+                self.MOMENTUM: self.on_shared_nodes(sim, fields[self.MOMENTUM])}
 
     def particle_action(self, sim, old, new, transfer, solution, dt):
         """The transport stage: the nodal rate from the start-of-step particles (001 eqs. 135-140),
         then the particle update (:meth:`particle_update`)."""
         mass = solution[self.MASS]
         t_nodes, rate = self.nodal_rate(sim, old, transfer, mass, solution[self.MOMENTUM], dt)
-        value = self.particle_update(sim, old, transfer, mass, t_nodes, rate, dt)
+        value = self.particle_update(sim, old, self.field_transfer(sim, old, transfer), mass, t_nodes, rate, dt)
         return eqx.tree_at(lambda s: s.fields, new, {**new.fields, self.FIELD: value})
 
     def particle_update(self, sim, state, transfer, mass, t_nodes, rate, dt):
@@ -370,9 +453,9 @@ class Heat(Transport):
     FIELD, MASS, MOMENTUM, TOTAL = "temperature", "thermal_mass", "thermal_momentum", "thermal_energy"
 
     def __init__(self, conductivity, heat_capacity=1.0, source=0.0, expansion=0.0, reference=0.0, boundary=None,
-                 update: str = "flip", beta=None, initial=0.0):
+                 update: str = "flip", beta=None, initial=0.0, interface="perfect"):
         self._setup("Heat", conductivity, heat_capacity, source, expansion, reference, boundary, update, beta, initial,
-                    "conductivity")
+                    "conductivity", interface)
 
     def particle_capacity(self, state):
         return state.mass * self.capacity  # m_Tp = M_p C_p (001 §8)
@@ -387,9 +470,9 @@ class Diffusion(Transport):
     FIELD, MASS, MOMENTUM, TOTAL = "concentration", "solvent_mass", "solvent_momentum", "solute"
 
     def __init__(self, diffusivity, source=0.0, expansion=0.0, reference=0.0, boundary=None, update: str = "flip",
-                 beta=None, initial=0.0):
+                 beta=None, initial=0.0, interface="perfect"):
         self._setup("Diffusion", diffusivity, 1.0, source, expansion, reference, boundary, update, beta, initial,
-                    "diffusivity")
+                    "diffusivity", interface)
 
     def particle_capacity(self, state):
         return state.volume0 * jnp.linalg.det(state.F)  # V_p (001 eq. 146)
@@ -399,8 +482,12 @@ register_term("heat", Heat, doc="heat conduction, FLIP temperature update (001 �
     Parameter("conductivity", lambda t: t.conductivity, "thermal conductivity k", "positive", valid="non-negative"),
     Parameter("heat_capacity", lambda t: t.capacity, "heat capacity C_p per unit mass", "positive", valid="positive"),
     Parameter("thermal_expansion", lambda t: t.expansion, "thermal expansion coefficient alpha_T"),
+    Parameter("interface_conductance", lambda t: t.conductance, "interface conductance h_c (interface=h_c)",
+              "positive", valid="non-negative"),
 ])
 register_term("diffusion", Diffusion, doc="diffusion of the concentration potential (001 §9)", parameters=[
     Parameter("diffusivity", lambda t: t.conductivity, "diffusivity D", "positive", valid="non-negative"),
     Parameter("moisture_expansion", lambda t: t.expansion, "moisture expansion coefficient per unit mu"),
+    Parameter("interface_conductance", lambda t: t.conductance, "interface mass-transfer coefficient (interface=h)",
+              "positive", valid="non-negative"),
 ])

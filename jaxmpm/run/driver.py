@@ -14,6 +14,7 @@ import numpy as np
 
 from ..core.errors import InstabilityError, check
 from ..core.limits import require_memory, require_steps
+from ..core.state import State
 from ..core.warn import warn
 
 CAUSES = {

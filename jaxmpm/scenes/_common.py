@@ -69,18 +69,20 @@ PART_DEFAULTS = {
 CONTACT_OPTIONS = ("none", "stick", "frictionless", "coulomb")
 
 
-def contact_model(contact: str, friction: float, normal: str = "average", separation: float | None = None) -> tuple:
+def contact_model(contact: str, friction: float, normal=None, separation: float | None = None) -> tuple:
     """(terms, material_fields): the ``terms=`` of a two-body scene's Simulation and whether its
     particles need material ids.  contact="none" gives ``()`` -- exactly the single-field model;
     a law gives ``(jm.Contact(law=contact, friction=...),)``, with the friction passed only to
     "coulomb" (the option checks reject a friction given with another law); ``normal`` as
-    :class:`jaxmpm.Contact` takes it, and the ``separation`` criterion (cells; None: none)."""
+    :class:`jaxmpm.Contact` takes it (None: its default), and the ``separation`` criterion (cells;
+    None: none)."""
     if contact == "none":
         return (), False
     from ..physics.contact import Contact
 
-    return (Contact(law=contact, friction=friction if contact == "coulomb" else 0.0, normal=normal,
-                    separation=separation),), True
+    chosen = {} if normal is None else {"normal": normal}
+    return (Contact(law=contact, friction=friction if contact == "coulomb" else 0.0, separation=separation,
+                    **chosen),), True
 
 
 def material_ids(counts, dtype=None):

@@ -62,12 +62,9 @@ def _contact(scene, name, value):
 
 
 def _normal(scene, name, value):
-    from ..physics.contact import NORMALS
+    from ..physics.contact import normal_option
 
-    if not (isinstance(value, str) and value in NORMALS):
-        fail(scene, f"{name} = {show(value)}; choose one of {', '.join(map(repr, NORMALS))}",
-             "the contact normal: 'first' from material 0's mass gradient, 'average' from both")
-    return value
+    return normal_option(scene, value)  # a name of NORMALS, or a vector (made a unit tuple)
 
 
 def _transport(scene, name, value):

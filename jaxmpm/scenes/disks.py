@@ -49,6 +49,7 @@ def disks(
     contact: str = "none",
     friction: float = 0.0,
     separation: float | None = 1.0,
+    normal=None,
 ) -> Setup:
     """``contact``: "none" (one velocity field, Sulsky's setting) or a contact law -- "stick",
     "frictionless", "coulomb" (with ``friction`` mu) -- with each disk its own material (ids 0 for
@@ -67,7 +68,7 @@ def disks(
         x=jnp.concatenate([a.x, b.x]), v=jnp.concatenate([a.v, b.v]),
         volume=jnp.concatenate([a.volume, b.volume]), mass=None, ppc=ppc,
     )
-    terms, multimaterial = contact_model(contact, friction, separation=separation)
+    terms, multimaterial = contact_model(contact, friction, normal, separation=separation)
     sim = Simulation(grid=grid, shape=shape, material=LinearElastic(E=E, nu=nu, density=density),
                      scheme=scheme, damping=damping, update=update, terms=terms)
     fields = {"material": material_ids((a.x.shape[0], b.x.shape[0]))} if multimaterial else None

@@ -51,7 +51,7 @@ from ..schemes import FLIP
 from ..transfer.shapes import Linear
 from ..model.simulation import Simulation
 from ._common import Setup, resolve_dtype
-from .mms import (ManufacturedForce, ManufacturedReference, SeparableMotion, _plane, exact_fields, schedule_exact,
+from .manufactured import (ManufacturedForce, ManufacturedReference, SeparableMotion, _plane, exact_fields, schedule_exact,
                   start_deformed)
 
 

@@ -48,6 +48,7 @@ def rings(
     separation: float = 10.0,
     contact: str = "none",
     friction: float = 0.0,
+    normal=None,
 ) -> Setup:
     """Two rings ``separation`` apart (centre to centre) approaching at +-``speed``;
     dt = cfl * h / (c + speed) unless ``dt`` is given.  ``contact``: "none" (one velocity field) or
@@ -68,7 +69,7 @@ def rings(
         volume=jnp.concatenate([a.volume, b.volume]), mass=None, ppc=ppc,
     )
     material = NeoHookean(E=E, nu=nu, density=density)
-    terms, multimaterial = contact_model(contact, friction)
+    terms, multimaterial = contact_model(contact, friction, normal)
     sim = Simulation(grid=grid, shape=shape, material=material, scheme=scheme, damping=damping, update=update,
                      terms=terms)
     fields = {"material": material_ids((a.x.shape[0], b.x.shape[0]))} if multimaterial else None

@@ -67,7 +67,7 @@ from ..transfer.shapes import QuadraticBSpline
 from ..model.simulation import Simulation
 from ._common import Setup, cast_state, resolve_dtype
 from ._options import checked_options
-from .mms import ManufacturedForce, ManufacturedReference, schedule_exact
+from .manufactured import ManufacturedForce, ManufacturedReference, schedule_exact
 
 INNER, OUTER = 0.75, 1.25
 

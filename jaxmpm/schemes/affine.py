@@ -32,7 +32,9 @@ from ..core.measures import angular_momentum as _particle_angular_momentum
 from ..core.registry import register_scheme
 from ..transfer.backend import materialise
 from ..transfer.contractions import Affine, Divergence, Weighted
+from ..transfer.kernels.xla import per_slot
 from ..transfer.operators import Transfer, to_particle_major
+from ..transfer.shapes import rows
 from .base import ParticleDamping, ParticleUpdate, Scheme
 
 
@@ -82,11 +84,11 @@ def _planar_matvec(A, x):
     return jnp.stack([sum(A[i][j][None] * x[j] for j in range(d)) for i in range(d)])
 
 
-def _inertia_planar(stencil: Stencil):
+def _inertia_planar(stencil):
     return stencil.inertia()
 
 
-def inertia_tensor(stencil: Stencil):
+def inertia_tensor(stencil):
     """D_p = sum_i S_pi (x_i - X_p)(x_i - X_p)^T, shape (N, D, D)  (002 eq. 3)."""
     return from_planar(_inertia_planar(stencil))
 
@@ -97,7 +99,7 @@ def small_inverse(A):
     return from_planar(_planar_inverse(to_planar(A)))
 
 
-def affine_weights(stencil: Stencil):
+def affine_weights(stencil):
     """a_pi = S_pi D_p^-1 (x_i - X_p), planar (D, K, N): APIC's P2G weight of B_p (002 eq. 3).
 
     Multilinear stencils (2 nodes per axis) use the exact identity a_pi = G_pi, which has no

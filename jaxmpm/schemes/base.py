@@ -143,8 +143,10 @@ class Scheme(eqx.Module):
     def update(self, V, X, transfer: Transfer, constraint, grid, damping: ParticleDamping, dt) -> ParticleUpdate:
         """The particle update of one step (000 eq. 2.22 / 003 eq. 2.17 in the scheme's form)."""
 
-    def strain_grid_velocity(self, v, transfer: Transfer, constraint):
-        """Grid velocity used for the strain update, from lumped velocities (USF, MUSL)."""
+    def strain_grid_velocity(self, v, transfer: Transfer, constraint, exchange_dv=None):
+        """Grid velocity used for the strain update, from lumped velocities (USF, MUSL: after the
+        momentum exchange and the conditions; ``exchange_dv`` the exchange's change Dp/m, for a
+        scheme whose strain velocity is a series, 003 eqs. 3.16-3.22)."""
         return v
 
     def momentum_contributions(self, stencil, state):

@@ -47,14 +47,20 @@ class FMPM(Scheme):
         self.boundary = boundary
         self.series = series
 
-    def strain_grid_velocity(self, v, transfer, constraint):
+    def strain_grid_velocity(self, v, transfer, constraint, exchange_dv=None):
+        """The full-mass velocity of the strain update, m~_k^{-1} p' (003 eq. 2.3) of the lumped
+        velocity ``v`` (USF's start-of-step or MUSL's re-extrapolated one, after the momentum
+        exchange and the conditions); with velocity fields that exchanged momentum, minus the
+        exchange's series term m~_{k-1}^{-1} Dp (003 §2.1.2, eqs. 3.16-3.22)."""
         if self.order == 0:
             return v  # FMPM(0) = FLIP: lumped velocities
         check(self.boundary not in UNLUMPED_MODES,
               f"FMPM: boundary = {self.boundary!r} is built for the USL update (its series starts from p+/m "
               "before the conditions); USF/MUSL/USAVG re-extrapolate velocities that have no such start: "
               "use update='USL' or boundary='iterates'")
-        return mass_matrix_series(v, self.order, transfer, constraint, self.boundary, self.series)  # 003 eq. (2.3)
+        v_full = mass_matrix_series(v, self.order, transfer, constraint, self.boundary, self.series)  # 003 eq. (2.3)
+        correction = exchange_series(exchange_dv, self.order, transfer, constraint, self.boundary, self.series)
+        return v_full if correction is None else v_full - correction
 
     def update(self, V, X, transfer, constraint, grid, damping, dt):
         if self.order == 0:  # 003 Table 2.1: FMPM(0) = XPIC(0) = FLIP

@@ -31,7 +31,7 @@ def axial_vector(A):
     return jnp.stack([A[:, 2, 1] - A[:, 1, 2], A[:, 0, 2] - A[:, 2, 0], A[:, 1, 0] - A[:, 0, 1]], axis=-1)
 
 
-def rigid_inertia(stencil: Stencil, mass):
+def rigid_inertia(stencil, mass):
     """K_p = sum_j S_pj M_p r_pj^* r_pj^{*T}, r_pj = x_j - X_p  (002 eq. 1), (N, R, R).
 
     With r^* r^{*T} = |r|^2 I - r r^T this is M_p (tr D_p I - D_p), D_p = sum_j S_pj r_pj r_pj^T

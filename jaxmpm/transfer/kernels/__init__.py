@@ -17,6 +17,7 @@ registered for both policies.  A new kernel (a Pallas GPU kernel, say) is one fi
 from __future__ import annotations
 
 import equinox as eqx
+import jax
 
 from ...core.errors import check
 from ..backend import POLICIES, active
@@ -52,11 +53,16 @@ _KERNELS: dict = {}
 
 
 def register_kernel(policy: str, kernel: Kernel) -> Kernel:
-    """Use ``kernel`` for the transfers traced under ``policy`` ("cpu" or "gpu")."""
+    """Use ``kernel`` for the transfers traced under ``policy`` ("cpu" or "gpu").  The kernel is
+    chosen when a step is traced, so the programs JAX compiled with the previous one are dropped
+    (``jax.clear_caches``): the next call retraces with the new kernel."""
     check(policy in POLICIES and policy != "auto",
           f"register_kernel: policy = {policy!r}; choose 'cpu' or 'gpu' (jaxmpm.transfer.backend)")
     check(isinstance(kernel, Kernel), f"register_kernel: {kernel!r} is not a jaxmpm Kernel")
-    _KERNELS[policy] = kernel
+    if _KERNELS.get(policy) is not kernel:
+        if policy in _KERNELS:
+            jax.clear_caches()
+        _KERNELS[policy] = kernel
     return kernel
 
 

@@ -186,11 +186,80 @@ def _column(stencil, column):
     return sum(terms[1:], terms[0])
 
 
+# ------------------------------------------------------------------ P2G as rows of per-particle coefficients
+def _scatter_rows(index, rows_, num_nodes: int):
+    """sum over (slot, particle) rows (K N, C) into their nodes ``index`` (K, N): (n, C)."""
+    width = rows_.shape[1]
+    padded = scatter_row_width(width)
+    if padded > width:  # (the rows path pads its coefficients instead; kept for any caller)
+        rows_ = jnp.concatenate([rows_, jnp.zeros((rows_.shape[0], padded - width), rows_.dtype)], axis=1)
+    dims = jax.lax.ScatterDimensionNumbers(update_window_dims=(1,), inserted_window_dims=(0,),
+                                           scatter_dims_to_operand_dims=(0,))
+    nodal = jax.lax.scatter_add(jnp.zeros((num_nodes, rows_.shape[1]), rows_.dtype), index.reshape(-1, 1), rows_,
+                                dims, mode=jax.lax.GatherScatterMode.PROMISE_IN_BOUNDS)
+    return nodal[:, :width] if padded > width else nodal
+
+
+_scatter_rows_ruled = jax.custom_jvp(_scatter_rows, nondiff_argnums=(2,))
+
+
+@_scatter_rows_ruled.defjvp
+def _scatter_rows_jvp(num_nodes, primals, tangents):
+    # as for scatter_planar: the transpose gathers a nodal cotangent evaluated once
+    (index, r), (_, r_dot) = primals, tangents
+    out = _scatter_rows_ruled(index, r, num_nodes)
+    return out, hold_tangent(_scatter_rows(index, r_dot, num_nodes), out)
+
+
+scatter_rows = derivative_rule(_scatter_rows, _scatter_rows_ruled)
+
+
+def _weight_basis(stencil, kinds):
+    """The per-slot weights (K, N) of the contraction kinds used: S, G_d, S (x_i - X_p)_d, T."""
+    out = {}
+    if "S" in kinds or "A" in kinds:
+        out["S"] = stencil.weight
+    if "G" in kinds:
+        out.update({("G", d): g for d, g in enumerate(rows(stencil.gradient))})
+    if "A" in kinds:
+        out.update({("A", d): out["S"] * o for d, o in enumerate(rows(stencil.offset))})
+    if "T" in kinds:
+        out["T"] = stencil.hoop_view().weight
+    return out
+
+
+def _coefficients(contraction, dim: int) -> dict:
+    """{weight key: per-particle coefficients (N, c)} of one contraction: its per-slot values are
+    sum over the keys of weight * coefficients (the rows formulation of :class:`XLAKernel`)."""
+    q = contraction.value
+    if isinstance(contraction, Weighted):
+        return {"S": q[:, None] if q.ndim == 1 else q}
+    if isinstance(contraction, Hoop):
+        return {"T": q[:, None] if q.ndim == 1 else q}
+    if isinstance(contraction, Gradient):  # column d: q G_d
+        eye = jnp.eye(dim, dtype=q.dtype)
+        return {("G", d): q[:, None] * eye[d][None, :] for d in range(dim)}
+    key = "G" if isinstance(contraction, Divergence) else "A"  # column c: sum_d q[c, d] W_d
+    return {(key, d): q[:, :, d] for d in range(q.shape[-1])}
+
+
 class XLAKernel(Kernel):
     """Per-slot values from the stencil, one ``lax.scatter_add`` for P2G, component-wise gathers
-    for G2P (module docstring)."""
+    for G2P (module docstring).  ``layout`` picks how P2G forms its (slot, particle) rows:
+
+    * ``"planar"``: each column's per-slot values, (C, K, N) stacked -- a concatenation of
+      per-slot arrays -- and transposed to rows;
+    * ``"rows"``: rows[k, p, :] = sum_j W_j[k, p] Q_j[p, :] over the weight basis W (S, G_d,
+      S (x_i - X_p)_d, T) with per-particle coefficients Q_j (N, C) -- the concatenation is of
+      per-particle arrays, K times smaller, and the rows are one elementwise expression that
+      XLA can fuse into the scatter (more multiplies: a coefficient is zero where its kind does not
+      reach a column).  :class:`PerSlot` columns are added as given."""
+
+    layout: str = "planar"
 
     def p2g(self, stencil, columns: dict, num_nodes: int) -> dict:
+        if self.layout == "rows":
+            return self._p2g_rows(stencil, columns, num_nodes)
         layout = {}  # name -> (width, scalar), in the order the columns are stacked
 
         def stacked(stencil, columns):
@@ -204,6 +273,55 @@ class XLAKernel(Kernel):
         for name, (width, scalar) in layout.items():
             out[name] = nodal[:, start] if scalar else nodal[:, start:start + width]
             start += width
+        return out
+
+    def _p2g_rows(self, stencil, columns: dict, num_nodes: int) -> dict:
+        dim = stencil.dim
+        widths, names = {}, list(columns)
+        for name, column in columns.items():
+            shapes = {c.width(dim) for c in as_terms(column)}
+            assert len(shapes) == 1, f"P2G column {name!r} sums contractions of different widths {shapes}"
+            widths[name] = shapes.pop()
+        total = sum(max(1, w[0] if w else 1) for w in widths.values())
+        padded = scatter_row_width(total)  # backend tuning: zero coefficients are free here
+
+        def rows_of(stencil, columns):
+            blocks, per_slot = {}, []  # weight key -> {column: coefficients (N, c)}
+            for name, column in columns.items():
+                for c in as_terms(column):
+                    if isinstance(c, PerSlot):
+                        per_slot.append((name, c.value))
+                        continue
+                    for key, coef in _coefficients(c, dim).items():
+                        block = blocks.setdefault(key, {})
+                        block[name] = block[name] + coef if name in block else coef
+            kinds = {k if isinstance(k, str) else k[0] for k in blocks}
+            basis = _weight_basis(stencil, kinds)
+            n = stencil.num_particles
+            dtype = next(iter(basis.values())).dtype if basis else per_slot[0][1].dtype
+            out = None
+            for key, block in blocks.items():
+                pieces = [block.get(name, None) for name in names]
+                pieces = [p if p is not None else jnp.zeros((n, max(1, widths[nm][0] if widths[nm] else 1)), dtype)
+                          for p, nm in zip(pieces, names)]
+                if padded > total:
+                    pieces.append(jnp.zeros((n, padded - total), dtype))
+                Q = jnp.concatenate(pieces, axis=1)  # (N, C): per particle
+                term = basis[key][:, :, None] * Q[None, :, :]
+                out = term if out is None else out + term
+            for name, values in per_slot:  # (K, N) or (c, K, N): placed in the name's columns
+                start = sum(max(1, widths[nm][0] if widths[nm] else 1) for nm in names[:names.index(name)])
+                v = values[..., None] if values.ndim == 2 else jnp.moveaxis(values, 0, -1)
+                v = jnp.pad(v, ((0, 0), (0, 0), (start, padded - start - v.shape[-1])))
+                out = v if out is None else out + v
+            return out.reshape(-1, padded)
+
+        nodal = scatter_rows(stencil.index, rows_of(stencil, columns), num_nodes)
+        out, start = {}, 0
+        for name in names:
+            w = widths[name]
+            out[name] = nodal[:, start] if not w else nodal[:, start:start + w[0]]
+            start += w[0] if w else 1
         return out
 
     def gather(self, stencil, u):

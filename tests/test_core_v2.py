@@ -1,0 +1,348 @@
+"""Core v2 (issue 27): grid phases that compose, contact under every update, heat across contact
+interfaces, and the checks a model makes of its terms when it is built.
+
+1. Force-form damping acts with contact, whatever the order the terms were given in, and equals a
+   hand computation of the phases (forces -> exchange -> conditions) on a two-node grid.
+2. Contact runs under USF, MUSL, USAVG- and USAVG+: linear momentum is conserved to round-off, and
+   a stick interface is single-field MPM (003 §3.1: stick contact moves both materials with the
+   centre-of-mass velocity) step for step.
+3. The phases refuse what would overwrite: two terms setting one grid result, two exchanging terms.
+4. Heat across a contact interface: perfect contact is single-body conduction, an insulated
+   interface passes nothing, an interface conductance relaxes two blocks at the analytic rate.
+"""
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxmpm as jm
+
+
+@eqx.filter_jit
+def _steps(sim, state, dt, n):
+    return jax.lax.fori_loop(0, n, lambda i, s: sim.step(s, dt), state)
+
+
+# ------------------------------------------------------------------ 1. damping acts with contact
+def test_force_damping_acts_with_contact_in_either_order():
+    """The issue's reproducer: bars_impact, 8 cells, frictionless contact, grid damping alpha_g = 50
+    on the nodal force (001 eqs. 58-60), 5 steps.  Before core v2 the contact term rebuilt v, a and
+    v~ from the P2G fields and the damping changed the particle velocities by exactly 0.0 (0.0276
+    without contact).  Now: a change of the same size, and the damping given to the constructor
+    (before the contact term) or added after it (``with_term``) gives the same numbers to
+    round-off (measured max |dv| 0.0276, order difference 0.0)."""
+    damping = jm.Damping(grid=50.0, approach="force")
+    plain = jm.scene("bars_impact", cells=8, contact="frictionless", dtype="f64")
+    first = jm.scene("bars_impact", cells=8, contact="frictionless", damping=damping, dtype="f64")
+    undamped = plain.sim.with_term(jm.Damping(grid=0.0, approach="force"))
+    after = undamped.with_term(damping)  # the damping term now comes after the contact term
+    assert [type(t).__name__ for t in after.terms][-2:] == ["Contact", "Damping"]
+    assert [type(t).__name__ for t in first.sim.terms].index("Damping") < [
+        type(t).__name__ for t in first.sim.terms].index("Contact")
+    v0 = np.asarray(_steps(plain.sim, plain.state, plain.dt, 5).v)
+    v1 = np.asarray(_steps(first.sim, first.state, first.dt, 5).v)
+    v2 = np.asarray(_steps(after, plain.state, plain.dt, 5).v)
+    change = np.abs(v1 - v0).max()
+    assert change > 0.01, change
+    np.testing.assert_allclose(v2, v1, rtol=0, atol=1e-15 * np.abs(v1).max())
+
+
+def test_phases_on_two_nodes_by_hand():
+    """One cell, two nodes, one particle of each material (no stress, no gravity): the step's grid
+    solve is, per material a, f^a = -alpha p^a (forces), then frictionless contact on p and on
+    p + f dt (exchange: on the approaching normal the materials share the centre-of-mass
+    momentum, 003 eqs. 3.9, 3.12), then v~ = p+/m (no conditions); FLIP then gives
+    V_p = V_p^n + sum_i S_pi (v~^a_i - v^a_i).  Written out in NumPy; agreement 1e-14."""
+    alpha, dt = 3.0, 0.01
+    grid = jm.Grid((0.0,), (1.0,), (1,))
+    x = np.array([[0.3], [0.6]])
+    v = np.array([[1.0], [-0.5]])
+    particles = jm.Particles(x=jnp.asarray(x), v=jnp.asarray(v), volume=jnp.asarray([0.5, 0.4]), ppc=1)
+    sim = jm.Simulation(grid=grid, shape=jm.Linear(), material=jm.NoStress(density=2.0), scheme=jm.FLIP(),
+                        damping=jm.Damping(grid=alpha, approach="force"),
+                        terms=(jm.Contact("frictionless", normal="average"),))
+    state = sim.init(particles, fields={"material": jnp.asarray([0.0, 1.0])})
+    new = sim.step(state, dt)
+
+    M = np.array([1.0, 0.8])
+    S = np.array([[0.7, 0.3], [0.4, 0.6]])  # S_pi of the tents at x = 0.3, 0.6
+    m = S * M[:, None]  # m^a_i: row a = material a (one particle each)
+    p = m * v  # p^a_i
+    f = -alpha * p  # forces phase: the damping force of 001 eq. (58)
+    # normal="average": n ~ g^0 - g^1, g^a_i = sum_p M_p G_pi, G = (-1, +1) on the two nodes (h = 1)
+    normal = np.sign((M[0] - M[1]) * np.array([-1.0, 1.0]))
+
+    def frictionless(q):  # the law on stacked momenta, per node
+        out = q.copy()
+        for i in range(2):
+            dp = (m[0, i] * q[1, i] - m[1, i] * q[0, i]) / m[:, i].sum()
+            if dp * normal[i] < 0:  # approaching along n
+                out[0, i] += dp
+                out[1, i] -= dp
+        return out
+
+    p1 = frictionless(p)
+    p_plus = frictionless(p1 + f * dt)
+    v_grid, v_tilde = p1 / m, p_plus / m
+    expected = v[:, 0] + np.array([S[a] @ (v_tilde[a] - v_grid[a]) for a in range(2)])
+    np.testing.assert_allclose(np.asarray(new.v)[:, 0], expected, rtol=0, atol=1e-14)
+
+
+# ------------------------------------------------------------------ 2. contact under every update
+UPDATES = ["USL", "USF", "MUSL", "USAVG-", "USAVG+"]
+
+
+def _bodies(update, law, scheme=None):
+    """Two elastic blocks side by side in 2D meeting head on (uGIMP, no gravity, no conditions)."""
+    shape = jm.UGIMP(ppc=2)
+    grid = jm.Grid.covering((0.0, 0.0), (1.0, 0.5), 1.0 / 16, shape=shape, pad=2.0 / 16)
+    a = jm.fill(grid, jm.Box((0.1, 0.1), (0.45, 0.4)), ppc=2, velocity=(0.4, 0.05))
+    b = jm.fill(grid, jm.Box((0.5, 0.1), (0.85, 0.4)), ppc=2, velocity=(-0.3, -0.05))
+    particles = jm.Particles(x=jnp.concatenate([a.x, b.x]), v=jnp.concatenate([a.v, b.v]),
+                             volume=jnp.concatenate([a.volume, b.volume]), ppc=2)
+    terms = () if law is None else (jm.Contact(law=law),)
+    sim = jm.Simulation(grid=grid, shape=shape, material=jm.LinearElastic(E=400.0, nu=0.3, density=10.0),
+                        scheme=jm.FLIP() if scheme is None else scheme, update=update, damping=False, terms=terms)
+    ids = np.concatenate([np.zeros(a.num), np.ones(b.num)])
+    state = sim.init(particles, fields=None if law is None else {"material": jnp.asarray(ids)})
+    return sim, state, 0.2 * float(sim.stable_dt(state))
+
+
+@pytest.mark.parametrize("update", UPDATES)
+def test_contact_conserves_momentum_under_every_update(update):
+    """Frictionless contact between two blocks through their impact (40 steps): total linear
+    momentum conserved to round-off (sum over materials of every exchange is zero, 000 eq. 4.12);
+    the bodies exchange momentum (each block's changes by > 1%).  Measured drift <= 3e-16."""
+    sim, state, dt = _bodies(update, "frictionless")
+    final = _steps(sim, state, dt, 40)
+    p0 = jm.linear_momentum(state)
+    p1 = jm.linear_momentum(final)
+    scale = float(np.sum(np.asarray(state.mass) * np.linalg.norm(np.asarray(state.v), axis=-1)))
+    assert np.abs(np.asarray(p1 - p0)).max() <= 1e-13 * scale
+    ids = np.asarray(state.fields["material"]) == 0
+    px0 = float(np.sum(np.asarray(state.mass)[ids] * np.asarray(state.v)[ids, 0]))
+    px1 = float(np.sum(np.asarray(final.mass)[ids] * np.asarray(final.v)[ids, 0]))
+    assert abs(px1 - px0) > 0.01 * abs(px0)
+
+
+@pytest.mark.parametrize("scheme", ["flip", "fmpm:2"])
+@pytest.mark.parametrize("update", UPDATES)
+def test_stick_contact_is_single_field_under_every_update(update, scheme):
+    """A stick interface moves every material with the node's centre-of-mass velocity, so a stick
+    two-material run is the single-field run (003 §3.1; 000 §4.6) -- under USF, MUSL and USAVG too,
+    where the exchange also acts on the start-of-step and the re-extrapolated momenta.  FMPM(2)
+    subtracts the exchange's series term (003 eqs. 3.16-3.22) in its strain velocity as in its
+    update.  20 steps; particle velocities and F agree to 1e-12 (measured <= 2e-15)."""
+    scheme_obj = jm.scheme_from_name(scheme)
+    single, state1, dt = _bodies(update, None, scheme_obj)
+    stick, state2, _ = _bodies(update, "stick", scheme_obj)
+    a = _steps(single, state1, dt, 20)
+    b = _steps(stick, state2, dt, 20)
+    np.testing.assert_allclose(np.asarray(b.v), np.asarray(a.v), rtol=0, atol=1e-12 * np.abs(np.asarray(a.v)).max())
+    np.testing.assert_allclose(np.asarray(b.F), np.asarray(a.F), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(b.x), np.asarray(a.x), rtol=0, atol=1e-12)
+
+
+# ------------------------------------------------------------------ 3. what the phases refuse
+class _Echo(jm.Term):
+    """A reader that adds a grid result named ``name``."""
+
+    name: str = eqx.field(static=True)
+
+    def read_grid(self, sim, fields, solution, dt):
+        return {self.name: solution.v_tilde}
+
+
+class _Echo2(_Echo):
+    pass
+
+
+def test_two_terms_cannot_set_one_grid_result():
+    setup = jm.scene("bar", cells=4, t_end=0.1, dtype="f64")
+    fine = setup.sim.with_term(_Echo("echo"))
+    fine.step(setup.state, setup.dt)
+    clash = fine.with_term(_Echo2("echo"))
+    with pytest.raises(jm.InputError, match="echo"):
+        clash.step(setup.state, setup.dt)
+    with pytest.raises(jm.InputError, match="v_tilde"):
+        setup.sim.with_term(_Echo("v_tilde")).step(setup.state, setup.dt)
+
+
+class _Swap(jm.Term):
+    """A second momentum exchange (no physics: it returns the momenta unchanged)."""
+
+    def exchange_momentum(self, sim, fields, p):
+        return p, jnp.zeros_like(p)
+
+
+def test_one_exchanging_term_per_model():
+    setup = jm.scene("bars_impact", cells=8, contact="frictionless", dtype="f64")
+    with pytest.raises(jm.InputError, match="exchange momentum"):
+        setup.sim.with_term(_Swap())
+
+
+# ------------------------------------------------------------------ 4. heat across contact interfaces
+def _hot_and_cold(interface, law="frictionless", cells=32, contact=True):
+    """A 1D bar of two halves (materials 0 and 1, at rest, no stress) at temperatures 1 and 0,
+    conductivity k = 1, rho = c_p = 1 (diffusivity 1), insulated outer ends."""
+    grid = jm.Grid((-2.0 / cells,), (1.0 + 2.0 / cells,), (cells + 4,))
+    particles = jm.fill(grid, jm.Box((0.0,), (1.0,)), ppc=2)
+    heat = jm.Heat(conductivity=1.0, initial=lambda x: np.where(x[:, 0] < 0.5, 1.0, 0.0),
+                   **({} if interface is None else {"interface": interface}))
+    terms = (heat,) + ((jm.Contact(law=law),) if contact else ())
+    sim = jm.Simulation(grid=grid, shape=jm.Linear(), material=jm.NoStress(), scheme=jm.FLIP(), damping=False,
+                        terms=terms)
+    fields = {"material": jnp.asarray((np.asarray(particles.x)[:, 0] > 0.5).astype(float))} if contact else None
+    state = sim.init(particles, fields=fields)
+    return sim, state, 0.2 * float(sim.stable_dt(state))
+
+
+def test_perfect_thermal_contact_is_one_body():
+    """interface="perfect" (the default): heat crosses the contact interface as within one body --
+    the temperatures equal the single-body conduction run (no contact term) to round-off after 200
+    steps (measured 4e-16), and the heat has crossed (the cold half warmed by > 0.1)."""
+    sim, state, dt = _hot_and_cold(None)
+    single, state1, _ = _hot_and_cold(None, contact=False)
+    T = np.asarray(_steps(sim, state, dt, 200).fields["temperature"])
+    T1 = np.asarray(_steps(single, state1, dt, 200).fields["temperature"])
+    np.testing.assert_allclose(T, T1, rtol=0, atol=1e-13)
+    assert T[np.asarray(state.x)[:, 0] > 0.5].mean() > 0.1
+
+
+def test_insulated_interface_passes_no_heat():
+    """interface="insulated": each material conducts within itself; the thermal energy of each
+    half stays what it was (to round-off: 1e-15 measured) while it evens out inside the half."""
+    sim, state, dt = _hot_and_cold("insulated")
+    final = _steps(sim, state, dt, 200)
+    hot = np.asarray(state.fields["material"]) == 0
+    for part in (hot, ~hot):
+        e0 = np.sum(np.asarray(state.mass)[part] * np.asarray(state.fields["temperature"])[part])
+        e1 = np.sum(np.asarray(final.mass)[part] * np.asarray(final.fields["temperature"])[part])
+        assert abs(e1 - e0) <= 1e-13 * max(abs(e0), 1.0)
+
+
+def test_interface_conductance_relaxes_at_the_analytic_rate():
+    """interface=h_c: two halves of heat capacity C = rho c_p L = 0.5 per unit area exchange
+    h_c (T1 - T0) across the unit interface area, so (conduction inside each half being fast, its
+    time L^2/a = 0.25 against 1/lambda = 0.5) the difference of their mean temperatures decays as
+    exp(-lambda t), lambda = h_c (1/C0 + 1/C1) = 2 for h_c = 0.5 (Newton's law of cooling for two
+    bodies).  Fitted over t in [0.3, 1.0]: lambda 1.97 measured (32 cells); within 5 %.  Energy
+    is conserved to round-off (the exchange sums to zero over the fields)."""
+    sim, state, dt = _hot_and_cold(0.5)
+    steps = int(round(1.0 / dt))
+    hot = np.asarray(state.fields["material"]) == 0
+    mass = np.asarray(state.mass)
+
+    def means(s):
+        T = np.asarray(s.fields["temperature"])
+        return np.sum(mass[hot] * T[hot]) / mass[hot].sum(), np.sum(mass[~hot] * T[~hot]) / mass[~hot].sum()
+
+    times, gaps, s = [], [], state
+    chunk = max(steps // 20, 1)
+    for k in range(20):
+        s = _steps(sim, s, dt, chunk)
+        t = (k + 1) * chunk * dt
+        if t >= 0.3:
+            a, b = means(s)
+            times.append(t)
+            gaps.append(a - b)
+    rate = -np.polyfit(times, np.log(gaps), 1)[0]
+    assert rate == pytest.approx(2.0, rel=0.05), rate
+    e0 = np.sum(mass * np.asarray(state.fields["temperature"]))
+    e1 = np.sum(mass * np.asarray(s.fields["temperature"]))
+    assert abs(e1 - e0) <= 1e-13 * e0
+
+
+def test_bad_interface_option():
+    with pytest.raises(jm.InputError, match="interface"):
+        jm.Heat(1.0, interface="glued")
+    with pytest.raises(jm.InputError, match="interface"):
+        jm.Heat(1.0, interface=-1.0)
+
+
+# ------------------------------------------------------------------ 5. a history-dependent law, scoped parameters
+class HardeningBar(jm.InelasticMaterial):
+    """A toy 1D elastic-plastic law with linear isotropic hardening, written against the material
+    protocol: its state is the elastic strain and the accumulated plastic strain; each strain
+    update hands it the increment dF (thermal stretch removed), and a return mapping keeps
+    |E eps_e| <= Y + H eps_p (the classic 1D algorithm, Simo & Hughes 1998, box 1.4)."""
+
+    E: jnp.ndarray
+    yield_stress: jnp.ndarray
+    hardening: jnp.ndarray
+    friction: jnp.ndarray  # a parameter named like the contact's, to show that names are scoped
+
+    def __init__(self, E=100.0, yield_stress=0.05, hardening=20.0, friction=0.0, density=1.0):
+        self.E, self.yield_stress, self.hardening, self.friction, self.density = (
+            jnp.asarray(v, jnp.result_type(float)) for v in (E, yield_stress, hardening, friction, density))
+
+    def initial_state(self, particles):
+        n = np.shape(particles.x)[0]
+        return {"elastic": jnp.zeros(n), "plastic": jnp.zeros(n)}
+
+    def update_state(self, increment, state):
+        trial = state["elastic"] + (increment.dF[:, 0, 0] - 1.0)  # small strain: d eps = dF - 1
+        stress = self.E * trial
+        limit = self.yield_stress + self.hardening * state["plastic"]
+        excess = jnp.maximum(jnp.abs(stress) - limit, 0.0)
+        d_plastic = excess / (self.E + self.hardening)
+        return {"elastic": trial - jnp.sign(stress) * d_plastic, "plastic": state["plastic"] + d_plastic}
+
+    def stress(self, F, state):
+        return (self.E * state["elastic"])[:, None, None]
+
+    def stored_energy_density(self, F, state):
+        return 0.5 * self.E * state["elastic"] ** 2
+
+    def wave_speed(self, dim):
+        return jnp.sqrt(self.E / self.density)
+
+
+jm.register_material("hardening_bar", HardeningBar, parameters=[
+    jm.Parameter("yield_stress", lambda m: m.yield_stress, "initial yield stress Y", "positive"),
+    jm.Parameter("hardening", lambda m: m.hardening, "hardening modulus H", "positive"),
+    jm.Parameter("friction", lambda m: m.friction, "a toy parameter sharing the contact's name"),
+])
+
+
+def test_history_dependent_law_through_the_protocol():
+    """A bar pulled at its end at constant speed through yield: the stress of the yielded
+    particles follows the hardening line Y + H eps_p (to 1e-12), the plastic strain only grows,
+    and the law's state is carried, saved and differentiable like any part's."""
+    grid = jm.Grid((-1.0 / 16,), (2.0,), (33,))
+    particles = jm.fill(grid, jm.Box((0.0,), (1.0,)), ppc=2)
+    law = HardeningBar()
+    sim = jm.Simulation(grid=grid, shape=jm.Linear(), material=law, scheme=jm.FLIP(), damping=False,
+                        boundary=[jm.Fixed(lambda x: x[:, 0] <= 1e-9),
+                                  jm.Prescribed(lambda x: x[:, 0] >= 1.0 - 1e-9, 0.02, layers=1)])
+    state = sim.init(particles)
+    dt = 0.2 * float(sim.stable_dt(state))
+    final, hist = sim.run(state, dt, 400, 100)
+    plastic = np.asarray(final.material_state["plastic"])
+    sigma = law.E * np.asarray(final.material_state["elastic"])
+    yielded = plastic > 1e-6
+    assert yielded.sum() >= 4
+    np.testing.assert_allclose(np.abs(sigma[yielded]), 0.05 + 20.0 * plastic[yielded], rtol=1e-12)
+    assert np.all(np.abs(sigma) <= 0.05 + 20.0 * plastic + 1e-12)
+
+
+def test_parameter_names_are_scoped_per_part():
+    """The toy law's ``friction`` and the contact's ``friction`` live side by side: set_params and
+    get_params take the scoped names, the bare name is an error naming both, and the HDF5
+    attributes carry both scoped."""
+    setup = jm.scene("bars_impact", cells=8, contact="coulomb", dtype="f64")
+    sim = eqx.tree_at(lambda s: s.material, setup.sim, HardeningBar())
+    with pytest.raises(jm.InputError, match="contact.friction"):
+        jm.set_params(sim, friction=0.3)
+    sim = jm.set_params(sim, **{"contact.friction": 0.3, "material.friction": 0.7})
+    got = jm.get_params(sim, "contact.friction", "material.friction", "yield_stress")
+    assert float(got["contact.friction"]) == 0.3 and float(got["material.friction"]) == 0.7
+    assert float(got["yield_stress"]) == 0.05
+    from jaxmpm.io.hdf5 import run_attributes
+
+    attrs = run_attributes(sim)
+    assert attrs["contact.friction"] == 0.3 and attrs["material.friction"] == 0.7 and "friction" not in attrs

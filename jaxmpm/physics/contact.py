@@ -107,10 +107,10 @@ import numpy as np
 from ..core.errors import check
 from ..core.fields import ParticleField
 from ..core.registry import Parameter, register_term
+from ..core.validate import FINITE, NON_NEGATIVE, concrete, fail, finite_vector, positive_int, show
 from ..transfer.contractions import Gradient, Weighted
 from ..transfer.operators import safe_divide
 from .term import Term
-from ..core.validate import FINITE, NON_NEGATIVE, concrete, fail, finite_vector, positive_int, show
 
 LAWS = ("stick", "frictionless", "coulomb")
 NORMALS = ("first", "max_gradient", "average")  # or a vector: the specified normal
@@ -198,7 +198,7 @@ class Contact(Term):
 
     def p2g_quantities(self, sim, state, stencil) -> dict:
         """sum_p M_p G_pi: the material mass gradients, for the contact normals (Nairn contact notes
-        §3.2; the stacked scatter gives each material's, 000 §4.2); with a
+        §3.2; the stacked scatter sums each material's particles only, S^a of 000 eq. 4.4); with a
         ``separation`` criterion also sum_p S_pi M_p X_p, the materials' nodal mass moments."""
         out = {"mass_gradient": Gradient(state.mass)}
         if self.separation is not None:

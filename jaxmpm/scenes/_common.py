@@ -85,6 +85,13 @@ def contact_model(contact: str, friction: float, normal=None, separation: float 
                     **chosen),), True
 
 
+def contact_normal_param(terms) -> str | list | None:
+    """The contact normal of a scene's ``terms`` (from :func:`contact_model`) for its params: the
+    option's name, the specified vector as a list, or None without contact."""
+    normal = terms[0].normal if terms else None
+    return list(normal) if isinstance(normal, tuple) else normal
+
+
 def material_ids(counts, dtype=None):
     """Material ids 0, 1, ... for bodies of ``counts`` particles each, concatenated in that order."""
     return jnp.concatenate([jnp.full((int(n),), float(k), dtype=dtype) for k, n in enumerate(counts)])

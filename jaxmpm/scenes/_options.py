@@ -14,9 +14,10 @@ raising ZeroDivisionError on ``cfl=0``).  The decorator
 * turns a scheme or shape given as a string (``scheme="xpic:3"``, ``shape="quadratic"``) into the
   part, as the command line does.
 
-One check spans two options, because only the decorator knows which options the caller gave: a
+Two checks span two options, because only the decorator knows which options the caller gave: a
 ``friction`` given with a ``contact`` law other than "coulomb" is an error (the builders use the
-friction only with "coulomb", so slide's default friction 0.2 does not stop ``contact="frictionless"``).
+friction only with "coulomb", so slide's default friction 0.2 does not stop ``contact="frictionless"``),
+and so is a contact ``normal`` given with ``contact="none"`` (one field: no contact normal).
 Other checks that need several options at once (mms: an even cell count for the extended boundary,
 vortex: spacing below the ring width) stay in the builders.  The builders' own constructors
 (``Grid``, ``fill``, the materials, the schemes) check again what they receive.
@@ -158,6 +159,10 @@ def checked_options(builder):
             if contact != "coulomb" and mu is not None and np.any(mu != 0):
                 fail(scene, f"friction = {show(given['friction'])} applies only to contact='coulomb', "
                             f"not contact={contact!r}", "pass contact='coulomb', or leave friction out")
+        if given.get("normal") is not None and "contact" in signature.parameters:
+            if given.get("contact", signature.parameters["contact"].default) == "none":
+                fail(scene, f"normal = {show(given['normal'])} applies only to a contact law, not contact='none'",
+                     "pass contact='frictionless', 'coulomb' or 'stick', or leave normal out")
         return builder(**_parts(scene, given, signature))
 
     return build

@@ -20,7 +20,7 @@ from ..schemes import FLIP
 from ..physics.damping import Damping
 from ..transfer.shapes import QuadraticBSpline
 from ..model.simulation import Simulation
-from ._common import Setup, cast_state, contact_model, material_ids, resolve_dtype, schedule
+from ._common import Setup, cast_state, contact_model, contact_normal_param, material_ids, resolve_dtype, schedule
 from ._options import checked_options
 
 LOWER, UPPER = (-20.0, -7.5), (20.0, 7.5)
@@ -48,12 +48,14 @@ def rings(
     separation: float = 10.0,
     contact: str = "none",
     friction: float = 0.0,
-    normal=None,
+    normal="average",
 ) -> Setup:
     """Two rings ``separation`` apart (centre to centre) approaching at +-``speed``;
     dt = cfl * h / (c + speed) unless ``dt`` is given.  ``contact``: "none" (one velocity field) or
     a law ("stick", "frictionless", "coulomb" with ``friction`` mu), each ring its own material
-    (id 0 for the left ring, 1 for the right; jaxmpm/_contact.py)."""
+    (id 0 for the left ring, 1 for the right; jaxmpm/physics/contact.py); ``normal``: the contact
+    normal (jm.Contact's options; None: the library default "first"): "average" here, symmetric in
+    the two rings of a head-on impact."""
     dtype = resolve_dtype(dtype)
     scheme = FLIP() if scheme is None else scheme
     shape = QuadraticBSpline() if shape is None else shape
@@ -79,5 +81,6 @@ def rings(
     steps, save_every = schedule(t_end, dt, frames)
     params = dict(E=E, nu=nu, density=density, spacing=spacing, ppc=ppc, speed=speed, inner=inner, outer=outer,
                   centres=[[-half, 0.0], [half, 0.0]], n_first=int(a.x.shape[0]), cfl=cfl, dt=dt,
-                  t_end=steps * dt, contact=contact, friction=friction if contact == "coulomb" else 0.0)
+                  t_end=steps * dt, contact=contact, friction=friction if contact == "coulomb" else 0.0,
+                  normal=contact_normal_param(terms))
     return Setup("rings", sim, state, dt, steps, save_every, params, None, particles, fields)

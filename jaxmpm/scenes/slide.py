@@ -57,7 +57,7 @@ from ..schemes import FLIP
 from ..physics.damping import Damping
 from ..transfer.shapes import UGIMP
 from ..model.simulation import Simulation
-from ._common import Setup, cast_state, contact_model, material_ids, resolve_dtype, schedule
+from ._common import Setup, cast_state, contact_model, contact_normal_param, material_ids, resolve_dtype, schedule
 from ._options import checked_options
 
 SLAB = ((0.0, 0.0), (1.0, 0.1))
@@ -170,8 +170,7 @@ def slide(
     params = dict(E=E, nu=nu, density=density, spacing=spacing, ppc=ppc, cfl=cfl, dt=dt, t_end=steps * dt,
                   theta=theta, gravity=gravity, contact=contact, mu=mu if math.isfinite(mu) else None,
                   acceleration=acceleration, slides=acceleration > 0 or speed > 0, ramp=ramp, speed=speed,
-                  normal=None if not multimaterial else (list(terms[0].normal) if isinstance(terms[0].normal, tuple)
-                                                         else terms[0].normal),
+                  normal=contact_normal_param(terms),
                   stop=stop if math.isfinite(stop) else None,
                   slab=[list(SLAB[0]), list(SLAB[1])],
                   block=[list(BLOCK[0]), list(BLOCK[1])], n_first=int(slab.x.shape[0]))

@@ -15,7 +15,7 @@ against Lamé's u_r(R_p) and sigma_thth(R_p), and alpha_g dt.  The particle posi
 deformation gradient by about alpha_g dt (jaxmpm's damping acts in the particle update, 000 eq.
 2.77, while F follows the undamped grid velocity v~), which is the whole of the u_r (positions)
 error at 32 cells.  One row also runs uGIMP with the traction weighted by the uGIMP S at the edge
-point (``Traction(basis="shape")``, the library default) instead of the grid basis N_i.
+point (``Traction(basis="shape")``) instead of the grid basis N_i (``basis="grid"``, the library default).
 
     python experiments/axisymmetric.py           # writes experiments/results/axisymmetric.md
     python experiments/axisymmetric.py --quick   # 16 and 32 cells, linear and uGIMP only

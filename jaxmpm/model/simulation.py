@@ -353,12 +353,8 @@ class Simulation(eqx.Module):
     def elastic_deformation(self, state: State):
         """The deformation gradient the material sees: F, divided by the isotropic stretch of any
         term that imposes one (thermal / moisture expansion, jaxmpm.physics.transport)."""
-        F = state.F
-        for term in self.terms:
-            stretch = term.stretch(state)
-            if stretch is not None:
-                F = F / stretch[:, None, None]
-        return F
+        stretch = self.stretch(state)
+        return state.F if stretch is None else state.F / stretch[:, None, None]
 
     def instability(self, state: State):
         """(cause code, particle index) for the first problem found in ``state``; code 0 = fine."""

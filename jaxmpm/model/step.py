@@ -74,7 +74,7 @@ def deformation_increment(grad_v, dt, kinematics: str = "linear"):
 
         return expm(grad_v * dt)  # 001 eq. (26)
     eye = jnp.eye(grad_v.shape[-1], dtype=grad_v.dtype)
-    return eye + grad_v * dt
+    return jnp.broadcast_to(eye, grad_v.shape) + grad_v * dt
 
 
 def update_deformation(F, grad_v, dt, kinematics: str = "linear"):
@@ -266,10 +266,10 @@ def strain_velocity(sim, v, transfer, constraint, exchange_dv=None):
 
 
 # ------------------------------------------------------------------------------------------ step
-def material_update(sim, F_old, F_new, dF, material_state, old, new, dt):
-    """The material's state after a strain update from F_old to F_new = dF F_old, with the terms'
-    isotropic stretch removed from the increment: dF s(old) / s(new) (thermal strain is part of
-    the increment, not of the elastic deformation)."""
+def material_update(sim, F_new, dF, material_state, old, new, dt):
+    """The material's state after a strain update to F_new = dF F_old, with the terms' isotropic
+    stretch removed from the increment: dF s(old) / s(new) (thermal strain is part of the
+    increment, not of the elastic deformation)."""
     s_old, s_new = sim.stretch(old), sim.stretch(new)
     if s_old is not None:
         dF = dF * (s_old / s_new)[:, None, None]
@@ -288,7 +288,7 @@ def step(sim, state, dt):
         dF = deformation_increment(strain_rate(sim, transfer, v_strain), strain_dt(sim, dt), sim.kinematics)
         F = dF @ state.F
         moved = eqx.tree_at(lambda s: s.F, state, F)
-        material_state = material_update(sim, state.F, F, dF, state.material_state, state, state, strain_dt(sim, dt))
+        material_state = material_update(sim, F, dF, state.material_state, state, state, strain_dt(sim, dt))
         state = eqx.tree_at(lambda s: s.material_state, moved, material_state, is_leaf=lambda x: x is None)
         fields = GridFields(transfer, {**fields.values, **nodal_terms(sim, state, transfer)})
     else:  # USL, MUSL: the stress of the step's start, scattered with the mass and momentum
@@ -335,10 +335,10 @@ def g2p(sim, state, transfer: Transfer, constraint, grid: GridSolution, dt, fiel
         new = term.particle_action(sim, state, new, transfer, grid, dt)
     material_state = state.material_state
     if dF is not None:  # the material's state with the step's (second-half) increment
-        material_state = material_update(sim, state.F, F, dF, material_state, state, new, strain_dt(sim, dt))
+        material_state = material_update(sim, F, dF, material_state, state, new, strain_dt(sim, dt))
     elif sim.stretch(state) is not None:  # USF: the step's stretch change alone, at its end
         eye = jnp.eye(F.shape[-1], dtype=F.dtype)
-        material_state = material_update(sim, F, F, jnp.broadcast_to(eye, F.shape), material_state, state, new, dt)
+        material_state = material_update(sim, F, jnp.broadcast_to(eye, F.shape), material_state, state, new, dt)
     new = eqx.tree_at(lambda s: (s.F, s.material_state), new, (sim.material.keep_deformation(F), material_state),
                       is_leaf=lambda x: x is None)
     return new

@@ -83,6 +83,11 @@ def test_plate_under_uniaxial_traction_reaches_the_plane_strain_strains():
     np.testing.assert_allclose(F[:, 0, 1], 0.0, atol=1e-6)  # no shear: measured |F_xy| <= 3.7e-7
 
 
+def nodal_sums(fields):
+    """P2G's nodal sums by name, as a term's ``nodal_force`` receives them (the mass among them)."""
+    return {**fields.values, "mass": fields.transfer.nodal_mass}
+
+
 def test_traction_stays_on_nodes_with_mass_and_follows_time():
     """The edge point past the last loaded node line: the whole load lands on nodes with mass;
     a traction T(t) = t (10,) gives 10 t."""
@@ -93,8 +98,9 @@ def test_traction_stays_on_nodes_with_mass_and_follows_time():
                         terms=(load,))
     state = sim.init(particles)
     moved = eqx.tree_at(lambda s: (s.x, s.time), state, (state.x + 0.004, jnp.asarray(0.5)))  # edge beyond x = L
-    mass = jm.p2g(sim, moved).transfer.nodal_mass
-    force = np.asarray(load.nodal_force(sim, moved, mass))[:, 0]
+    fields = jm.p2g(sim, moved)
+    mass = fields.transfer.nodal_mass
+    force = np.asarray(load.nodal_force(sim, moved, nodal_sums(fields)))[:, 0]
     assert force.sum() == pytest.approx(5.0, rel=1e-14)
     assert np.all(force[np.asarray(mass) == 0] == 0.0)
 
@@ -190,7 +196,7 @@ def sudden_traction(dim, shape, offsets, steps=40, cells=16):
 
         def step(_, carry):
             s, strain, imbalance = carry
-            force = term.nodal_force(model, s, jm.p2g(model, s).transfer.nodal_mass)
+            force = term.nodal_force(model, s, nodal_sums(jm.p2g(model, s)))
             area = jnp.sum(jnp.where(on_face, jnp.linalg.det(s.F) * area0 / s.F[:, 0, 0], 0.0))
             imbalance = jnp.maximum(imbalance, jnp.max(jnp.abs(jnp.sum(force, axis=0) - traction * area)))
             s = model.step(s, dt)

@@ -126,7 +126,7 @@ def p2g(sim, state, force: bool = True, dt=None) -> GridFields:
         columns["updated_momentum"] = columns.pop("momentum") + _scaled(columns.pop("force"), dt)
     nodal = scatter_quantities(stencil, columns, sim.field_nodes)
     if force or dt is not None:
-        nodal = with_surface_forces(sim, state, nodal, nodal["mass"], dt)
+        nodal = with_surface_forces(sim, state, nodal, dt)
     images = sim.constraint(state.x.dtype).mirror  # jm.Mirror: fold in the particles' mirror images
     if images is not None:
         nodal = images.fold_columns(nodal, folded_columns(sim))
@@ -141,10 +141,11 @@ def folded_columns(sim) -> tuple:
         name for term in sim.terms for name in term.folded_columns())
 
 
-def with_surface_forces(sim, state, nodal: dict, nodal_mass, dt=None) -> dict:
+def with_surface_forces(sim, state, nodal: dict, dt=None) -> dict:
     """The nodal fields with the terms' own nodal forces (``Term.nodal_force``: tractions, 001
-    eq. 21) added to the force, or dt times them to a folded updated momentum."""
-    extra = [f for f in (term.nodal_force(sim, state, nodal_mass) for term in sim.terms) if f is not None]
+    eq. 21; each reads P2G's nodal sums, ``nodal``) added to the force, or dt times them to a
+    folded updated momentum."""
+    extra = [f for f in (term.nodal_force(sim, state, nodal) for term in sim.terms) if f is not None]
     if not extra:
         return nodal
     total = sum(extra[1:], extra[0])
@@ -159,7 +160,8 @@ def nodal_terms(sim, state, transfer: Transfer) -> dict:
     exchanger = sim.exchange_term
     terms = [t for t in sim.terms if t is not exchanger]
     nodal = transfer.p2g(term_quantities(sim, state, transfer.stencil, terms))
-    nodal = with_surface_forces(sim, state, nodal, transfer.nodal_mass)
+    nodal = with_surface_forces(sim, state, {**nodal, "mass": transfer.nodal_mass})
+    nodal.pop("mass")
     return nodal if transfer.images is None else transfer.images.fold_columns(nodal, folded_columns(sim))
 
 

@@ -108,11 +108,21 @@ class Traction(Term):
         return (ParticleField(self.name, initial=_chosen("Traction", self.where), save=False,
                               doc="1 on the particles whose domain face carries the traction"),)
 
-    def nodal_force(self, sim, state, nodal_mass):
+    @property
+    def reach_column(self) -> str:
+        return f"{self.name}_reach"
+
+    def p2g_quantities(self, sim, state, stencil) -> dict:
+        """The nodes' reach R_i = sum_p V_p |G_ip . n| over every particle (:func:`bounded_shares`),
+        in the step's one P2G pass."""
+        axis, _ = parse_face(self.face, sim.grid.dim)
+        volume = jnp.linalg.det(state.F) * state.volume0  # V_p (per radian on an r-z grid, 001 §7)
+        return {self.reach_column: PerSlot(volume[None, :] * jnp.abs(stencil.gradient[axis]))}
+
+    def nodal_force(self, sim, state, nodal):
         """f_i,T = sum_p T A_p w_ip over the loaded particles (001 eq. 21), w_ip = N_i(x_p + l_p n)
         (``basis``), each node's share bounded by its reach and each particle's weights
-        renormalised to 1 (:func:`bounded_shares`).  ``nodal_mass`` is not used: a node without
-        mass has no reach, so no share."""
+        renormalised to 1 (:func:`bounded_shares`)."""
         dim = sim.grid.dim
         axis, side = parse_face(self.face, dim)
         reference = state.volume0
@@ -128,16 +138,16 @@ class Traction(Term):
         load = _at(self.traction, state.time, dim, state.x.dtype)
         basis = sim.shape.grid_basis() if self.basis == "grid" else None  # 001 eq. (21): N_i at the edge
         stencil = sim.stencil(state, edge, basis)  # on the particle's own velocity field
-        weight = bounded_shares(sim, state, stencil, area, axis)
+        weight = bounded_shares(sim, stencil, area, nodal[self.reach_column])
         forces = area[:, None] * load[None, :]
         return p2g(stencil, {"force": PerSlot(weight[None] * forces.T[:, None, :])}, sim.field_nodes)["force"]
 
 
-def bounded_shares(sim, state, stencil, area, axis: int):
+def bounded_shares(sim, stencil, area, reach):
     """The weights w_ip (K, N) of the loaded particles' edge points (``stencil``, ``area`` A_p: 0 off
-    the face), each node's share Q_i = sum_p A_p w_ip bounded by its reach R_i = sum_p V_p |G_ip,n|
-    over every particle (n the face normal, ``axis``; 001 eqs. 15, 17), then renormalised to 1 per
-    particle: w_ip min(1, R_i / Q_i) / sum_j w_jp min(1, R_j / Q_j).
+    the face), each node's share Q_i = sum_p A_p w_ip bounded by its ``reach`` R_i = sum_p V_p
+    |G_ip,n| over every particle (n the face normal; 001 eqs. 15, 17; scattered with the step's
+    P2G), then renormalised to 1 per particle: w_ip min(1, R_i / Q_i) / sum_j w_jp min(1, R_j / Q_j).
 
     |T| R_i is the largest force that the stress T (x) n -- the stress that carries the traction
     into the body across planes normal to n -- exerts on node i through the particles, f_i =
@@ -157,13 +167,7 @@ def bounded_shares(sim, state, stencil, area, axis: int):
     to the exact stress: uGIMP's stretched edge (a settled uGIMP bar in tension, 32 cells: the
     last particles' strain 0.8 % -> 0.12 % off sigma / E) and the B-spline node one cell beyond
     the face (cubic at rest: Q = 1/6 against R = 0.156 per unit area; cylinder, cubic: sigma_thth
-    3.2 % -> 2.0 % off Lamé at 16 cells, 3.2 % -> 1.7 % at 32).  A node without mass has R_i = 0.
-    The bound costs one more stencil and scatter: 11-17 % of a 2D FLIP step (16384 particles, one
-    loaded face)."""
-    own = sim.stencil(state)  # every particle's S_ip, G_ip on its own velocity field
-    volume = jnp.linalg.det(state.F) * state.volume0  # V_p (per radian on an r-z grid, 001 §7)
-    reach = p2g(own, {"reach": PerSlot((volume[None, :] * jnp.abs(own.gradient[axis]))[None])},
-                sim.field_nodes)["reach"][:, 0]
+    3.2 % -> 2.0 % off Lamé at 16 cells, 3.2 % -> 1.7 % at 32).  A node without mass has R_i = 0."""
     share = p2g(stencil, {"share": PerSlot((area[None, :] * stencil.weight)[None])}, sim.field_nodes)["share"][:, 0]
     over = share > reach
     scale = jnp.where(over, reach / jnp.where(over, share, 1.0), 1.0)  # min(1, R_i / Q_i)

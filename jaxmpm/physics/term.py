@@ -6,7 +6,7 @@ default to "nothing":
 * P2G -- ``p2g_quantities(sim, state, stencil)``: per-particle quantities tagged with their
   contraction (:mod:`jaxmpm.transfer.contractions`), by the nodal field they add to ("force",
   or a name of the term's own); the transfer layer scatters every term's quantities in one pass,
-  quantities of one name summed.  ``nodal_force(sim, state, nodal_mass)``: a nodal force the
+  quantities of one name summed.  ``nodal_force(sim, state, nodal)``: a nodal force the
   term assembles by its own quadrature (a traction), added to the scattered force.
 * the grid solve, an ordered pipeline of phases (module ``jaxmpm.model.step``):
 
@@ -83,10 +83,10 @@ class Term(eqx.Module):
         """Deprecated: per-slot columns, planar (C, K, N) or (K, N); use :meth:`p2g_quantities`."""
         return {}
 
-    def nodal_force(self, sim, state, nodal_mass):
+    def nodal_force(self, sim, state, nodal):
         """A nodal force (field_nodes, D) the term assembles by its own quadrature (a surface
-        integral: jm.Traction), added to the scattered force; ``nodal_mass`` the step's lumped
-        mass.  None: none."""
+        integral: jm.Traction), added to the scattered force; ``nodal`` P2G's nodal sums by name
+        (``nodal["mass"]``, the term's own columns).  None: none."""
         return None
 
     # ------------------------------------------------------------------ grid phases

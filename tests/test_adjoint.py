@@ -60,6 +60,17 @@ def case(name):
                                   terms=(diffusion,), damping=damping)
         setup.state = setup.sim.init(setup.particles)
         names = ["diffusivity", "moisture_expansion", "E", "amplitude"]
+    elif name == "heat-interface":  # heat_step's bar in two materials, an interface conductance between them
+        setup = jm.scene("heat_step", cells=16)
+        heat = setup.sim.term(jm.Heat)
+        middle = 0.5 * float(np.max(np.asarray(setup.particles.x)[:, 0]))
+        heat = jm.Heat(conductivity=heat.conductivity, heat_capacity=heat.capacity, boundary=heat.boundary,
+                       initial=lambda x: np.where(x[:, 0] < middle, 1.0, 0.0), interface=5.0)  # hot | cold
+        setup.sim = jm.Simulation(setup.sim.grid, setup.sim.shape, setup.sim.material, setup.sim.scheme,
+                                  terms=(heat, jm.Contact("stick")), damping=False)
+        x = np.asarray(setup.particles.x)[:, 0]
+        setup.state = setup.sim.init(setup.particles, fields={"material": jnp.asarray((x > middle) * 1.0)})
+        names = ["interface_conductance", "conductivity", "amplitude"]
     else:
         raise KeyError(name)
     values = jm.get_params(setup.sim, *[k for k in names if k != "amplitude"])
@@ -68,7 +79,7 @@ def case(name):
 
 
 CASES = ["bar-blend-ugimp-musl", "bar-xpic2-usf", "bar-fmpm2-cubic", "bar-tpic-cubic", "disks-apic",
-         "slide-rpic-friction", "thermal-bar", "heat-step-linear", "swelling-bar"]
+         "slide-rpic-friction", "thermal-bar", "heat-step-linear", "swelling-bar", "heat-interface"]
 
 
 def test_cases_cover_every_parameter():
@@ -85,7 +96,7 @@ def rollout(setup, adjoint, steps=STEPS, along=None):
     """The state after ``steps`` steps as a function of the parameters: amplitude scales the
     initial velocity, the scene's plus a field 0.1 x (times ``along``, per axis) so that no
     derivative vanishes by symmetry."""
-    along = 1.0 if along is None else jnp.asarray(along)
+    along = 1.0 if along is None else jnp.asarray(along)[None, :]  # per axis, over the particles
     base = setup.sim.with_adjoint(adjoint)
 
     def run(params):

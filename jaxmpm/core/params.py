@@ -24,18 +24,25 @@ from .validate import fail, traced
 
 
 class _ParameterTable(Mapping):
-    """{name: (where(sim) -> leaf, description)} over every registered parameter (live: a part
-    registered later shows up)."""
+    """{name: (where(sim) -> leaf, description)} over every registered parameter, by its bare name
+    (live: a part registered later shows up); a scoped name ("contact.friction") is looked up too."""
 
     def __getitem__(self, name):
         p = all_parameters()[name]
         return (lambda sim: _where(sim, name)(sim)), p.doc
 
+    def __contains__(self, name):
+        return name in all_parameters()
+
     def __iter__(self):
-        return iter(all_parameters())
+        return iter(_bare_names())
 
     def __len__(self):
-        return len(all_parameters())
+        return len(_bare_names())
+
+
+def _bare_names() -> list:
+    return [name for name in all_parameters() if "." not in name]
 
 
 PARAMETERS = _ParameterTable()

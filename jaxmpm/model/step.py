@@ -56,7 +56,8 @@ def folds_force(sim) -> bool:
     USL or MUSL (USF needs v before the force)."""
     if sim.update not in ("USL", "MUSL") or sim.scheme.uses_lumped_velocity:
         return False
-    return not any(term.grid_reads(sim) & LUMPED for term in sim.terms)
+    return not any(term.grid_reads(sim) & LUMPED or overrides(term, "grid_force") or
+                   overrides(term, "exchange_momentum") for term in sim.terms)  # those act on f apart from p
 
 
 def strain_dt(sim, dt):
@@ -215,9 +216,16 @@ def exchange(sim, term, fields: GridFields, dt, constraint):
     p_plus, _ = term.exchange_momentum(sim, fields, p + force * dt)
     safe_dt = jnp.where(dt > 0, dt, 1.0)
     results = {"exchange_acceleration": safe_divide(p_plus - p - force * dt, m) / safe_dt}
-    if term.series_correction:
-        results["exchange_dv"] = constraint.zero(safe_divide(dp, m))
+    dv = exchange_dv(term, dp, m, constraint)
+    if dv is not None:
+        results["exchange_dv"] = dv
     return fields.replace(momentum=p, force=(p_plus - p) / safe_dt), results
+
+
+def exchange_dv(term, dp, mass, constraint):
+    """The exchange's change as a velocity, Dv = Dp/m on the free components, for the XPIC/FMPM
+    series term (003 eqs. 3.18, 3.22); None when the term asks for no series term."""
+    return constraint.zero(safe_divide(dp, mass)) if term.series_correction else None
 
 
 def grid_phases(sim, fields: GridFields, dt, constraint) -> GridSolution:
@@ -254,8 +262,7 @@ def lumped_velocity(sim, fields: GridFields, momentum, constraint):
     dv = None
     if exchanger is not None:
         momentum, dp = exchanger.exchange_momentum(sim, fields, momentum)
-        if exchanger.series_correction:
-            dv = constraint.zero(safe_divide(dp, fields.mass))
+        dv = exchange_dv(exchanger, dp, fields.mass, constraint)
     return constraint.apply(safe_divide(momentum, fields.mass)), dv
 
 

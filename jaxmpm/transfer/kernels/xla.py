@@ -90,39 +90,44 @@ def _per_slot_jvp(primals, tangents):
 per_slot = derivative_rule(_per_slot, _per_slot_ruled)
 
 
-def _scatter_planar(index, contributions, num_nodes: int):
-    """sum_p sum_k c[..., k, p] into node ``index[k, p]``: ``contributions`` (K, N) -> (n,) or
-    (C, K, N) -> (n, C).  The one scatter-add of the library; its rows are (node, components)."""
-    if contributions.ndim == 2:
-        rows = contributions.reshape(-1)
-    else:
-        rows = contributions.reshape(contributions.shape[0], -1).T
-    width = rows.shape[1] if rows.ndim == 2 else 1
+def _scatter_rows(index, rows_, num_nodes: int):
+    """sum over the (slot, particle) rows ``rows_`` (K N,) or (K N, C) into their nodes
+    ``index`` (K, N): (n,) or (n, C).  The one scatter-add of the library; its rows are (node,
+    components), widened under the CPU policy (:func:`jaxmpm.transfer.backend.scatter_row_width`)."""
+    width = rows_.shape[1] if rows_.ndim == 2 else 1
     padded = scatter_row_width(width)  # backend tuning: zero columns that XLA:CPU adds faster
     if padded > width:
-        rows = jnp.concatenate([rows, jnp.zeros((rows.shape[0], padded - width), rows.dtype)], axis=1)
-    dims = jax.lax.ScatterDimensionNumbers(update_window_dims=tuple(range(1, rows.ndim)), inserted_window_dims=(0,),
+        rows_ = jnp.concatenate([rows_, jnp.zeros((rows_.shape[0], padded - width), rows_.dtype)], axis=1)
+    dims = jax.lax.ScatterDimensionNumbers(update_window_dims=tuple(range(1, rows_.ndim)), inserted_window_dims=(0,),
                                            scatter_dims_to_operand_dims=(0,))
     # in-bounds by construction: shape functions clip node numbers onto the grid (jm.Stencil)
-    nodal = jax.lax.scatter_add(jnp.zeros((num_nodes,) + rows.shape[1:], rows.dtype), index.reshape(-1, 1), rows, dims,
-                                mode=jax.lax.GatherScatterMode.PROMISE_IN_BOUNDS)
+    nodal = jax.lax.scatter_add(jnp.zeros((num_nodes,) + rows_.shape[1:], rows_.dtype), index.reshape(-1, 1), rows_,
+                                dims, mode=jax.lax.GatherScatterMode.PROMISE_IN_BOUNDS)
     return nodal[:, :width] if padded > width else nodal
 
 
-_scatter_planar_ruled = jax.custom_jvp(_scatter_planar, nondiff_argnums=(2,))
+_scatter_rows_ruled = jax.custom_jvp(_scatter_rows, nondiff_argnums=(2,))
 
 
-@_scatter_planar_ruled.defjvp
-def _scatter_planar_jvp(num_nodes, primals, tangents):
+@_scatter_rows_ruled.defjvp
+def _scatter_rows_jvp(num_nodes, primals, tangents):
     # the same scatter of the tangents, behind a stage boundary: in reverse mode the nodal
     # cotangent is evaluated once, then gathered (the scatter's transpose); without it XLA fuses
     # the cotangent's computation into the gather and repeats it for every stencil slot
-    (index, c), (_, c_dot) = primals, tangents
-    out = _scatter_planar_ruled(index, c, num_nodes)
-    return out, hold_tangent(_scatter_planar(index, c_dot, num_nodes), out)
+    (index, r), (_, r_dot) = primals, tangents
+    out = _scatter_rows_ruled(index, r, num_nodes)
+    return out, hold_tangent(_scatter_rows(index, r_dot, num_nodes), out)
 
 
-scatter_planar = derivative_rule(_scatter_planar, _scatter_planar_ruled)
+scatter_rows = derivative_rule(_scatter_rows, _scatter_rows_ruled)
+
+
+def scatter_planar(index, contributions, num_nodes: int):
+    """sum_p sum_k c[..., k, p] into node ``index[k, p]``: planar ``contributions`` (K, N) -> (n,)
+    or (C, K, N) -> (n, C), as (node, components) rows (:func:`scatter_rows`)."""
+    if contributions.ndim == 2:
+        return scatter_rows(index, contributions.reshape(-1), num_nodes)
+    return scatter_rows(index, contributions.reshape(contributions.shape[0], -1).T, num_nodes)
 
 
 def nodal_values(stencil, u):
@@ -187,31 +192,6 @@ def _column(stencil, column):
 
 
 # ------------------------------------------------------------------ P2G as rows of per-particle coefficients
-def _scatter_rows(index, rows_, num_nodes: int):
-    """sum over (slot, particle) rows (K N, C) into their nodes ``index`` (K, N): (n, C)."""
-    width = rows_.shape[1]
-    padded = scatter_row_width(width)
-    if padded > width:  # (the rows path pads its coefficients instead; kept for any caller)
-        rows_ = jnp.concatenate([rows_, jnp.zeros((rows_.shape[0], padded - width), rows_.dtype)], axis=1)
-    dims = jax.lax.ScatterDimensionNumbers(update_window_dims=(1,), inserted_window_dims=(0,),
-                                           scatter_dims_to_operand_dims=(0,))
-    nodal = jax.lax.scatter_add(jnp.zeros((num_nodes, rows_.shape[1]), rows_.dtype), index.reshape(-1, 1), rows_,
-                                dims, mode=jax.lax.GatherScatterMode.PROMISE_IN_BOUNDS)
-    return nodal[:, :width] if padded > width else nodal
-
-
-_scatter_rows_ruled = jax.custom_jvp(_scatter_rows, nondiff_argnums=(2,))
-
-
-@_scatter_rows_ruled.defjvp
-def _scatter_rows_jvp(num_nodes, primals, tangents):
-    # as for scatter_planar: the transpose gathers a nodal cotangent evaluated once
-    (index, r), (_, r_dot) = primals, tangents
-    out = _scatter_rows_ruled(index, r, num_nodes)
-    return out, hold_tangent(_scatter_rows(index, r_dot, num_nodes), out)
-
-
-scatter_rows = derivative_rule(_scatter_rows, _scatter_rows_ruled)
 
 
 def _weight_basis(stencil, kinds):

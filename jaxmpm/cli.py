@@ -249,7 +249,7 @@ def run_setup(setup, args, options: dict, resume: bool = False) -> int:
     import numpy as np
 
     import jaxmpm as jm
-    from jaxmpm.io.hdf5 import xdmf_paths
+    from jaxmpm.io.xdmf import xdmf_paths
 
     if args.cache:
         try:

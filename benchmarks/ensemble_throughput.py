@@ -22,9 +22,8 @@ import sys
 import time
 from pathlib import Path
 
-from _results import write_csv
-
 import jax
+from _results import write_csv
 
 jax.config.update("jax_enable_x64", True)
 

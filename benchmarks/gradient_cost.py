@@ -28,9 +28,9 @@ jax.config.update("jax_enable_x64", True)
 
 import equinox as eqx  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
+from _results import cpu_best, write_csv  # noqa: E402
 
 import jaxmpm as jm  # noqa: E402
-from _results import cpu_best, write_csv  # noqa: E402
 
 SCENES = {"bar": ({"cells": 128}, 1000), "disks": ({}, 300), "mpm88": ({}, 100)}
 SCHEMES = {"flip": "flip", "xpic2": "xpic:2", "fmpm2": "fmpm:2", "apic": "apic"}

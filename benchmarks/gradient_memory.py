@@ -45,7 +45,8 @@ from _results import write_csv
 DEFAULT_CSV = Path(__file__).resolve().parent / "results" / "gradient_memory.csv"
 SCHEMES = ("fmpm2", "flip", "xpic2", "apic")
 SCENES = ("bar", "disks", "mpm88")
-FIELDS = ["scene", "scheme", "cells", "particles", "steps", "checkpoint", "temp_MiB", "forward_temp_MiB", "rss_compile_MiB",
+FIELDS = ["scene", "scheme", "cells", "particles", "steps", "checkpoint", "temp_MiB", "forward_temp_MiB",
+          "rss_compile_MiB",
           "rss_peak_MiB", "baseline_rss_MiB", "compile_s", "grad_s", "forward_s", "ratio", "gradient", "load_1min"]
 
 
@@ -162,7 +163,8 @@ def main(argv=None) -> int:
 
     steps_list = args.steps or ([1000, 4000] if args.quick else [1000, 4000, 16000])
     size = args.cells if args.scene == "bar" else args.particles
-    what = f"{args.cells} cells" if args.scene == "bar" else f"{args.particles} particles" if args.scene == "mpm88" else ""
+    what = (f"{args.cells} cells" if args.scene == "bar"
+            else f"{args.particles} particles" if args.scene == "mpm88" else "")
     if args.repeat < 1:
         parser.error(f"--repeat {args.repeat} must be at least 1")
     print(f"{args.scene}, {' '.join(args.scheme)}, {what}, float64; python {platform.python_version()}, "

@@ -32,12 +32,11 @@ jax.config.update("jax_enable_x64", True)
 
 import equinox as eqx  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
+from _results import cpu_best, write_csv  # noqa: E402
 
 import jaxmpm as jm  # noqa: E402
 from jaxmpm.transfer.backend import use_policy  # noqa: E402
 from jaxmpm.transfer.kernels import XLAKernel, kernel, register_kernel  # noqa: E402
-
-from _results import cpu_best, write_csv  # noqa: E402
 
 DEFAULT_CSV = Path(__file__).resolve().parent / "results" / "p2g_layout.csv"
 

@@ -36,9 +36,9 @@ jax.config.update("jax_enable_x64", True)
 
 import equinox as eqx  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
+from _results import cpu_best  # noqa: E402
 
 import jaxmpm as jm  # noqa: E402
-from _results import cpu_best  # noqa: E402
 
 CASES = (("bar", "flip", {"cells": 128}), ("disks", "flip", {}), ("mpm88", "apic", {}), ("mpm88", "flip", {}))
 FIELDS = {"X": lambda s: s.x, "V": lambda s: s.v, "F": lambda s: s.F, "scheme state": lambda s: s.scheme_state}
@@ -116,7 +116,8 @@ def main():
         print(measure(scene, scheme, options, args.repeat, args.adjoint), flush=True)
     print()
     print("| scene | whole step (CPU us) | step gradient / step | linearise / step | transpose alone / step "
-          "| gradient flops / step flops | transpose flops / step flops | floor: rollout gradient flops / forward flops |")
+          "| gradient flops / step flops | transpose flops / step flops "
+          "| floor: rollout gradient flops / forward flops |")
     print("|---" * 8 + "|")
     for scene, scheme, options in CASES:
         print(floor(scene, scheme, options, args.repeat, args.adjoint), flush=True)

@@ -90,7 +90,8 @@ def main(argv=None):
         "(`grid`: N_i at the edge, 001 eq. 21; `shape`: the uGIMP S there). KE end: the last frame's kinetic "
         "energy over its peak.",
         "",
-        "| shape | traction basis | cells through the wall | steps | u_r(x) | u_r(F) | sigma_thth | alpha_g dt | KE end |",
+        "| shape | traction basis | cells through the wall | steps | u_r(x) | u_r(F) | sigma_thth | alpha_g dt "
+        "| KE end |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:

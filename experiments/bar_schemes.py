@@ -77,7 +77,8 @@ def main():
         w.writeheader()
         w.writerows(rows)
     print(f"bar, {args.update}, 16 cells x 2 ppc, dt = 0.1 h/c, t = 40 (float64)\n")
-    print("| scheme | rel. L2 error of v_cm | energy at t=40 / initial | (energy + dissipated) / initial | wall s (incl. compile) |")
+    print("| scheme | rel. L2 error of v_cm | energy at t=40 / initial | (energy + dissipated) / initial "
+          "| wall s (incl. compile) |")
     print("|---|---|---|---|---|")
     for r in rows:
         if r["note"]:

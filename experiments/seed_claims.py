@@ -73,7 +73,8 @@ SHAPES = {"Linear": lambda ppc: jm.Linear(), "UGIMP": lambda ppc: jm.UGIMP(ppc=p
           "Quadratic": lambda ppc: jm.QuadraticBSpline()}
 SCENES = {"linear": dict(velocity="linear", amplitude=0.05), "sine": dict(velocity="sine", amplitude=0.05),
           # small amplitude: no particle crosses a cell (the stability limits of the updates themselves)
-          "linear A=1e-4": dict(velocity="linear", amplitude=1e-4), "sine A=1e-4": dict(velocity="sine", amplitude=1e-4)}
+          "linear A=1e-4": dict(velocity="linear", amplitude=1e-4),
+          "sine A=1e-4": dict(velocity="sine", amplitude=1e-4)}
 APPENDED = "`python experiments/seed_claims.py` in several invocations with `--append` (module docstring)"
 FIELDS = ("scene", "shape", "scheme", "cells", "cfl", "dt", "outcome", "step", "time", "err_x", "err_v", "wall_s")
 

@@ -99,9 +99,11 @@ import numpy as np  # noqa: E402
 import jaxmpm as jm  # noqa: E402
 
 if __package__:  # imported as experiments.speed_vs_accuracy
-    from .convergence import AMPLITUDES, PPC as MMS_PPC, cfl_for  # noqa: E402
+    from .convergence import AMPLITUDES, cfl_for  # noqa: E402
+    from .convergence import PPC as MMS_PPC
 else:  # run as a script: convergence.py sits next to this file, on sys.path[0]
-    from convergence import AMPLITUDES, PPC as MMS_PPC, cfl_for  # noqa: E402
+    from convergence import AMPLITUDES, cfl_for  # noqa: E402
+    from convergence import PPC as MMS_PPC
 
 RESULTS = Path(__file__).resolve().parent / "results"
 THRESHOLDS = (0.1, 0.01, 0.001)

@@ -18,7 +18,6 @@ import time
 
 from .scenes.command import SCENE_OPTIONS, build_setup, setup_from_options  # noqa: F401  (re-exported)
 
-
 EXIT_ERROR = 2
 EXIT_SIGNAL = {"SIGINT": 130, "SIGTERM": 143}
 CACHE_HELP = ("keep compiled programs on disk (jm.compilation_cache: $JAXMPM_CACHE_DIR, else ~/.cache/jaxmpm/xla), "
@@ -89,15 +88,18 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--beta", type=float, default=None, metavar="B",
                      help="FLIP fraction of flip/xpic/fmpm (default: 1 for flip, 0 for xpic and fmpm); "
                           "alone it means --scheme flip")
-    run.add_argument("--alpha-g", type=float, default=None, metavar="A", help="grid damping alpha_g in 1/time (default 0)")
+    run.add_argument("--alpha-g", type=float, default=None, metavar="A",
+                     help="grid damping alpha_g in 1/time (default 0)")
     run.add_argument("--alpha-p", type=float, default=None, metavar="A",
                      help="particle damping alpha_p in 1/time (default 0)")
     run.add_argument("--damping-approach", default=None, choices=list(DAMPING_APPROACHES),
                      help="how grid damping acts (001 §5.1.2-5.2.2; jm.Damping's approach): on the particle update "
-                          "(velocity, the default), on the grid momentum extrapolated as momentum (momentum), or on the "
+                          "(velocity, the default), on the grid momentum extrapolated as momentum (momentum), "
+                          "or on the "
                           "nodal force (force); needs --alpha-g")
     run.add_argument("--shape", default=None, choices=list(SHAPES.names()), help="shape function " + _defaults("shape"))
-    run.add_argument("--update", default=None, choices=["USL", "USF", "MUSL", "USAVG-", "USAVG+"], help="stress update " + _defaults("update"))
+    run.add_argument("--update", default=None, choices=["USL", "USF", "MUSL", "USAVG-", "USAVG+"],
+                     help="stress update " + _defaults("update"))
     run.add_argument("--cells", type=int, default=None, metavar="N", help="cells along each axis " + _defaults("cells"))
     run.add_argument("--spacing", type=float, default=None, metavar="H", help="grid spacing " + _defaults("spacing"))
     run.add_argument("--ppc", type=int, default=None, metavar="N",
@@ -106,7 +108,8 @@ def build_parser() -> argparse.ArgumentParser:
                      help="time step dt = C h / c " + _defaults("cfl"))
     run.add_argument("--dt", type=float, default=None, metavar="DT", help="time step " + _defaults("dt"))
     run.add_argument("--t-end", type=float, default=None, metavar="T", help="end time " + _defaults("t_end"))
-    run.add_argument("--frames", type=int, default=None, metavar="F", help="about F saved frames " + _defaults("frames"))
+    run.add_argument("--frames", type=int, default=None, metavar="F",
+                     help="about F saved frames " + _defaults("frames"))
     run.add_argument("--contact", default=None, choices=list(CONTACT_OPTIONS),
                      help="contact between the bodies: none (one velocity field) or a law, each body its own "
                           "material " + _defaults("contact"))
@@ -124,7 +127,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--dtype", default="f64", choices=["f32", "f64"], help="float precision (default f64)")
     run.add_argument("--max-steps", type=int, default=None, metavar="N",
                      help="refuse a run of more than N steps (default: the step counter's limit 2^31 - 1)")
-    run.add_argument("--out", required=True, metavar="FILE.h5", help="HDF5 output file (an XDMF sidecar goes beside it)")
+    run.add_argument("--out", required=True, metavar="FILE.h5",
+                     help="HDF5 output file (an XDMF sidecar goes beside it)")
     run.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     run.add_argument("--no-progress", action="store_true", help="no progress bar")
     run.add_argument("--cache", action="store_true", help=CACHE_HELP)

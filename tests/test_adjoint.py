@@ -23,7 +23,8 @@ SMOOTH = jm.QuadraticBSpline()
 
 def case(name):
     """(setup, {parameter: value}) for each case, at the scene's own parameter values.  Every
-    scheme family, shape (linear: the conduction case) and update once; 2D for the tensor-product rules (in 3D they are the same
+    scheme family, shape (linear: the conduction case) and update once; 2D for the tensor-product rules
+    (in 3D they are the same
     code with a third factor, checked by hand: 1e-13, see the issue 15 note), contact with
     friction (the block on the slope slides from the first step), conduction and diffusion."""
     damping = jm.Damping(0.02, 0.01)
@@ -82,6 +83,7 @@ CASES = ["bar-blend-ugimp-musl", "bar-xpic2-usf", "bar-fmpm2-cubic", "bar-tpic-c
          "slide-rpic-friction", "thermal-bar", "heat-step-linear", "swelling-bar", "heat-interface"]
 
 
+@pytest.mark.slow
 def test_cases_cover_every_parameter():
     """Every parameter the library registers (jm.PARAMETERS; not those a test registers for a
     class of its own) is differentiated by one of the cases."""
@@ -117,12 +119,14 @@ def loss_of(run):
     return loss
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", CASES)
 def test_structured_gradient_equals_autodiff(name):
     setup, params = case(name)
     values, grads = {}, {}
     for adjoint in ("structured", "autodiff"):
-        value_and_grad = jax.jit(jax.value_and_grad(loss_of(rollout(setup, adjoint, LONGER.get(name, STEPS), ALONG.get(name)))))
+        value_and_grad = jax.jit(jax.value_and_grad(
+            loss_of(rollout(setup, adjoint, LONGER.get(name, STEPS), ALONG.get(name)))))
         values[adjoint], grads[adjoint] = value_and_grad(params)
     # (the values come from the linearised programs, which XLA may fuse, and so round, differently;
     # the plain forward is bitwise the same, tests/test_reference_values.py)
@@ -137,6 +141,7 @@ def test_structured_gradient_equals_autodiff(name):
         assert np.max(np.abs(g - ref)) <= 1e-10 * np.max(np.abs(ref)), (name, k, g, ref)
 
 
+@pytest.mark.slow
 def test_structured_forward_mode_equals_autodiff():
     """The rules are JVP rules, so forward mode (jax.jvp, jacfwd) runs through them too."""
     setup, params = case("bar-tpic-cubic")
@@ -163,6 +168,7 @@ def test_adjoint_switch_changes_the_derivative_program_only():
         setup.sim.with_adjoint("fast")
 
 
+@pytest.mark.slow
 def test_history_gradients_off_makes_frames_constants():
     """``run(..., history_gradients=False)``: the final state's gradient is unchanged, and the saved
     frames are constants to autodiff (a loss of them alone has gradient zero); the forward values

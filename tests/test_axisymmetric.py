@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 import jaxmpm as jm
-from jaxmpm.transfer.backend import use_policy
 from jaxmpm.model.step import strain_rate
+from jaxmpm.transfer.backend import use_policy
 from jaxmpm.transfer.operators import Transfer, p2g
 
 
@@ -130,6 +130,7 @@ def test_shape_functions_match_the_seed_integrals(name):
     np.testing.assert_allclose(T @ r_nodes, 1.0, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_internal_force_and_hoop_rate_matrix_form():
     """uGIMP: the internal force's per-slot columns (what P2G scatters, jm.StressDivergence) summed
     per node against the dense form of 001 eq. 120 with the quadrature matrices,
@@ -172,6 +173,7 @@ def cylinder():
     return jm.scene("cylinder", cells=CELLS, shape="linear")
 
 
+@pytest.mark.slow
 def test_cylinder_settles_to_lame(cylinder):
     """The thick-walled cylinder under internal pressure (plane strain, 16 cells through the wall,
     linear shapes, FLIP, grid damping) settles to Lamé's u_r(r) and sigma_thth(r) (Timoshenko &
@@ -228,7 +230,8 @@ def test_diagnostics_are_per_radian(cylinder):
     diag = s.sim.diagnostics(state)
     mass = rho * H * (b**2 - a**2) / 2
     np.testing.assert_allclose(float(jnp.sum(state.mass)), mass, rtol=1e-13)
-    np.testing.assert_allclose(float(diag["kinetic"]), 0.5 * rho * H * (c**2 * (b**4 - a**4) / 4 + w**2 * (b**2 - a**2) / 2),
+    np.testing.assert_allclose(float(diag["kinetic"]),
+                               0.5 * rho * H * (c**2 * (b**4 - a**4) / 4 + w**2 * (b**2 - a**2) / 2),
                                rtol=1e-4)
     np.testing.assert_allclose(np.asarray(diag["momentum"]), [float(jnp.sum(state.mass * x[:, 0])) * c, w * mass],
                                rtol=1e-13)
@@ -312,10 +315,11 @@ def _affine_setup(shape, scheme):
     particles = jm.fill(grid, jm.Box((1.25, 0.25), (1.75, 0.75)), ppc=2)  # stencils well inside the grid
     sim = jm.Simulation(grid=grid, shape=shape, material=jm.LinearElastic(E=1.0, nu=0.3, density=1.0), scheme=scheme)
     state = sim.init(particles)  # F = I: no stress in the first step, so only the transfers act
-    state = eqx.tree_at(lambda s: s.v, state, state.x @ AFFINE.T + OFFSET)
+    state = eqx.tree_at(lambda s: s.v, state, state.x @ AFFINE.T + OFFSET[None, :])
     return sim, jm.with_velocity_gradient(sim, state, AFFINE), grid
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("scheme", [jm.APIC(), jm.TPIC()], ids=["apic", "tpic"])
 @pytest.mark.parametrize("shape", [jm.Linear(), jm.QuadraticBSpline(), jm.CubicBSpline()],
                          ids=["linear", "quadratic", "cubic"])
@@ -331,10 +335,11 @@ def test_affine_fields_survive_the_transfers_on_an_rz_grid(shape, scheme):
     (v0, m0), new, (v1, m1) = _affine_round_trip(sim, state, 1e-4)
     _assert_affine_nodal(v0, m0, grid)
     _assert_affine_nodal(v1, m1, grid)
-    np.testing.assert_allclose(np.asarray(new.v), np.asarray(state.x @ AFFINE.T + OFFSET), rtol=0, atol=1e-14)
+    np.testing.assert_allclose(np.asarray(new.v), np.asarray(state.x @ AFFINE.T + OFFSET[None, :]), rtol=0, atol=1e-14)
     np.testing.assert_allclose(np.asarray(new.scheme_state), np.asarray(state.scheme_state), rtol=0, atol=1e-14)
 
 
+@pytest.mark.slow
 def test_ugimp_samples_an_affine_field_at_the_r_weighted_centroid():
     """With uGIMP on an r-z grid S_ip is the r-weighted mean of N_i over the particle's domain (001
     eq. 112), so sum_i S_ip x_i is the domain's r-weighted centroid, r_p + l^2 / (3 r_p) in r for
@@ -348,8 +353,8 @@ def test_ugimp_samples_an_affine_field_at_the_r_weighted_centroid():
     _assert_affine_nodal(v0, m0, grid)
     half = 0.125 / 4  # uGIMP(2): the particle's domain is h/2 wide
     centroid = state.x.at[:, 0].add(half**2 / (3 * state.x[:, 0]))
-    np.testing.assert_allclose(np.asarray(new.v), np.asarray(centroid @ AFFINE.T + OFFSET), rtol=0, atol=1e-14)
-    assert float(jnp.max(jnp.abs(new.v - (state.x @ AFFINE.T + OFFSET)))) > 1e-4
+    np.testing.assert_allclose(np.asarray(new.v), np.asarray(centroid @ AFFINE.T + OFFSET[None, :]), rtol=0, atol=1e-14)
+    assert float(jnp.max(jnp.abs(new.v - (state.x @ AFFINE.T + OFFSET[None, :])))) > 1e-4
 
 
 def test_velocity_gradient_start_takes_the_grid_dimension():

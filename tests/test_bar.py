@@ -29,6 +29,7 @@ def run_bar(scheme, **options):
     )
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("update", ["USL", "MUSL"])
 def test_flip_matches_modal_solution(update):
     r = run_bar(jm.FLIP(), update=update)
@@ -71,6 +72,7 @@ def test_constrained_series_conserves_energy(kind, order):
     assert r["energy_ratio"] <= 1.01, r
 
 
+@pytest.mark.slow
 def test_order_50_warns_and_its_neumann_form_matches_modal_solution():
     """An order above 40 warns (the binomial series cancels terms of size C(m, m/2); XPIC(50) in
     that form fails on the bar: test_stability_known_failures.py).  The Neumann form of the same
@@ -84,6 +86,7 @@ def test_order_50_warns_and_its_neumann_form_matches_modal_solution():
     assert stable["l2"] <= 0.025, stable
 
 
+@pytest.mark.slow
 def test_neumann_and_binomial_forms_agree_at_low_order():
     binomial = run_bar(jm.XPIC(order=5))
     neumann = run_bar(jm.XPIC(order=5, series="neumann"))

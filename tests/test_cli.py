@@ -15,9 +15,9 @@ import sys
 
 import numpy as np
 import pytest
+from cases import run_cli
 
 import jaxmpm as jm
-from cases import run_cli
 from jaxmpm.cli import build_parser
 
 E, RHO, L, V0, CELLS = 100.0, 1.0, 25.0, 0.1, 16
@@ -82,6 +82,7 @@ def test_python_m_jaxmpm_scenes():
     assert names == list(jm.SCENES) and {"bar", "disks"} <= set(names)
 
 
+@pytest.mark.slow
 def test_run_bar_writes_hdf5_and_summary(tmp_path, capsys):
     path = tmp_path / "bar.h5"
     assert run_cli(["run", "bar", *SHORT, "--out", str(path)]) == 0  # with the progress bar
@@ -111,6 +112,7 @@ def test_run_bar_writes_hdf5_and_summary(tmp_path, capsys):
     assert float(summary_value(out, "dissipated")) == pytest.approx(res["energy/dissipated"][-1], rel=1e-5, abs=1e-300)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "options, attrs, n",
     [

@@ -29,6 +29,7 @@ def _steps(sim, state, dt, n):
 
 
 # ------------------------------------------------------------------ 1. damping acts with contact
+@pytest.mark.slow
 def test_force_damping_acts_with_contact_in_either_order():
     """The issue's reproducer: bars_impact, 8 cells, frictionless contact, grid damping alpha_g = 50
     on the nodal force (001 eqs. 58-60), 5 steps.  Before core v2 the contact term rebuilt v, a and
@@ -52,6 +53,7 @@ def test_force_damping_acts_with_contact_in_either_order():
     np.testing.assert_allclose(v2, v1, rtol=0, atol=1e-15 * np.abs(v1).max())
 
 
+@pytest.mark.slow
 def test_phases_on_two_nodes_by_hand():
     """One cell, two nodes, one particle of each material (no stress, no gravity): the step's grid
     solve is, per material a, f^a = -alpha p^a (forces), then frictionless contact on p and on
@@ -117,6 +119,7 @@ def _momentum_scale(state):
     return float(np.sum(np.asarray(state.mass) * np.linalg.norm(np.asarray(state.v), axis=-1)))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("update", UPDATES)
 def test_contact_under_every_update(update):
     """Two blocks meeting head on, 30 steps through their impact, under USL, USF, MUSL, USAVG-,
@@ -159,6 +162,7 @@ class _Echo2(_Echo):
     pass
 
 
+@pytest.mark.slow
 def test_two_terms_cannot_set_one_grid_result():
     setup = jm.scene("bar", cells=4, t_end=0.1, dtype="f64")
     fine = setup.sim.with_term(_Echo("echo"))
@@ -199,6 +203,7 @@ def _hot_and_cold(interface, law="frictionless", cells=32, contact=True):
     return sim, state, 0.2 * float(sim.stable_dt(state))
 
 
+@pytest.mark.slow
 def test_perfect_thermal_contact_is_one_body():
     """interface="perfect" (the default): heat crosses the contact interface as within one body --
     the temperatures equal the single-body conduction run (no contact term) to round-off after 200
@@ -383,6 +388,7 @@ def _concatenations(fn, *args):
     return sizes
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("shape", [jm.Linear(), jm.UGIMP(ppc=2), jm.QuadraticBSpline(), jm.CubicBSpline()],
                          ids=["linear", "ugimp", "quadratic", "cubic"])
 @pytest.mark.parametrize("dim", [1, 2, 3])
@@ -424,6 +430,7 @@ def test_kernel_layouts_give_the_same_nodal_sums(dim, shape):
                                        err_msg=f"{layout} {name}")
 
 
+@pytest.mark.slow
 def test_rows_layout_has_no_per_slot_concatenation():
     """Under the rows layout the compiled P2G concatenates only per-particle arrays (N x C); the
     planar layout concatenates per-slot columns (K x N x C, K = 9 here: the 2.04 ms of an H100 3D

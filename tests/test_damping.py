@@ -27,9 +27,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from cases import central_difference, dense_weights
 
 import jaxmpm as jm
-from cases import central_difference, dense_weights
 
 ALPHA_G, ALPHA_P = 0.3, 0.2  # 1/time
 DT = 0.05
@@ -118,6 +118,7 @@ RIGID = [
 ]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("approach, scheme, schedule", RIGID)
 def test_rigid_body_decays_as_closed_form(approach, scheme, schedule):
     """Two bars translating rigidly (V = 0.3 and -0.2), no force: every approach gives
@@ -272,6 +273,7 @@ def shifted(params, e, h):
     return jax.tree_util.tree_map(lambda p, u: p + h * u, params, e)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("approach", ["velocity", "momentum", "force"])
 def test_derivatives_match_finite_differences(approach):
     """d(KE)/d theta after 12 steps of the elastic bars with alpha(t, x) = alpha s(t) w(x_p)

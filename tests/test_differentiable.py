@@ -12,9 +12,9 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
+from cases import central_difference
 
 import jaxmpm as jm
-from cases import central_difference
 
 SCHEMES = {
     "flip": lambda: jm.FLIP(),
@@ -63,6 +63,7 @@ def check_gradient(loss, params, rtol, beta_step=0.025):
         assert abs(g - fd) <= rtol * max(abs(fd), 1e-12), (name, float(g), float(fd))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("scheme", list(SCHEMES))
 def test_bar_gradients_all_parameters(scheme):
     setup = jm.scene("bar", scheme=SCHEMES[scheme](), damping=jm.Damping(0.02, 0.01))
@@ -107,6 +108,7 @@ def disks_in_contact():
     return final
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("scheme", list(SCHEMES))
 def test_disks_gradients(scheme, disks_in_contact):
     setup = jm.scene("disks", scheme=SCHEMES[scheme](), damping=jm.Damping(0.01, 0.01), speed=0.5, shape=SMOOTH)
@@ -120,6 +122,7 @@ def test_disks_gradients(scheme, disks_in_contact):
     check_gradient(make_loss(setup, 100, names, start=disks_in_contact), params, 1e-6, beta_step=5e-5)
 
 
+@pytest.mark.slow
 def test_long_bar_rollout_gradient():
     """2000 steps (about 3 periods of the bar) under FLIP, d/d alpha_g and d/dE to 1e-4."""
     setup = jm.scene("bar", scheme=jm.XPIC(order=2), damping=jm.Damping(0.01, 0.0))
@@ -127,6 +130,7 @@ def test_long_bar_rollout_gradient():
     check_gradient(make_loss(setup, 2000, params), params, 1e-4)
 
 
+@pytest.mark.slow
 def test_checkpointed_gradient_equals_plain():
     setup = jm.scene("bar", scheme=jm.FMPM(order=2))
     params = {"alpha_g": jnp.asarray(0.05), "E": jnp.asarray(100.0), "amplitude": jnp.asarray(1.0)}
@@ -176,6 +180,7 @@ def particle_velocities(setup, start, steps, save_every):
     return observe
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("scheme, name, truth, guess", [
     (jm.XPIC(order=2, beta=0.3), "beta", 0.3, 0.7),
 ], ids=["xpic2-beta"])
@@ -204,6 +209,7 @@ def test_calibrate_rejects_bad_input():
 
 
 # -------------------------------------------------------------------------------- ensembles
+@pytest.mark.slow
 def test_ensemble_equals_single_runs():
     setup = jm.scene("bar", scheme=jm.XPIC(order=2))
     betas = jnp.linspace(0.0, 0.9, 8)
@@ -234,6 +240,7 @@ SHARDED = textwrap.dedent("""
 """)
 
 
+@pytest.mark.slow
 def test_ensemble_sharded_over_two_host_devices(tmp_path):
     out = tmp_path / "sharded.npy"
     env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}

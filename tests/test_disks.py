@@ -25,6 +25,7 @@ def energy(hist):
     return e / e[0]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["flip", "pic"])
 def test_linear_momentum_conserved(runs, name):
     setup, hist = runs[name]

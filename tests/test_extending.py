@@ -7,7 +7,6 @@ Hooke's law at small strain; the column-by-column kernel gives the default kerne
 from pathlib import Path
 
 import pytest
-
 from test_readme import python_blocks, run_alone
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "extending.md"
@@ -19,6 +18,7 @@ def test_every_extension_axis_has_an_example():
     assert [heading for heading, _ in BLOCKS] == EXPECTED
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("heading, code", BLOCKS, ids=[h for h, _ in BLOCKS])
 def test_example_runs_alone(tmp_path, heading, code):
     result = run_alone(code, tmp_path)

@@ -16,11 +16,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-
-import jaxmpm as jm
 from cases import FOUR_SHAPES, GRIDS, at_cells, interior_cells
 
+import jaxmpm as jm
 
+
+@pytest.mark.slow
 @pytest.mark.parametrize("name", list(FOUR_SHAPES))
 @pytest.mark.parametrize("dim", [1, 2, 3])
 def test_tensor_stencil_is_the_product_of_1d_kernels(name, dim):
@@ -68,6 +69,7 @@ FOLD_CASES = [
 ]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("scheme", [jm.APIC(), jm.TPIC()], ids=["apic", "tpic"])
 @pytest.mark.parametrize("scene, kwargs, update", FOLD_CASES)
 def test_folded_p2g_equals_separate_momentum_and_force(scene, kwargs, update, scheme):
@@ -93,6 +95,7 @@ def test_no_fold_where_v_and_a_are_needed():
     assert not jm.folds_force(jm.scene("mpm88", scheme=jm.APIC(), damping=False, update="USF", **base).sim)
 
 
+@pytest.mark.slow
 def test_damping_false_can_be_calibrated():
     """set_params on a model without damping puts jm.Damping back (alpha_g, alpha_p reachable)."""
     setup = jm.scene("mpm88", n_particles=64, n_grid=16)

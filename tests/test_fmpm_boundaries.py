@@ -27,12 +27,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from cases import UNIT_GRIDS, dense_weights
 
 import jaxmpm as jm
 from jaxmpm.physics.conditions import build_constraint
-from jaxmpm.transfer.series import UNLUMPED_MODES, mass_matrix_series
 from jaxmpm.transfer.operators import Transfer
-from cases import UNIT_GRIDS, dense_weights
+from jaxmpm.transfer.series import UNLUMPED_MODES, mass_matrix_series
 
 GRID = UNIT_GRIDS[1]  # 8 cells, 9 nodes on [0, 1]
 N_PARTICLES = 16
@@ -96,8 +96,8 @@ class Dense:
         """m~_k^{-1} = (sum_l C_kl (S+S)^{l-1}) m^{-1}, C_kl = (-1)^{l+1} C(k, l) (003 eqs. 1.23, 1.30);
         m~_0^{-1} = 0."""
         n = self.SpS.shape[0]
-        series = sum(((-1) ** (l + 1) * math.comb(k, l)) * np.linalg.matrix_power(self.SpS, l - 1)
-                     for l in range(1, k + 1)) if k > 0 else np.zeros((n, n))
+        series = sum(((-1) ** (j + 1) * math.comb(k, j)) * np.linalg.matrix_power(self.SpS, j - 1)
+                     for j in range(1, k + 1)) if k > 0 else np.zeros((n, n))
         return series @ self.m_inv
 
 
@@ -163,6 +163,7 @@ def rel_err(actual, expected):
 
 
 # ======================================================================== the matrix forms
+@pytest.mark.slow
 @pytest.mark.parametrize("shape", ["linear", "quadratic"])
 @pytest.mark.parametrize("case", list(CONDITIONS))
 def test_modes_match_seed_equations(shape, case):
@@ -306,12 +307,13 @@ def _bar_step(sim, state, dt):
     return sim.step(state, dt)
 
 
+@pytest.mark.slow
 def test_fmpm_runs_each_mode_from_the_grid_solve_velocity_before_the_conditions():
     """Through ``jm.FMPM(boundary=mode)`` the grid solve hands the series p+/m before the velocity
     conditions (``v_tilde_unconstrained``), so one step equals the update written out here from
     ``mass_matrix_series(..., free=(p + f dt)/m)`` (003 eqs. 2.13, 2.17) to round-off, on ``bar``
     (fixed at x = 0) after 20 steps of motion; and XPIC, USF and MUSL refuse the modes clearly."""
-    from jaxmpm.model.step import p2g, grid_solve
+    from jaxmpm.model.step import grid_solve, p2g
     from jaxmpm.transfer.operators import safe_divide
 
     base = jm.scene("bar", scheme=jm.FMPM(order=2), cells=8)

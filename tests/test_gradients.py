@@ -7,9 +7,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from cases import central_difference
 
 import jaxmpm as jm
-from cases import central_difference
 
 STEPS = 50
 

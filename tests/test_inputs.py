@@ -10,9 +10,9 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from cases import small_simulation
 
 import jaxmpm as jm
-from cases import small_simulation
 
 # ----------------------------------------------------------------- constructors
 

@@ -57,6 +57,7 @@ def assert_layout(res, history, state):
         np.testing.assert_array_equal(res[name], expected, err_msg=name)
 
 
+@pytest.mark.slow
 def test_save_and_load_roundtrip(tmp_path, bar_run):
     setup, history = bar_run
     path = tmp_path / "bar.h5"

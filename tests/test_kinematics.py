@@ -18,7 +18,6 @@ stress for small strains; the spinning disk and the bar with each law.
 import copy
 
 import equinox as eqx
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -58,6 +57,7 @@ def test_exponential_increments_compose():
     assert np.abs(np.asarray(linear - stepped)).max() > 1e-3  # first order in dt
 
 
+@pytest.mark.slow
 def test_spinning_disk_with_either_increment():
     """The elastic disk spinning (spin scene, stress=True, APIC, h = 1/16): the strain energy it
     builds, over the initial kinetic energy, is 1.60e-5 (linear) and 1.71e-5 (exponential) at t = 1,
@@ -76,6 +76,7 @@ def test_spinning_disk_with_either_increment():
                       kinematics="exact")
 
 
+@pytest.mark.slow
 def test_gradient_through_the_exponential_increment():
     """d/dt of sum exp(L t) F by reverse mode equals the analytic L exp(L t) F."""
     L = jnp.asarray(np.random.default_rng(3).normal(size=(1, 2, 2)))
@@ -144,6 +145,7 @@ def spin_with(material):
     return sim.run(state, setup.dt, setup.steps, setup.save_every)
 
 
+@pytest.mark.slow
 def test_spinning_elastic_disk_with_the_three_laws():
     """The spin scene (APIC, h = 1/16, one full turn, E = 100, nu = 0.3): HypoElastic ends with the
     neo-Hookean disk's strain energy (1.800e-4 vs 1.799e-4 of the initial kinetic energy);
@@ -156,6 +158,7 @@ def test_spinning_elastic_disk_with_the_three_laws():
         spin_with(jm.LinearElastic(E=100.0, nu=0.3))
 
 
+@pytest.mark.slow
 def test_bar_velocity_error_with_either_stress_law():
     """The bar (FLIP, 16 cells, t = 40): max |v_cm - exact| / v0 is 0.0239 with LinearElastic (the
     scene's law, the README's accuracy tables) and 0.0223 with HypoElastic -- measured; issue 16
@@ -169,6 +172,7 @@ def test_bar_velocity_error_with_either_stress_law():
         _, hist = sim.run(state, setup.dt, setup.steps, setup.save_every)
         m = np.asarray(state.mass)
         vcm = np.asarray(hist.v)[..., 0] @ m / m.sum()
-        errors[type(material).__name__] = np.abs(vcm - setup.reference(np.asarray(hist.time))).max() / setup.params["v0"]
+        errors[type(material).__name__] = (np.abs(vcm - setup.reference(np.asarray(hist.time))).max()
+                                           / setup.params["v0"])
     assert errors["LinearElastic"] == pytest.approx(0.0239, abs=5e-4)
     assert errors["HypoElastic"] == pytest.approx(0.0223, abs=5e-4)

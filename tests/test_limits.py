@@ -6,11 +6,10 @@ refuses to overwrite --out without --force."""
 from __future__ import annotations
 
 import pytest
+from cases import run_cli
 
 import jaxmpm as jm
 from jaxmpm.scenes._common import schedule
-
-from cases import run_cli
 
 
 def test_schedule_is_arithmetic_at_two_billion_steps():
@@ -35,7 +34,9 @@ def small_memory(monkeypatch):
 
 
 def test_fill_is_sized_before_it_allocates(small_memory):
-    with pytest.raises(jm.InputError, match=r"fill: 5\.062e\+06 lattice points \(250 per cell per axis over 9 x 9 cells\) needs about 1\.77 GiB, more than the 0\.0625 GiB .*\(ppc\)"):
+    with pytest.raises(jm.InputError,
+                       match=r"fill: 5\.062e\+06 lattice points \(250 per cell per axis over 9 x 9 cells\) "
+                             r"needs about 1\.77 GiB, more than the 0\.0625 GiB .*\(ppc\)"):
         jm.scene("disks", ppc=250)
 
 
@@ -64,6 +65,7 @@ def test_cli_max_steps_and_oversized_runs_exit_2_in_one_line(tmp_path, capsys):
     assert not out.exists()
 
 
+@pytest.mark.slow
 def test_out_is_not_overwritten_without_force(tmp_path, capsys):
     out = tmp_path / "existing.txt"
     out.write_text("precious")

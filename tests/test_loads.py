@@ -39,6 +39,7 @@ def pulled_bar(load):
     return sim, state, settle(sim, state, 0.5 * float(sim.stable_dt(state)), 12000)
 
 
+@pytest.mark.slow
 def test_bar_pulled_by_an_end_traction_reaches_the_static_elongation():
     """Strain sigma / E = 1e-3 on every particle (measured to 1e-12 at t = 1.9): the static
     elongation sigma L / E in the deformation gradient.  The particle displacements lag it by
@@ -63,6 +64,7 @@ def test_point_force_is_spread_by_the_particles_own_shape_functions():
     np.testing.assert_allclose(strain[x0 > L - h], share * SIGMA / E, rtol=1e-8)
 
 
+@pytest.mark.slow
 def test_plate_under_uniaxial_traction_reaches_the_plane_strain_strains():
     """Plane strain, nu = 0.3, E = 1e4, sigma = 10, 8 x 8 cells, rollers (jm.Slip) on x = 0 and
     y = 0: eps_xx = sigma (1 - nu^2) / E = 9.1e-4, eps_yy = -sigma nu (1 + nu) / E = -3.9e-4 on
@@ -88,6 +90,7 @@ def nodal_sums(fields):
     return {**fields.values, "mass": fields.transfer.nodal_mass}
 
 
+@pytest.mark.slow
 def test_traction_stays_on_nodes_with_mass_and_follows_time():
     """The edge point past the last loaded node line: the whole load lands on nodes with mass;
     a traction T(t) = t (10,) gives 10 t."""
@@ -125,6 +128,7 @@ def test_a_selection_that_picks_no_particle_is_an_error():
 
 
 # ------------------------------------------------------------------ reaction forces (issue 16, 003 §2.4)
+@pytest.mark.slow
 @pytest.mark.parametrize("scheme", [jm.FLIP(), jm.FMPM(2)], ids=["flip", "fmpm2"])
 def test_reaction_of_a_floor_is_the_weight(scheme):
     """A 1D column on a fixed floor under gravity g = 9.8, damped to rest: the floor's reaction is
@@ -213,6 +217,7 @@ def sudden_traction(dim, shape, offsets, steps=40, cells=16):
             np.asarray(imbalance).reshape(shape2) / SUDDEN_SIGMA)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dim", [1, 2])
 @pytest.mark.parametrize("shape", list(SHAPES))
 def test_sudden_traction_stays_bounded_at_any_face_position(dim, shape):

@@ -15,11 +15,11 @@ import math
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from cases import central_difference
 
 import jaxmpm as jm
 from jaxmpm.scenes.mms import AxisAligned, ManufacturedForce
 from jaxmpm.scenes.vortex import Vortex
-from cases import central_difference
 
 E, NU, RHO0 = 1.0e4, 0.3, 1.0
 LAM = E * NU / ((1 + NU) * (1 - 2 * NU))
@@ -163,6 +163,7 @@ def observed_order(h, err):
     return float(np.polyfit(np.log(h), np.log(err), 1)[0])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("shape", [jm.QuadraticBSpline(), jm.CubicBSpline()], ids=["quadratic", "cubic"])
 def test_mms_1d_converges_at_second_order(shape):
     """1D MMS, A = 1e-4, FLIP/USL, 2 particles per cell, boundary='extended' (the walls X = 0, 1
@@ -184,6 +185,7 @@ def test_mms_1d_converges_at_second_order(shape):
     assert order >= 1.8, (order, errors)
 
 
+@pytest.mark.slow
 def test_vortex_returns_to_start():
     """Generalized vortex (A = 0.1, quadratic B-splines, FLIP): at t = T every particle should be
     back at its reference position.  The tolerance is the discretisation error itself, so the test

@@ -23,14 +23,14 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from cases import FOUR_SHAPES, UNIT_GRIDS, at_cells, dense_weights, interior_cells
 
 import jaxmpm as jm
-from jaxmpm.physics.conditions import build_constraint
 from jaxmpm.core.fields import GridSolution
+from jaxmpm.physics.conditions import build_constraint
 from jaxmpm.physics.damping import Damping
-from jaxmpm.transfer.series import mass_matrix_series
 from jaxmpm.transfer.operators import Transfer
-from cases import FOUR_SHAPES, UNIT_GRIDS, at_cells, dense_weights, interior_cells
+from jaxmpm.transfer.series import mass_matrix_series
 
 N_PARTICLES = 40
 CASES = [pytest.param(name, dim, id=f"{name}-{dim}d") for name in FOUR_SHAPES for dim in UNIT_GRIDS]
@@ -72,7 +72,7 @@ class Dense:
     def binomial_series(self, k, SpS=None):
         """sum_{l=1}^{k} (-1)^{l+1} C(k,l) (S+S)^{l-1}  (000 eq. 3.25, 003 eq. 1.23 without m^{-1})."""
         SpS = self.SpS if SpS is None else SpS
-        return sum((-1) ** (l + 1) * math.comb(k, l) * np.linalg.matrix_power(SpS, l - 1) for l in range(1, k + 1))
+        return sum((-1) ** (j + 1) * math.comb(k, j) * np.linalg.matrix_power(SpS, j - 1) for j in range(1, k + 1))
 
     def m_tilde_k_inv(self, k):
         """m~_k^{-1} = (sum_l C_kl (S+S)^{l-1}) m^{-1}, C_kl = (-1)^{l+1} C(k,l)  (003 eqs. 1.23, 1.30)."""
@@ -161,6 +161,7 @@ def scheme_updates(schemes, V, X, transfer, constraint, grid_solution, dt):
 
 
 # ======================================================================== XPIC(m): 000 ch. 3
+@pytest.mark.slow
 @pytest.mark.parametrize("name, dim", CASES)
 def test_xpic_series_equals_projector(name, dim):
     """S v(m) = P_m V, P_m = I - (I - S S+)^m, v = S+ V  (000 eqs. 3.12-3.15 and 3.25), m = 1..6,
@@ -177,6 +178,7 @@ def test_xpic_series_equals_projector(name, dim):
             assert err < TOL, f"{name} {dim}D form={form} m={m}: |S v(m) - P_m V| / |P_m V| = {err:.2e}"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name, dim", CASES)
 def test_xpic_update_matches_000_eq_3_28(name, dim):
     """XPIC(m, beta) particle update against 000 eqs. (3.28)-(3.29) with S v(m) = P_m V:
@@ -201,6 +203,7 @@ def test_xpic_update_matches_000_eq_3_28(name, dim):
 
 
 # ======================================================================== FMPM(k): 003 ch. 1
+@pytest.mark.slow
 @pytest.mark.parametrize("name, dim", CASES)
 def test_fmpm_velocity_is_truncated_inverse(name, dim):
     """FMPM(k): v+ = sum_l (-1)^{l+1} C(k,l) (S+S)^{l-1} m^{-1} p+ (003 eq. 1.23),
@@ -236,6 +239,7 @@ def m_norm(e, m):
     return float(np.sqrt(np.sum(m[:, None] * np.asarray(e) ** 2)))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["linear", "quadratic"])
 def test_series_converges_to_full_mass_solve(name):
     """m~_k^{-1} p -> m~^{-1} p (003 eq. 1.12).  The error is e_k = -A^k m~^{-1} p with A = I - m^{-1} m~
@@ -266,6 +270,7 @@ def test_series_converges_to_full_mass_solve(name):
     assert np.all(errors <= rho**ks * e0)
 
 
+@pytest.mark.slow
 def test_constrained_series_converges_to_constrained_solve():
     """Fixed first node: ``boundary="iterates"`` converges to the constrained full-mass solve of
     003 eqs. (1.49)-(1.50), m~_ff v_f = p_f, v_b = 0, at a rate bounded by rho(I_ff - m_f^{-1} m~_ff);
@@ -313,6 +318,7 @@ def series_dense(dense, u_a, order):
     return dense.binomial_series(order) @ u_a
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", list(FOUR_SHAPES))
 def test_fixed_boundary_modes(name):
     """1D, first node Fixed: ``iterates`` = the series of the constrained operator Z S+S from Z u
@@ -366,6 +372,7 @@ def neumann_constrained_dense(dense, w, order, keep):
     return total
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("form", ["binomial", "neumann"])
 def test_prescribed_velocity_solves_constrained_system(form):
     """1D, Prescribed velocity g = 0.7 on x-.  ``iterates`` returns the order-m Richardson iterate
@@ -388,7 +395,8 @@ def test_prescribed_velocity_solves_constrained_system(form):
     zag = np.where(keep, dense.SpS @ g, 0.0)
     for m, it in zip(ORDERS[1:], series_orders(u, transfer, constraint, ORDERS[1:], form=form)):
         it = dense.restrict(it)
-        expected = g + neumann_constrained_dense(dense, zu, m, keep) - neumann_constrained_dense(dense, zag, m - 1, keep)
+        expected = (g + neumann_constrained_dense(dense, zu, m, keep)
+                    - neumann_constrained_dense(dense, zag, m - 1, keep))
         assert rel_err(it, expected) < TOL, m
         assert np.all(it[~keep] == 0.7)
     # a body moving with the wall stays in uniform motion at every order
@@ -407,6 +415,7 @@ def test_prescribed_velocity_solves_constrained_system(form):
 
 
 # ================================================================== XPIC(1) = PIC on the bar
+@pytest.mark.slow
 def test_xpic1_equals_pic_on_bar():
     """XPIC(m = 1, beta = 0) is PIC (v(1) = v, 000 eq. 3.25): a whole ``bar`` run agrees to round-off."""
     finals = []

@@ -70,6 +70,7 @@ MIRROR_CASES = [
 ]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dim, shape, scheme, update, cells, damping", MIRROR_CASES)
 def test_mirror_equals_the_doubled_body(dim, shape, scheme, update, cells, damping):
     """jm.Mirror = the doubled (reflected) body on the doubled domain, to round-off, after 12 steps:
@@ -100,6 +101,7 @@ def test_mirror_equals_the_doubled_body(dim, shape, scheme, update, cells, dampi
 
 
 # --------------------------------------------------------------------------- inclined slip
+@pytest.mark.slow
 def test_inclined_slip_series_equals_axis_aligned_slip_in_the_rotated_frame():
     """FMPM/XPIC's constrained series (003 eqs. 1.49-1.50) with the inclined plane's nodes slipping
     along n equals, in the frame rotated by Q (Q n = e_y), the series with jm.Slip(axis=1) on the same
@@ -144,6 +146,7 @@ def test_inclined_slip_along_a_grid_axis_is_axis_aligned_slip():
     np.testing.assert_array_equal(ca.prescribed(u), cb.prescribed(u))
 
 
+@pytest.mark.slow
 def test_block_on_a_frictionless_inclined_plane():
     """An elastic block resting on a 30 degree frictionless plane (jm.Slip(normal, point); the grid
     is not aligned with it), gravity switched on, FLIP: the total tangential momentum is M (g.t) t and
@@ -197,6 +200,7 @@ def test_mirror_off_a_node_plane_is_an_input_error():
         sim.constraint(jnp.float64)
 
 
+@pytest.mark.slow
 def test_bar_with_a_mirrored_end_converges_at_second_order_with_quadratic_b_splines():
     """Issue 16 item 4: with the fixed end as a mirror plane (``bar(boundary="mirror")``) quadratic
     B-splines converge at second order without an odd extension.  Small amplitude (v0 = 1e-4, no

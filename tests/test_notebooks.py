@@ -39,6 +39,7 @@ def test_float64_first_and_a_quick_switch(path):
     assert any(QUICK_LINE in cell.source for cell in cells[:3]), path.name
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.stem)
 def test_notebook_executes(path, tmp_path, monkeypatch):
     monkeypatch.setenv("JAXMPM_NOTEBOOK_QUICK", "1")

@@ -47,6 +47,7 @@ def _bar(scheme, steps=64, **kw):
     return setup
 
 
+@pytest.mark.slow
 def test_new_scheme_runs_through_scene_params_calibrate_and_hdf5(tmp_path):
     setup = _bar("newpic:0.3")
     assert isinstance(setup.sim.scheme, NewPIC)
@@ -79,7 +80,8 @@ def test_new_scheme_runs_through_scene_params_calibrate_and_hdf5(tmp_path):
 def test_scheme_specs_are_parsed_strictly():
     assert isinstance(jm.scheme_from_name("xpic:5"), jm.XPIC) and jm.scheme_from_name("xpic:5").order == 5
     for spec, words in [("pic:3", "takes no ':' argument"), ("flip:0.5", "takes no ':' argument"),
-                        ("", "give one of"), ("fmpm:1.5", "order must be a non-negative integer"), ("xpic:two", "order must be a non-negative integer"), ("blend:x", "must be a number"),
+                        ("", "give one of"), ("fmpm:1.5", "order must be a non-negative integer"),
+                        ("xpic:two", "order must be a non-negative integer"), ("blend:x", "must be a number"),
                         ("foo", "unknown scheme")]:
         with pytest.raises(jm.InputError, match=words):
             jm.scheme_from_name(spec)
@@ -98,6 +100,7 @@ class Age(jm.Term):
         return jm.with_fields(new, age=old.fields["age"] + dt)
 
 
+@pytest.mark.slow
 def test_declared_field_is_carried_saved_and_written(tmp_path):
     setup = jm.scene("bar", t_end=0.25, frames=4)
     sim = setup.sim.with_term(Age())
@@ -177,6 +180,7 @@ def test_new_material_with_state_yields():
 
 
 # ------------------------------------------------------------------------ backend policy
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["bar", "spin", "rings"])
 def test_backend_policies_give_the_same_numbers(name):
     options = dict(bar=dict(t_end=1.0, frames=4), spin=dict(scheme=jm.APIC(), t_end=0.2, frames=2),
@@ -228,7 +232,8 @@ def test_scatter_rows_are_widened_to_a_power_of_two_only_under_the_cpu_policy():
     rng = np.random.default_rng(0)
     index = jnp.asarray(np.sort(rng.integers(0, 7, (9, 40)), axis=1), jnp.int32)  # neighbours share nodes
     columns = jnp.asarray(rng.normal(size=(5, 9, 40)))
-    expected = np.stack([np.bincount(np.asarray(index).ravel(), np.asarray(c).ravel(), minlength=11) for c in columns], 1)
+    expected = np.stack([np.bincount(np.asarray(index).ravel(), np.asarray(c).ravel(), minlength=11)
+                         for c in columns], 1)
     nodal = {}
     for policy, width in (("cpu", 8), ("gpu", 5)):
         with use_policy(policy):
@@ -240,6 +245,7 @@ def test_scatter_rows_are_widened_to_a_power_of_two_only_under_the_cpu_policy():
 
 
 # --------------------------------------------------------------- model apart from driver
+@pytest.mark.slow
 def test_prescribed_velocity_is_a_differentiable_leaf():
     grid = jm.Grid((0.0,), (1.0,), (8,))
     with warnings.catch_warnings():
@@ -284,6 +290,7 @@ def test_mixed_precision_state_runs_in_its_own_precision():
         setup.sim.run(mixed, setup.dt, setup.steps, setup.save_every)
 
 
+@pytest.mark.slow
 def test_chunked_run_keeps_the_checkpoint_option(tmp_path):
     setup = jm.scene("bar", t_end=0.5, frames=4)
     plain, hist = setup.run()

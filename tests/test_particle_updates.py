@@ -23,14 +23,14 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from cases import dense_weights, particle_major
 
 import jaxmpm as jm
+from jaxmpm.core.fields import GridSolution
+from jaxmpm.physics.conditions import Constraint
 from jaxmpm.schemes import NO_DAMPING
 from jaxmpm.schemes.rpic import rigid_inertia
-from jaxmpm.physics.conditions import Constraint
-from jaxmpm.core.fields import GridSolution
 from jaxmpm.transfer.operators import Transfer
-from cases import dense_weights, particle_major
 
 TOL = 1e-12
 DT = 0.01
@@ -126,6 +126,7 @@ def expected_update(d, order, beta, position, alpha_g, alpha_p):
     return V_new, X_new
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("damped", [False, True], ids=["undamped", "damped"])
 def test_position_updates_match_their_seed_equations(damped):
     """Each ``position=`` option with beta = 0.3 (XPIC(1): the PIC/FLIP blend; XPIC(3) and XPIC(0)
@@ -292,6 +293,7 @@ def dense_rpic(stencil, num_nodes, x, mass, V, L, v_tilde):
     return p, V_new, L_new[:, sub], K
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name, dim", RPIC_CASES)
 def test_rpic_transfers_match_002_eqs_1_2(name, dim):
     """RPIC's P2G (002 eq. 1: K_p, m_i v_i = sum_p S_pi M_p (V_p + (K_p^-1 L_p) x (x_i - X_p))) and
@@ -374,6 +376,7 @@ def rigid_start(sim, state, gradient):
                                                                              state.mass)
 
 
+@pytest.mark.slow
 def test_rpic_force_free_run_conserves_momenta():
     """A force-free (NoStress) 2D disk spinning and drifting under RPIC for 30 steps: every step is
     P2G, a grid update with f = 0 and G2P, each conserving linear momentum and angular momentum
@@ -450,6 +453,7 @@ def numpy_step(sim, state, dt, update):
     return X_new, V_new, F
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("update", ["USAVG-", "USAVG+"])
 def test_usavg_one_step_matches_algorithm(update):
     """One step of each update order against the NumPy algorithm of 003 §2.2 (USAVG+-: the stress

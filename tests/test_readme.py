@@ -21,7 +21,8 @@ class Block:
     substitutions: list = field(default_factory=list)  # (README text, reduced text, times it occurs)
 
 
-SHORT_BAR = ('jm.scene("bar", scheme=jm.FMPM(order=2))', 'jm.scene("bar", scheme=jm.FMPM(order=2), t_end=0.5, frames=4)')
+SHORT_BAR = ('jm.scene("bar", scheme=jm.FMPM(order=2))',
+             'jm.scene("bar", scheme=jm.FMPM(order=2), t_end=0.5, frames=4)')
 
 # README section heading -> its python block
 BLOCKS = {
@@ -38,7 +39,8 @@ BLOCKS = {
     "Contact (multimaterial mode)": Block([('t_end=0.5, frames=10)', 't_end=0.01, frames=2)', 1),
                                            ("final, hist = sim.run(state, 1e-3, 100, 10)",
                                             "final, hist = sim.run(state, 1e-3, 10, 5)", 1)]),
-    "Transport (heat conduction and diffusion)": Block([("sim.run(state, dt, 800, 80)", "sim.run(state, dt, 8, 4)", 1)]),
+    "Transport (heat conduction and diffusion)": Block([("sim.run(state, dt, 800, 80)", "sim.run(state, dt, 8, 4)",
+                                                         1)]),
     "Command line": Block([('jm.scene("bar", t_end=4.0, frames=20)', 'jm.scene("bar", t_end=0.5, frames=2)', 1)]),
     "Extending jaxmpm": Block(
         [('scheme="newpic:0.3")', 'scheme="newpic:0.3", t_end=0.5, frames=2); setup.run()', 1)],  # run the new scheme
@@ -89,6 +91,7 @@ def test_every_block_is_known():
                                           f"{Path(__file__).name} lists {list(BLOCKS)}")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("heading, code", README_BLOCKS, ids=[h for h, _ in README_BLOCKS])
 def test_block_runs_alone(tmp_path, heading, code):
     block = BLOCKS[heading]

@@ -19,11 +19,17 @@ import os
 import jax
 import numpy as np
 import pytest
-
 from reference import configs
 
 HERE = os.path.join(os.path.dirname(__file__), "reference")
 STORED = {name: np.load(os.path.join(HERE, name)) for name in ("values.npz", "values_v2.npz")}
+
+
+def tiered(cases):
+    """The one-step cases, the 1D ones (and the r-z ones) in the fast tier and the 2D and 3D ones
+    (three quarters of the module's time) in the slow tier."""
+    return [name if name.endswith(("-1d", "rz")) or "-1d-" in name or name.startswith("rz")
+            else pytest.param(name, marks=pytest.mark.slow) for name in cases]
 
 
 def _eager_step(sim, state, dt):
@@ -31,14 +37,21 @@ def _eager_step(sim, state, dt):
         return sim.step(state, dt)
 
 
+ENERGIES = ("kinetic", "strain", "dissipated", "material_kinetic", "material_strain")
+MOMENTA = ("momentum", "angular", "material_momentum")
+
+
 def _compare(store, prefix, values, rtol, energy_scale=0.0, force_scale=0.0, momentum_scale=0.0):
-    """Every stored array to ``rtol`` of its largest entry; the dissipated energy, a difference of
-    two energies that can cancel to round-off (1e-17 against 1e-2 under FLIP with walls), to
-    ``rtol`` of the energies it is the difference of (``energy_scale``); a per-particle force field
-    (contact, reaction), which is round-off where no force acts (1e-16 against 1e1 when the bodies
+    """Every stored array to ``rtol`` of its largest entry, or of its physical scale where the
+    quantity is round-off of a zero: an energy (the dissipated energy, a difference of two energies
+    that cancel to 1e-17 against 1e-2 under FLIP with walls; the strain energy of stress-free disks
+    before they meet, 1e-33) to ``rtol`` of the starting kinetic energy (``energy_scale``); a force
+    field (contact, reaction), round-off where no force acts (1e-16 against 1e1 when the bodies
     already move apart), to ``rtol`` of the momentum change per step sum_p M_p |V_p| / dt
-    (``force_scale``); a run's total momentum, round-off when two equal bodies meet head on, to
-    ``rtol`` of sum_p M_p |V_p| at the start (``momentum_scale``)."""
+    (``force_scale``); a total momentum or angular momentum, round-off for a spinning disk or two
+    equal bodies meeting head on, to ``rtol`` of sum_p M_p |V_p| at the start
+    (``momentum_scale``).  Round-off is not reproducible across compilers and optimisation levels;
+    these scales keep every comparison at ``rtol`` of what the physics sets."""
     stored = STORED[store]
     keys = sorted(k[len(prefix):] for k in stored.files if k.startswith(prefix))
     assert keys and sorted(values) == keys
@@ -46,11 +59,11 @@ def _compare(store, prefix, values, rtol, energy_scale=0.0, force_scale=0.0, mom
         ref, got = stored[prefix + key], values[key]
         assert got.shape == ref.shape and got.dtype == ref.dtype, key
         scale = np.max(np.abs(ref[np.isfinite(ref)]), initial=0.0)
-        if key == "dissipated":
+        if key in ENERGIES:
             scale = max(scale, energy_scale)
-        if key.startswith("field_") and key.endswith("_force"):
+        if key.endswith("_force"):
             scale = max(scale, force_scale)
-        if key in ("momentum", "angular"):
+        if key in MOMENTA:
             scale = max(scale, momentum_scale)
         np.testing.assert_allclose(got, ref, rtol=0, atol=rtol * max(scale, 1e-300), equal_nan=True,
                                    err_msg=f"{prefix}{key}")
@@ -64,29 +77,32 @@ def _momentum_rate(state, dt):
     return float(np.sum(np.asarray(state.mass) * np.linalg.norm(np.asarray(state.v), axis=-1))) / dt
 
 
-@pytest.mark.parametrize("name", list(configs.one_step_cases()))
+@pytest.mark.parametrize("name", tiered(configs.one_step_cases()))
 def test_one_step_matches_stored(name):
     sim, state, dt = configs.build(**configs.one_step_cases()[name])
     _compare("values.npz", f"step/{name}/", configs.one_step_values(sim, state, dt, _eager_step), 1e-13,
              _kinetic(state))
 
 
-@pytest.mark.parametrize("name", list(configs.v2_step_cases()))
+@pytest.mark.parametrize("name", tiered(configs.v2_step_cases()))
 def test_core_v2_step_matches_stored(name):
     sim, state, dt = configs.build_v2(**configs.v2_step_cases()[name])
     _compare("values_v2.npz", f"step/{name}/", configs.v2_step_values(sim, state, dt, _eager_step), 1e-13,
              _kinetic(state), _momentum_rate(state, dt))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", list(configs.RUNS))
 def test_run_matches_stored(name):
-    _compare("values.npz", f"run/{name}/", configs.run_values(configs.run_setup(name)), 1e-10)
+    setup = configs.run_setup(name)
+    _compare("values.npz", f"run/{name}/", configs.run_values(setup), 1e-10, _kinetic(setup.state),
+             _momentum_rate(setup.state, setup.dt), _momentum_rate(setup.state, 1.0))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", list(configs.RUNS_V2))
 def test_core_v2_run_matches_stored(name):
     setup = configs.run_setup_v2(name)
     start = setup.state
-    momentum = float(np.sum(np.asarray(start.mass) * np.linalg.norm(np.asarray(start.v), axis=-1)))
     _compare("values_v2.npz", f"run/{name}/", configs.run_values_v2(setup), 1e-10, _kinetic(start),
-             momentum_scale=momentum)
+             _momentum_rate(start, setup.dt), _momentum_rate(start, 1.0))

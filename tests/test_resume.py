@@ -60,6 +60,7 @@ def written(setup, path, writer_class=jm.H5Writer, **kwargs):
 MPM88 = dict(n_particles=64, n_grid=8, t_end=2e-3, frames=2)  # APIC: the scheme state B_p is saved too
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("scene, options, signum, after", [("bar", BAR, signal.SIGINT, 1),
                                                            ("bar", BAR, signal.SIGTERM, 2),
                                                            ("mpm88", MPM88, signal.SIGINT, 1)])
@@ -128,6 +129,7 @@ def read_now(fd) -> str:
         return ""
 
 
+@pytest.mark.slow
 def test_ctrl_c_then_jaxmpm_resume_equals_the_uninterrupted_run(tmp_path, request):
     """The CLI in a subprocess: SIGINT once the progress bar shows steps done, exit status 130
     with one line naming the file and `jaxmpm resume`; `jaxmpm resume` finishes it; every dataset

@@ -13,16 +13,17 @@
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from cases import UNIT_SQUARE, central_difference
 
 import jaxmpm as jm
 from jaxmpm.physics.conditions import build_constraint
-from cases import UNIT_SQUARE, central_difference
 
 # ----------------------------------------------------------------------------------------- rings
 RING_SCHEMES = {"FLIP": jm.FLIP(), "PIC": jm.PIC(), "XPIC(2)": jm.XPIC(2), "FMPM(2)": jm.FMPM(2),
                 "APIC": jm.APIC(), "TPIC": jm.TPIC()}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", list(RING_SCHEMES))
 def test_rings_collide_stably_with_every_scheme(name):
     """h = 0.5, through the collision (contact at t ~ 0.033) to t = 0.15, CFL 0.4 for every scheme
@@ -52,6 +53,7 @@ def mpm88_runs():
     return runs
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dtype, rtol", [("f64", 1e-12), ("f32", 1e-5)])
 def test_mpm88_momentum_follows_gravity_before_the_walls(mpm88_runs, dtype, rtol):
     """t = 0.1, before any particle reaches a wall: P = P0 + M g t exactly (APIC conserves linear
@@ -64,6 +66,7 @@ def test_mpm88_momentum_follows_gravity_before_the_walls(mpm88_runs, dtype, rtol
     assert float(jnp.min(hist.x[1][:, 1])) > 3.0 / 128  # no wall touched yet
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dtype", ["f32", "f64"])
 def test_mpm88_walls_hold_the_fluid(mpm88_runs, dtype):
     """t = 0.2 after the fluid hit the floor: no particle beyond 1.5 cells inside a wall (its whole
@@ -75,6 +78,7 @@ def test_mpm88_walls_hold_the_fluid(mpm88_runs, dtype):
     assert x.min() > 1.4 * dx and x.max() < 1.0 - 1.4 * dx
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dtype", ["f32", "f64"])
 def test_mpm88_deformation_stays_isotropic(mpm88_runs, dtype):
     """VolumetricFluid.keep_deformation: after 1000 steps F = J^(1/2) I, 0 < J (mpm88 keeps J only)."""
@@ -83,6 +87,7 @@ def test_mpm88_deformation_stays_isotropic(mpm88_runs, dtype):
     assert np.all(F[:, 0, 0] > 0) and np.any(F[:, 0, 0] != 1)
 
 
+@pytest.mark.slow
 def test_mpm88_float32_matches_float64(mpm88_runs):
     """Kinetic energy at t = 0.1 and 0.2 agrees to 1e-4 between float32 and float64."""
     k32 = np.asarray(mpm88_runs["f32"][1].kinetic, np.float64)

@@ -18,11 +18,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from cases import central_difference
 
 import jaxmpm as jm
 from jaxmpm.scenes.mms import ManufacturedForce
 from jaxmpm.scenes.mms_linear import ExactTraction, UniformStretch
-from cases import central_difference
 
 E, NU, RHO0 = 1.0e4, 0.3, 1.0
 LAM = E * NU / ((1 + NU) * (1 - 2 * NU))
@@ -84,6 +84,7 @@ def test_linear_mms_source_satisfies_momentum_equation():
     assert [type(term).__name__ for term in setup.sim.terms].count("Traction") == 1
 
 
+@pytest.mark.slow
 def test_linear_mms_converges_at_second_order():
     """FLIP/USL, linear shape functions, 2 particles per cell, small amplitude A = 1e-4, dt ~ h^2
     (cfl = 0.2 * 8 / cells, as the ``mms`` convergence test): the max-over-one-period RMS

@@ -73,6 +73,7 @@ def bar_metrics(setup, hist):
 # --------------------------------------------------------------------------------- 1. USF
 
 
+@pytest.mark.slow
 def test_usf_flip_matches_modal_solution():
     """USF (stress first, with the start-of-step grid velocity, README "Update orders") on the
     fixed-free bar: the centre-of-mass velocity follows the exact first-mode solution
@@ -224,6 +225,7 @@ def _free_body(scheme):
     return grid, shape, particles
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "scheme",
     [jm.FLIP(), jm.FLIP(beta=0.7), jm.PIC(), jm.XPIC(order=3), jm.FMPM(order=3), jm.APIC()],
@@ -313,6 +315,7 @@ def grid_velocities(sim, state, dt):
     return fields.transfer.nodal_mass, solution.v, solution.v_tilde
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("key, scheme", [("flip", jm.FLIP()), ("fmpm2", jm.FMPM(order=2))], ids=["flip", "fmpm2"])
 def test_slip_floor_leaves_tangential_motion_free(key, scheme):
     """A Slip condition constrains only the normal velocity component (README "Materials,
@@ -376,6 +379,7 @@ def piston_run(key, scheme):
     return _PISTON_CACHE[key]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("key, scheme", [("flip", jm.FLIP()), ("fmpm2", jm.FMPM(order=2))], ids=["flip", "fmpm2"])
 def test_prescribed_piston_momentum_grows_at_rho_c_u(key, scheme):
     """A piston started at speed u in a 1D elastic bar sends a wave at c = sqrt(E/rho) behind which
@@ -410,6 +414,7 @@ def test_prescribed_nodes_carry_their_particles():
     assert np.abs(X - X[0] - u * t[:, None]).max() <= 1e-12 * u * t[-1]
 
 
+@pytest.mark.slow
 def test_prescribed_nodes_set_flip_particle_velocity():
     """003 eq. (2.51) (lumped mass): the velocity condition is a nodal force
     f_i dt = m_i g_i - p+_i on the unconstrained updated momentum p+ = p + f dt, so on the first

@@ -18,11 +18,11 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from cases import GRIDS, SIX_SHAPES, at_cells, central_difference, dense_weights, interior_cells, particle_major
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import jaxmpm as jm
-from cases import GRIDS, SIX_SHAPES, at_cells, central_difference, dense_weights, interior_cells, particle_major
 
 N_PARTICLES = 64
 EXAMPLES = settings(max_examples=25, deadline=None)

@@ -20,6 +20,7 @@ def quick_bar_rows():
     return config, sva.sweep(cases, config.schemes, repeats=1, log=lambda msg: None)
 
 
+@pytest.mark.slow
 def test_quick_bar_sweep_rows_csv_and_convergence(quick_bar_rows, tmp_path):
     config, rows = quick_bar_rows
     assert config.bar_cells == (8, 16) and config.schemes == ("FLIP", "FMPM(2)")

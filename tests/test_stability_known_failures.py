@@ -15,6 +15,7 @@ from experiments import stability_map as sm
 FAILED = ("NaN/Inf", "J <= 0", "left grid")
 
 
+@pytest.mark.slow
 def test_flip_with_particle_velocity_position_update_is_poor():
     """000 §2.3.1 (eqs. 2.26-2.27) and 003 eq. (2.33): FLIP moving particles with VV = V^n
     "gives poor results"; VV = S v (000 eq. 2.29) is the fix.  VV = V^n with the FLIP velocity
@@ -29,6 +30,7 @@ def test_flip_with_particle_velocity_position_update_is_poor():
     assert r[sm.PV_KEY] == 0.0
 
 
+@pytest.mark.slow
 def test_linear_shapes_invert_under_cell_crossing():
     """Linear shape functions have discontinuous gradients, so a particle crossing a cell boundary
     sees a jump in its stress divergence (cell-crossing noise); on the bar with 64 cells (free-end
@@ -44,6 +46,7 @@ def test_linear_shapes_invert_under_cell_crossing():
         assert abs(res["final_energy_ratio"] - 1.0) < 0.01, (name, res)
 
 
+@pytest.mark.slow
 def test_xpic_binomial_series_unstable_at_high_order():
     """000 eq. (3.25) as a binomial sum cancels terms of size C(50, 25) ~ 1.3e14 |v|, so XPIC(50)'s
     velocities are round-off amplified by ~14 digits and the bar blows up; the same polynomial as a
@@ -63,6 +66,7 @@ def test_xpic_binomial_series_unstable_at_high_order():
     assert r["neumann"]["time"] == pytest.approx(sm.BAR_HORIZON_SHORT, abs=0.1)
 
 
+@pytest.mark.slow
 def test_series_boundary_conditions_on_result_only_gain_energy():
     """003 §1.5: imposing the fixed end only on the series result (003 eq. 2.53 read literally)
     instead of on every iterate (eqs. 1.49-1.50) makes XPIC(3..5) and FMPM(3..5) gain energy or

@@ -14,9 +14,9 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from cases import FOUR_SHAPES, GRIDS, UNIT_SQUARE, dense_weights, random_particles
 
 import jaxmpm as jm
-from cases import FOUR_SHAPES, GRIDS, UNIT_SQUARE, dense_weights, random_particles
 
 N_PARTICLES = 64
 
@@ -64,6 +64,7 @@ def transfer_outputs(shape, grid, x, mass, v=None, u=None, weighted_stress=None)
     return {k: (val if k == "stencil" else np.asarray(val)) for k, val in out.items()}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name, dim", CASES)
 def test_p2g_conserves_mass_and_momentum(name, dim):
     """sum_i m_i = sum_p M_p and sum_i p_i = sum_p M_p V_p to round-off (partition of unity), and
@@ -165,6 +166,7 @@ def perturbed_elastic_state(sim, rng, n=40):
     return eqx.tree_at(lambda s: s.F, state, jnp.asarray(F))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("scheme_name", list(SCHEMES))
 def test_step_conserves_linear_momentum(scheme_name):
     """Without gravity or boundaries sum_i f_i = 0 and S+S keeps sum_i m_i u_i, so every scheme

@@ -24,9 +24,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from cases import central_difference, dense_weights
 
 import jaxmpm as jm
-from cases import central_difference, dense_weights
 
 L = 1.0
 
@@ -68,6 +68,7 @@ def sine_error(cells, shape=None, t_end=0.05, boundary="held"):
 
 
 # ------------------------------------------------------------------ 1. convergence
+@pytest.mark.slow
 def test_heat1d_converges_at_second_order_with_linear_shapes():
     """Measured max relative error at t = 0.05: 1.14e-2, 2.77e-3, 6.95e-4 (8, 16, 32 cells):
     orders 2.04, 2.00 (uGIMP gives the same numbers: its particles at h/4 lie inside one cell)."""
@@ -77,6 +78,7 @@ def test_heat1d_converges_at_second_order_with_linear_shapes():
     assert errors[-1] < 2e-3
 
 
+@pytest.mark.slow
 @pytest.mark.xfail(strict=True, raises=AssertionError,
                    reason="quadratic B-splines with plainly held nodes: measured errors 0.137, 0.087, 0.045 (8, "
                           "16, 32 cells, t = 0.05), orders 0.66, 0.95 -- the nodes beyond the ends are held at "
@@ -87,6 +89,7 @@ def test_heat1d_converges_at_second_order_with_quadratic_bsplines():
     assert np.all(orders >= 1.9), (errors, orders)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("shape", [jm.QuadraticBSpline(), jm.CubicBSpline()], ids=["quadratic", "cubic"])
 def test_heat1d_converges_at_second_order_with_bsplines_and_mirrored_ends(shape):
     """jm.Dirichlet(..., mirror=(axis, position)): the nodes beyond the end carry the odd extension
@@ -100,6 +103,7 @@ def test_heat1d_converges_at_second_order_with_bsplines_and_mirrored_ends(shape)
 
 
 # ------------------------------------------------------------------ 2. steady state
+@pytest.mark.slow
 def test_steady_state_between_held_temperatures_is_linear():
     """T = 1 held at x = 0 and T = 0 at x = L, from T = 0: at t = 3 (the slowest mode has decayed
     by e^-30) the particle temperatures and the grid temperature T_{g->p} = S T_i are 1 - x to
@@ -120,6 +124,7 @@ def noisy(x):
     return np.sin(3.0 * x[:, 0]) + 0.3 * np.cos(40.0 * x[:, 0])
 
 
+@pytest.mark.slow
 def test_thermal_energy_is_conserved_without_boundaries():
     """sum_p M_p C_p T_p after 200 FLIP steps equals its initial value to 1e-14 relative
     (sum_p m_Tp dT_p = sum_i Q_i dt = sum_p V_p q_p . sum_i G_ip dt = 0)."""
@@ -198,6 +203,7 @@ def bar_length(state):
     return x.max() - x.min() + (x[1] - x[0])  # the particles' domains: half a spacing beyond each end
 
 
+@pytest.mark.slow
 def test_free_bar_expands_by_alpha_dT_L():
     """alpha_T = 1e-3, dT = 50: the bar's stress-free state is F = 1 + alpha dT = 1.05.  After the
     damped oscillation (t = 0.625) the mean stretch sum_p V0_p F_p / L - 1 is 0.049998 (error
@@ -212,6 +218,7 @@ def test_free_bar_expands_by_alpha_dT_L():
 
 
 # ------------------------------------------------------------------ 5. diffusion = conduction
+@pytest.mark.slow
 def test_diffusion_is_conduction_with_unit_density_and_capacity():
     """001 §9: mu with D for k, rho = C_p = 1 and the volume as mass: the same temperatures and
     concentrations to round-off (measured 0 difference)."""
@@ -223,6 +230,7 @@ def test_diffusion_is_conduction_with_unit_density_and_capacity():
 
 
 # ------------------------------------------------------------------ 6. gradients
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["conductivity", "heat_capacity"])
 def test_gradient_of_temperatures(name):
     sim, state, _ = rod(8, initial=noisy, conductivity=0.7, heat_capacity=1.3)
@@ -237,6 +245,7 @@ def test_gradient_of_temperatures(name):
     assert abs(grad - fd) <= 1e-6 * abs(fd), (grad, fd)
 
 
+@pytest.mark.slow
 def test_gradient_of_expansion():
     """d/d alpha_T of the particle positions after 50 steps of the thermal bar."""
     sim, state = thermal_bar()
@@ -287,6 +296,7 @@ def test_time_step_above_the_conduction_limit_warns_with_the_limit():
         sim.run(state, 1.5 * float(limits["heat"]), 2, 1)
 
 
+@pytest.mark.slow
 def test_temperature_and_thermal_energy_are_written(tmp_path):
     sim, state, _ = rod(8)
     _, hist = sim.run(state, 1e-3, 4, 2)
@@ -299,6 +309,7 @@ def test_temperature_and_thermal_energy_are_written(tmp_path):
 
 
 # ------------------------------------------------------------------ XPIC for stress (000 §3.7)
+@pytest.mark.slow
 @pytest.mark.parametrize("order", [1, 2, 4])
 def test_xpic_stress_matches_its_matrix_form(order):
     """tau~ = tau - (I - S S+)^m tau per stress component (000 eqs. 3.64-3.67), S+ mass-weighted;
@@ -321,6 +332,7 @@ def test_xpic_stress_matches_its_matrix_form(order):
     np.testing.assert_allclose(smoothed, expected, rtol=0, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_xpic_stress_keeps_momentum_on_disks():
     """Sulsky's disks with the force from XPIC(3)-smoothed stress: momentum conserved to
     round-off (sum_i G_ip = 0 whatever the stress), and the run differs from the plain one."""
@@ -343,6 +355,7 @@ def grid_error(setup):
     return np.abs(np.asarray(term.grid_value(setup.sim, final)) - exact).max(), final
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name, cells, shape", [("heat_step", (16, 32, 64), "linear"),
                                                 ("heat_step", (32, 64, 128), "quadratic"),
                                                 ("diffusion2d", (8, 16, 32), "linear")])
@@ -369,6 +382,7 @@ def test_held_boundary_scenes_converge_at_second_order(name, cells, shape):
         assert np.all(orders >= 1.9), (particle, grid)
 
 
+@pytest.mark.slow
 def test_thermal_bar_scene_settles_at_alpha_dT():
     setup = jm.scene("thermal_bar", frames=2)
     final, _ = setup.run()
@@ -377,6 +391,7 @@ def test_thermal_bar_scene_settles_at_alpha_dT():
     assert setup.params["thermal_expansion"] == 1e-3 and setup.params["expansion_length"] == pytest.approx(0.05)
 
 
+@pytest.mark.slow
 def test_calibrate_recovers_the_conductivity():
     """A synthetic temperature history of heat1d (8 cells, k = 1.3), fitted from k = 1: recovered
     within 1 % (measured to 1e-9)."""
@@ -393,6 +408,7 @@ def test_calibrate_recovers_the_conductivity():
     assert fit.params["conductivity"] == pytest.approx(1.3, rel=1e-2), fit.params
 
 
+@pytest.mark.slow
 def test_command_line_runs_a_transport_scene(tmp_path, capsys):
     from jaxmpm import cli
 
@@ -408,6 +424,7 @@ def test_command_line_runs_a_transport_scene(tmp_path, capsys):
 
 
 # ------------------------------------------------------------------ flux boundaries, tensor conductivity
+@pytest.mark.slow
 def test_heat_flux_boundary_adds_exactly_its_heat():
     """An insulated rod with q = 2.5 flowing in at x = 0 (jm.Neumann, 001 eq. 136): the thermal
     energy grows by q dt every step, to round-off (sum_p m_Tp dT_p = sum_i Q_i dt)."""
@@ -417,6 +434,7 @@ def test_heat_flux_boundary_adds_exactly_its_heat():
     np.testing.assert_allclose(np.diff(energy), 2.5 * 1e-4 * 10, rtol=1e-10)
 
 
+@pytest.mark.slow
 def test_tensor_conductivity_conducts_along_its_axes_only():
     """2D, k = diag(1, 0): a field varying along y only does not change (measured to 1e-16); one
     varying along x conducts.  A 1D model given a 2 x 2 tensor is an error naming the shape."""

@@ -14,10 +14,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from cases import small_simulation
 from hypothesis import HealthCheck, given, settings
 
 import jaxmpm as jm
-from cases import small_simulation
 from jaxmpm.core.validate import Range, finite_vector, positive_int, real
 
 NAN, INF = math.nan, math.inf
@@ -125,6 +125,7 @@ def test_stable_dt_unchanged_and_traceable():
     assert float(grad) == pytest.approx(1.0 / math.sqrt(2.0), rel=1e-14)
 
 
+@pytest.mark.slow
 def test_float32_state_with_float64_simulation():
     """A float64 model runs a float32 state in float32 (the model is cast on entry), giving
     exactly what the float32 scene gives."""
@@ -408,6 +409,7 @@ SCENE_SIZES = {  # small valid values, so that a successful build is cheap
 INVALID = st.sampled_from([0, -1, 2.5, NAN, INF, -INF, "x", True, None, [1]])
 
 
+@pytest.mark.slow
 @settings(max_examples=30, deadline=None, suppress_health_check=list(HealthCheck))
 @given(st.data())
 def test_fuzz_scene_builds(data):

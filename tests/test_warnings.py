@@ -33,7 +33,8 @@ def test_high_order_warning_names_the_callers_line():
         jm.scheme_from_name("xpic:50")  # by name
     assert all("order" in str(w.message) and issubclass(w.category, UserWarning) for w in record)
     # before: equinox/_module/_better_abstract.py, line 233, for all three
-    assert [(w.filename, w.lineno) for w in record] == [(__file__, line_of(m)) for m in ("# xpic", "# fmpm", "# by name")]
+    assert [(w.filename, w.lineno) for w in record] == [
+        (__file__, line_of(m)) for m in ("# xpic", "# fmpm", "# by name")]
 
 
 def test_warning_inside_a_traced_function_names_the_callers_line():

@@ -75,6 +75,7 @@ def test_every_scene_has_a_small_configuration():
     assert set(SMALL) == set(jm.SCENES), "give each new scene a small configuration in SMALL"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", sorted(SMALL))
 def test_meshio_reads_every_frame_and_particle(tmp_path, name):
     setup = jm.scene(name, frames=2, **SMALL[name])

@@ -9,8 +9,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from .errors import check
-from .limits import require_memory
 from .grid import Grid
+from .limits import require_memory
 from .validate import FINITE, NON_NEGATIVE, POSITIVE, finite_vector, ndim, positive_int
 
 

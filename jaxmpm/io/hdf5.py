@@ -43,9 +43,8 @@ _SERIES = {
 
 def run_attributes(sim, dt=None, scene: str | None = None, params: dict | None = None, ppc=None) -> dict:
     """The root attributes of docs/design.md for a simulation."""
-    from ..core.version import __version__
-
     from ..core.registry import sim_parameters
+    from ..core.version import __version__
 
     scheme = sim.scheme
     attrs = {

@@ -7,7 +7,7 @@ import jax.numpy as jnp
 from ..core.registry import register_material
 from ..core.validate import POISSON, POSITIVE
 from .base import Increment, InelasticMaterial, hooke, identity, lame, trace
-from .linear import DENSITY, E, NU
+from .linear import DENSITY, NU, E
 
 
 class HypoElastic(InelasticMaterial):

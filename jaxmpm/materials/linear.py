@@ -8,7 +8,6 @@ from ..core.registry import Parameter, register_material
 from ..core.validate import POISSON, POSITIVE
 from .base import ElasticMaterial, hooke, identity
 
-
 E = Parameter("E", lambda m: m.E, "Young's modulus (bulk modulus of VolumetricFluid)", "positive", valid=POSITIVE)
 NU = Parameter("nu", lambda m: m.nu, "Poisson's ratio", (-1.0, 0.5), valid=POISSON)
 DENSITY = Parameter("density", lambda m: m.density, "reference density (re-run sim.init for particle masses)",

@@ -7,7 +7,7 @@ import jax.numpy as jnp
 from ..core.registry import register_material
 from ..core.validate import POISSON, POSITIVE
 from .base import ElasticMaterial, identity, lame
-from .linear import DENSITY, E, NU
+from .linear import DENSITY, NU, E
 
 
 def log_det(F):

@@ -36,7 +36,8 @@ from .step import step as _step
 
 UPDATES = {"USF": "USF", "USL": "USL", "USL-": "USL", "MUSL": "MUSL", "USL+": "MUSL",
            "USAVG-": "USAVG-", "USAVG+": "USAVG+", "usavg-": "USAVG-", "usavg+": "USAVG+"}  # 003 §2.2
-KINEMATICS = ("linear", "exponential")  # the deformation-gradient increment dF (jaxmpm.model.step.deformation_increment)
+# the deformation-gradient increment dF (jaxmpm.model.step.deformation_increment)
+KINEMATICS = ("linear", "exponential")
 
 
 class Simulation(eqx.Module):
@@ -96,7 +97,8 @@ class Simulation(eqx.Module):
         check(isinstance(material, Material),
               f"Simulation: material must be a jm.Material ({', '.join(MATERIALS.names())}), "
               f"got {type(material).__name__}")
-        check(update in UPDATES, f"Simulation: update = {update!r}; choose USF, USL (USL-), MUSL (USL+), USAVG- or USAVG+")
+        check(update in UPDATES,
+              f"Simulation: update = {update!r}; choose USF, USL (USL-), MUSL (USL+), USAVG- or USAVG+")
         check(backend in POLICIES, f"Simulation: backend = {backend!r}; choose one of {', '.join(POLICIES)}")
         check(adjoint in ADJOINTS, f"Simulation: adjoint = {adjoint!r}; choose 'structured' (the transfer layer's "
                                    "derivative rules, the default) or 'autodiff' (JAX's own, the reference)")
@@ -119,7 +121,8 @@ class Simulation(eqx.Module):
         self.shape = shape
         self.material = material
         self.scheme = scheme
-        self.terms = (StressDivergence(), BodyForce(g, body_force)) + ((damping,) if damping is not None else ()) + extra
+        self.terms = ((StressDivergence(), BodyForce(g, body_force)) + ((damping,) if damping is not None else ())
+                      + extra)
         self.boundary = as_conditions(boundary, grid)
         self.update = UPDATES[update]
         self.backend = backend

@@ -40,7 +40,8 @@ from ..materials.base import Increment
 from ..physics.term import overrides
 from ..schemes.base import combine_damping
 from ..transfer.contractions import Weighted, as_terms
-from ..transfer.operators import Transfer, gather, p2g as scatter_quantities, safe_divide
+from ..transfer.operators import Transfer, gather, safe_divide
+from ..transfer.operators import p2g as scatter_quantities
 
 # the lumped grid quantities a part may need apart ("grid_reads"); P2G folds p and f otherwise
 LUMPED = frozenset({"v", "a", "momentum", "force"})

@@ -98,7 +98,8 @@ def node_plane(grid: Grid, axis: int, position: float, owner: str) -> int:
     check(0 <= axis < grid.dim, f"{owner}: mirror axis {axis} on a {grid.dim}D grid")
     plane = (position - grid.lower[axis]) / grid.spacing[axis]
     check(abs(plane - round(plane)) < 1e-9 and 0 <= round(plane) < grid.node_shape[axis],
-          f"{owner}: mirror position {position} is not a node plane of axis {axis} (nodes every {grid.spacing[axis]:g})")
+          f"{owner}: mirror position {position} is not a node plane of axis {axis} "
+          f"(nodes every {grid.spacing[axis]:g})")
     return int(round(plane))
 
 

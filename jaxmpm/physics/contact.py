@@ -175,7 +175,8 @@ class Contact(Term):
         self.materials = materials
         self.separation = None if separation is None else FINITE.real(
             "Contact", "separation", separation, fix="the gap, in cells, below which the bodies touch (e.g. 0.5)")
-        check(isinstance(series_correction, bool), f"Contact: series_correction = {series_correction!r}; use True or False")
+        check(isinstance(series_correction, bool),
+              f"Contact: series_correction = {series_correction!r}; use True or False")
         self.series_correction = series_correction
         self.friction = NON_NEGATIVE.leaf("Contact", "friction", friction, fix="the Coulomb coefficient mu")
         mu = concrete(self.friction)
@@ -241,7 +242,7 @@ class Contact(Term):
         (module docstring); for two materials (n^0, -n^0) with n^0 = :meth:`contact_normal`."""
         g = self.per_material(grad_m)
         if self.normal == "average":
-            return _safe_unit(2.0 * g - jnp.sum(g, axis=0))  # g^a - sum_{b != a} g^b
+            return _safe_unit(2.0 * g - jnp.sum(g, axis=0, keepdims=True))  # g^a - sum_{b != a} g^b
         first = jnp.argmax(self.per_material(m) > 0, axis=0)  # the lowest-numbered material present
         own = first[None, :] == jnp.arange(self.materials)[:, None]  # (M, n): a is that material
         if self.normal == "max_gradient":
@@ -294,10 +295,11 @@ class Contact(Term):
             return p + change, change
         ma, pa = self.per_material(m), self.per_material(p)
         m_all, p_all = jnp.sum(ma, axis=0), jnp.sum(pa, axis=0)
-        law = jax.vmap(lambda mass, mom, nrm, near: self.momentum_change(mass, m_all - mass, mom, p_all - mom, nrm, near),
+        law = jax.vmap(lambda mass, mom, nrm, near: self.momentum_change(mass, m_all - mass, mom, p_all - mom, nrm,
+                                                                         near),
                        in_axes=(0, 0, 0, None if touching is None else 0))
         dp = law(ma, pa, normal, touching)  # each material against the rest
-        dp = dp - safe_divide(ma[..., None] * jnp.sum(dp, axis=0), m_all)  # sum_a Dp^a = 0 (000 eq. 4.12)
+        dp = dp - safe_divide(ma[..., None] * jnp.sum(dp, axis=0)[None], m_all[None])  # sum_a Dp^a = 0 (000 eq. 4.12)
         change = dp.reshape(p.shape)
         return p + change, change
 

@@ -32,7 +32,8 @@ class Schedule(eqx.Module):
         check(t.ndim == 1 and t.size >= 1 and np.all(np.isfinite(t)) and np.all(np.diff(t) > 0),
               f"Damping: schedule times = {t.tolist()!r}; give a 1D array of increasing finite times")
         check(np.shape(factors) == t.shape,
-              f"Damping: schedule has {t.size} times but factors of shape {np.shape(factors)}; give one factor per time")
+              f"Damping: schedule has {t.size} times but factors of shape {np.shape(factors)}; "
+              "give one factor per time")
         check(f is None or bool(np.all(np.isfinite(f)) and np.all(f >= 0)),
               "Damping: schedule factors must be finite and >= 0 (alpha(t) = alpha s(t) is a damping rate)")
         self.times = jnp.asarray(t, dtype=jnp.result_type(float))

@@ -20,8 +20,8 @@ import jax.numpy as jnp
 
 from ..core.fields import ParticleField
 from ..core.registry import register_term
-from .term import Term
 from ..transfer.operators import safe_divide
+from .term import Term
 
 
 class Reaction(Term):

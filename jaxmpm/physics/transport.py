@@ -383,7 +383,8 @@ class Transport(Term):
         when a held value differs from it."""
         held, value = self.held(sim, dtype)
         x = sim.grid.node_coordinates()
-        t0 = np.asarray(self.initial(x), dtype=float) if callable(self.initial) else np.full(len(x), float(self.initial))
+        t0 = (np.asarray(self.initial(x), dtype=float) if callable(self.initial)
+              else np.full(len(x), float(self.initial)))
         t0 = jnp.asarray(np.tile(np.broadcast_to(t0, (len(x),)), self.copies(sim)), dtype)
         target = value
         ghosts, mirrors = self.mirror_map(sim)

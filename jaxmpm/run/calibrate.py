@@ -20,6 +20,7 @@ import optax
 from ..core.errors import check
 from ..core.params import default_bounds
 
+
 def _transform(bound):
     """(forward raw -> value, inverse value -> raw) for a bound."""
     if bound is None:

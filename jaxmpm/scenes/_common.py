@@ -116,7 +116,8 @@ def schedule(t_end: float, dt: float, frames: int = 200) -> tuple[int, int]:
     rounded up to a multiple of round(steps/frames)."""
     check(math.isfinite(t_end) and t_end > 0, f"t_end = {t_end} must be a positive finite time")
     check(math.isfinite(dt) and dt > 0, f"dt = {dt} must be a positive finite time step")
-    check(isinstance(frames, numbers.Integral) and not isinstance(frames, bool) and frames >= 1, f"frames = {frames!r} must be a positive integer")
+    check(isinstance(frames, numbers.Integral) and not isinstance(frames, bool) and frames >= 1,
+          f"frames = {frames!r} must be a positive integer")
     ratio = t_end / dt
     require_steps(ratio, "shorten t_end or use a larger dt (or cfl)")
     steps = max(1, int(math.ceil(ratio - 1e-9)))

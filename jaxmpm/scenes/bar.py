@@ -17,15 +17,15 @@ import math
 
 import numpy as np
 
-from ..physics.conditions import Fixed, Mirror
 from ..core.errors import check
 from ..core.grid import Grid
-from ..materials import LinearElastic
 from ..core.particles import Box, fill
-from ..schemes import FLIP
-from ..physics.damping import Damping
-from ..transfer.shapes import Linear
+from ..materials import LinearElastic
 from ..model.simulation import Simulation
+from ..physics.conditions import Fixed, Mirror
+from ..physics.damping import Damping
+from ..schemes import FLIP
+from ..transfer.shapes import Linear
 from ._common import Setup, cast_state, resolve_dtype, schedule
 from ._options import checked_options
 

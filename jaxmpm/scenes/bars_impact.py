@@ -29,12 +29,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..core.grid import Grid
-from ..materials import LinearElastic
 from ..core.particles import Box, fill
-from ..schemes import FLIP
-from ..physics.damping import Damping
-from ..transfer.shapes import Linear
+from ..materials import LinearElastic
 from ..model.simulation import Simulation
+from ..physics.damping import Damping
+from ..schemes import FLIP
+from ..transfer.shapes import Linear
 from ._common import Setup, cast_state, contact_model, material_ids, resolve_dtype, schedule
 from ._options import checked_options
 

@@ -77,7 +77,8 @@ def build_setup(args):
         # the scheme's parser rejects a --beta it cannot take (pic, apic, tpic, blend:B)
         kwargs["scheme"] = scheme_from_name("flip" if args.scheme is None else args.scheme, args.beta)
     if args.shape is not None:
-        check(args.shape != "ugimp" or "ppc" in accepted, f"--shape ugimp needs a scene with ppc; {args.scene!r} has none")
+        check(args.shape != "ugimp" or "ppc" in accepted,
+              f"--shape ugimp needs a scene with ppc; {args.scene!r} has none")
         ppc = args.ppc if args.ppc is not None else accepted["ppc"].default if "ppc" in accepted else None
         kwargs["shape"] = shape_from_name(args.shape, ppc=ppc) if args.shape == "ugimp" else shape_from_name(args.shape)
     check(args.damping_approach is None or args.alpha_g is not None,

@@ -33,16 +33,16 @@ import math
 
 import numpy as np
 
-from ..physics.conditions import Slip
 from ..core.errors import check
 from ..core.grid import Grid
-from ..physics.loads import Traction
-from ..materials import LinearElastic
 from ..core.particles import Box, fill
-from ..schemes import FLIP
-from ..physics.damping import Damping
-from ..transfer.shapes import UGIMP
+from ..materials import LinearElastic
 from ..model.simulation import Simulation
+from ..physics.conditions import Slip
+from ..physics.damping import Damping
+from ..physics.loads import Traction
+from ..schemes import FLIP
+from ..transfer.shapes import UGIMP
 from ._common import Setup, cast_state, resolve_dtype, schedule
 from ._options import checked_options
 

@@ -19,12 +19,12 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from ..core.grid import Grid
-from ..materials import LinearElastic
 from ..core.particles import Disk, fill
-from ..schemes import FLIP
-from ..physics.damping import Damping
-from ..transfer.shapes import UGIMP
+from ..materials import LinearElastic
 from ..model.simulation import Simulation
+from ..physics.damping import Damping
+from ..schemes import FLIP
+from ..transfer.shapes import UGIMP
 from ._common import Setup, cast_state, contact_model, contact_normal_param, material_ids, resolve_dtype, schedule
 from ._options import checked_options
 

@@ -80,16 +80,24 @@ import numpy as np
 
 from ..core.errors import check
 from ..core.grid import Grid
-from ..materials import NeoHookean
 from ..core.particles import Box, fill
-from ..schemes import FLIP
-from ..physics.damping import Damping
-from ..transfer.shapes import Linear
+from ..materials import NeoHookean
 from ..model.simulation import Simulation
+from ..physics.damping import Damping
+from ..schemes import FLIP
+from ..transfer.shapes import Linear
 from ._common import Setup, resolve_dtype
 from ._options import checked_options
-from .manufactured import (ManufacturedForce, ManufacturedReference, SeparableMotion, exact_fields,  # noqa: F401
-                           mirrors, schedule_exact, start_deformed, walls)
+from .manufactured import (  # noqa: F401
+    ManufacturedForce,
+    ManufacturedReference,
+    SeparableMotion,
+    exact_fields,
+    mirrors,
+    schedule_exact,
+    start_deformed,
+    walls,
+)
 from .mms_linear import linear_mms
 
 E, NU, RHO0, AMPLITUDE = 1.0e4, 0.3, 1.0, 0.05

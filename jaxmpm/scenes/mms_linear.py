@@ -41,18 +41,25 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from ..physics.conditions import Slip
 from ..core.errors import check
 from ..core.grid import Grid
-from ..physics.loads import Traction
-from ..materials import NeoHookean
 from ..core.particles import Box, fill
+from ..materials import NeoHookean
+from ..model.simulation import Simulation
+from ..physics.conditions import Slip
+from ..physics.loads import Traction
 from ..schemes import FLIP
 from ..transfer.shapes import Linear
-from ..model.simulation import Simulation
 from ._common import Setup, resolve_dtype
-from .manufactured import (ManufacturedForce, ManufacturedReference, SeparableMotion, _plane, exact_fields, schedule_exact,
-                  start_deformed)
+from .manufactured import (
+    ManufacturedForce,
+    ManufacturedReference,
+    SeparableMotion,
+    _plane,
+    exact_fields,
+    schedule_exact,
+    start_deformed,
+)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -31,14 +31,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..schemes import APIC
-from ..physics.conditions import Wall
 from ..core.grid import Grid
-from ..materials import VolumetricFluid
 from ..core.particles import Particles
-from ..physics.damping import Damping
-from ..transfer.shapes import QuadraticBSpline
+from ..materials import VolumetricFluid
 from ..model.simulation import Simulation
+from ..physics.conditions import Wall
+from ..physics.damping import Damping
+from ..schemes import APIC
+from ..transfer.shapes import QuadraticBSpline
 from ._common import Setup, cast_state, resolve_dtype, schedule
 from ._options import checked_options
 

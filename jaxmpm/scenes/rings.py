@@ -14,12 +14,12 @@ import jax.numpy as jnp
 
 from ..core.errors import check
 from ..core.grid import Grid
-from ..materials import NeoHookean
 from ..core.particles import Ring, fill
-from ..schemes import FLIP
-from ..physics.damping import Damping
-from ..transfer.shapes import QuadraticBSpline
+from ..materials import NeoHookean
 from ..model.simulation import Simulation
+from ..physics.damping import Damping
+from ..schemes import FLIP
+from ..transfer.shapes import QuadraticBSpline
 from ._common import Setup, cast_state, contact_model, contact_normal_param, material_ids, resolve_dtype, schedule
 from ._options import checked_options
 

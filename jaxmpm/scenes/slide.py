@@ -48,15 +48,15 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from ..physics.conditions import Fixed
 from ..core.errors import check
 from ..core.grid import Grid
-from ..materials import LinearElastic
 from ..core.particles import Box, fill
-from ..schemes import FLIP
-from ..physics.damping import Damping
-from ..transfer.shapes import UGIMP
+from ..materials import LinearElastic
 from ..model.simulation import Simulation
+from ..physics.conditions import Fixed
+from ..physics.damping import Damping
+from ..schemes import FLIP
+from ..transfer.shapes import UGIMP
 from ._common import Setup, cast_state, contact_model, contact_normal_param, material_ids, resolve_dtype, schedule
 from ._options import checked_options
 

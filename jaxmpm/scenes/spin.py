@@ -20,15 +20,14 @@ import math
 
 import numpy as np
 
-from ..schemes import with_velocity_gradient
 from ..core.errors import check
 from ..core.grid import Grid
-from ..materials import NeoHookean, NoStress
 from ..core.particles import Disk, fill
-from ..schemes import FLIP
-from ..physics.damping import Damping
-from ..transfer.shapes import QuadraticBSpline
+from ..materials import NeoHookean, NoStress
 from ..model.simulation import Simulation
+from ..physics.damping import Damping
+from ..schemes import FLIP, with_velocity_gradient
+from ..transfer.shapes import QuadraticBSpline
 from ._common import Setup, cast_state, resolve_dtype, schedule
 from ._options import checked_options
 

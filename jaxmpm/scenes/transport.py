@@ -10,7 +10,8 @@
                    damped, it settles there (the reference is the stretch alpha_T dT).
 
 ``transport`` is the particle update of the field: "flip" (001 §8, default), "pic" or "xpic:M"
-(000 §3.6; ``jm.Heat(update=...)``).  The rods' held ends are mirrored boundaries (the odd extension beyond the end: second order with
+(000 §3.6; ``jm.Heat(update=...)``).  The rods' held ends are mirrored boundaries (the odd extension
+beyond the end: second order with
 B-splines as with linear shapes); diffusion2d holds its edge nodes (second order with linear
 shapes, its default).  The conduction scenes use :class:`jaxmpm.NoStress` (the particles stay put: pure conduction) and
 dt = cfl times the conduction limit h^2 / (2 D a) (``Simulation.time_step_limits``).  Their
@@ -24,15 +25,15 @@ import math
 
 import numpy as np
 
-from ..physics.conditions import NodeSet
 from ..core.grid import Grid
-from ..materials import LinearElastic, NoStress
 from ..core.particles import Box, fill
-from ..schemes import FLIP
-from ..physics.damping import Damping
-from ..transfer.shapes import Linear, UGIMP
+from ..materials import LinearElastic, NoStress
 from ..model.simulation import Simulation
+from ..physics.conditions import NodeSet
+from ..physics.damping import Damping
 from ..physics.transport import Diffusion, Dirichlet, Heat
+from ..schemes import FLIP
+from ..transfer.shapes import UGIMP, Linear
 from ._common import Setup, cast_state, resolve_dtype, schedule
 from ._options import checked_options
 
@@ -73,7 +74,8 @@ def heat1d(shape=None, cells: int = 32, ppc: int = 2, cfl: float = 0.5, t_end: f
 
     def reference(t, x):
         """Exact T(t, x) = A exp(-a pi^2 t / L^2) sin(pi x / L), x (N, 1)."""
-        return amplitude * math.exp(-a * math.pi**2 * float(t) / length**2) * np.sin(np.pi * np.asarray(x)[:, 0] / length)
+        return (amplitude * math.exp(-a * math.pi**2 * float(t) / length**2)
+                * np.sin(np.pi * np.asarray(x)[:, 0] / length))
 
     params = dict(conductivity=conductivity, heat_capacity=heat_capacity, density=density, length=length,
                   amplitude=amplitude, cells=cells, ppc=ppc, transport=transport)

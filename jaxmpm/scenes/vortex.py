@@ -59,12 +59,12 @@ import numpy as np
 
 from ..core.errors import check
 from ..core.grid import Grid
-from ..materials import NeoHookean
 from ..core.particles import Ring, fill
-from ..schemes import FLIP
-from ..physics.damping import Damping
-from ..transfer.shapes import QuadraticBSpline
+from ..materials import NeoHookean
 from ..model.simulation import Simulation
+from ..physics.damping import Damping
+from ..schemes import FLIP
+from ..transfer.shapes import QuadraticBSpline
 from ._common import Setup, cast_state, resolve_dtype
 from ._options import checked_options
 from .manufactured import ManufacturedForce, ManufacturedReference, schedule_exact

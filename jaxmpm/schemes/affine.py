@@ -37,7 +37,6 @@ from ..transfer.operators import Transfer, to_particle_major
 from ..transfer.shapes import rows
 from .base import ParticleDamping, ParticleUpdate, Scheme
 
-
 # Per-particle (D, D) matrices are handled "planar" here, as (D, D, N) (see Stencil): every entry
 # is a row of N numbers, so the small matrix algebra below is elementwise on contiguous vectors.
 
@@ -64,11 +63,11 @@ def _planar_inverse(A):
         return 1.0 / A
     if d == 2:
         det = A[0, 0] * A[1, 1] - A[0, 1] * A[1, 0]
-        return _stack2([[A[1, 1], -A[0, 1]], [-A[1, 0], A[0, 0]]]) / det
+        return _stack2([[A[1, 1], -A[0, 1]], [-A[1, 0], A[0, 0]]]) / det[None, None]
     cof = [[A[(i + 1) % 3, (j + 1) % 3] * A[(i + 2) % 3, (j + 2) % 3]
             - A[(i + 1) % 3, (j + 2) % 3] * A[(i + 2) % 3, (j + 1) % 3] for j in range(3)] for i in range(3)]
     det = sum(A[0, j] * cof[0][j] for j in range(3))
-    return _stack2([[cof[j][i] for j in range(3)] for i in range(3)]) / det  # adj(A) = cof^T
+    return _stack2([[cof[j][i] for j in range(3)] for i in range(3)]) / det[None, None]  # adj(A) = cof^T
 
 
 def _planar_matmul(A, B):

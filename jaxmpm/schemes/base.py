@@ -17,10 +17,10 @@ passes :data:`NO_DAMPING` when there is none, so a scheme never asks whether dam
 
 from __future__ import annotations
 
+import abc
+
 import equinox as eqx
 import jax.numpy as jnp
-
-import abc
 
 from ..core.errors import check
 from ..core.measures import angular_momentum

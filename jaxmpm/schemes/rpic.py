@@ -44,7 +44,7 @@ def rigid_inertia(stencil, mass):
     if d == 2:
         return (mass * trace)[:, None, None]
     eye = jnp.eye(3, dtype=D.dtype)[:, :, None]
-    return from_planar(mass * (trace * eye - D))
+    return from_planar(mass[None, None] * (trace[None, None] * eye - D))
 
 
 def rigid_angular_velocity(K, L):
@@ -56,7 +56,7 @@ def rigid_angular_velocity(K, L):
     if r == 0:
         return L
     diag = jnp.diagonal(K, axis1=-2, axis2=-1)
-    K = K + jnp.where(diag == 0.0, 1.0, 0.0)[..., None] * jnp.eye(r, dtype=K.dtype)
+    K = K + jnp.where(diag == 0.0, 1.0, 0.0)[..., None] * jnp.eye(r, dtype=K.dtype)[None]
     if r == 1:
         return L / K[:, :, 0]
     return jnp.einsum("nab,nb->na", small_inverse(K), L)
@@ -102,7 +102,8 @@ class RPIC(_AffineScheme):
         """S_pi M_p (V_p + (K_p^{-1} L_p) x (x_i - X_p)), summed over p into p_i  (002 eq. 1):
         omega x r = W r with W the skew matrix of omega."""
         omega = rigid_angular_velocity(rigid_inertia(stencil, state.mass), state.scheme_state)
-        return (Weighted(state.mass[:, None] * state.v), Affine(state.mass[:, None, None] * skew(omega, state.x.shape[-1])))
+        return (Weighted(state.mass[:, None] * state.v),
+                Affine(state.mass[:, None, None] * skew(omega, state.x.shape[-1])))
 
     def next_state(self, state, update, transfer: Transfer, grid):
         """L_p = sum_i S_pi (x_i - X_p) x M_p v~_i  (002 eq. 2)."""

@@ -111,7 +111,8 @@ class Transfer(eqx.Module):
     particle_mass: jnp.ndarray  # M_p, (N,)
     nodal_mass: jnp.ndarray  # m_i = sum_p S_pi M_p, (n,)
     num_nodes: int = eqx.field(static=True)
-    images: object = None  # mirror planes (jaxmpm.physics.conditions.MirrorMap): nodal sums fold in the particles' images
+    # mirror planes (jaxmpm.physics.conditions.MirrorMap): nodal sums fold in the particles' images
+    images: object = None
 
     @classmethod
     def build(cls, stencil, particle_mass, num_nodes: int) -> "Transfer":

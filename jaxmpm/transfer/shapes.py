@@ -16,15 +16,14 @@ r-weighted (001 eqs. 112, 115) and the stencil carries the hoop shape function T
 
 from __future__ import annotations
 
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .backend import derivative_rule, evaluate_once
 from ..core.errors import check
 from ..core.registry import register_shape
+from .backend import derivative_rule, evaluate_once
 
 
 def rows(a):
@@ -233,14 +232,14 @@ class ShapeFunction(eqx.Module):
             # particle that has left it (its weights are those of the nodes used, and a run reports
             # it as a failure); inside the grid the clip changes nothing
             first = jnp.clip(self._base(xi[a]), 0, grid.cells[a] + 1 - k1)  # (N,)
-            nodes = first + k  # (K1, N)
-            w, dw = self._kernel(xi[a] - nodes.astype(x.dtype))  # r = particle minus node, in cells
+            nodes = first[None, :] + k  # (K1, N)
+            w, dw = self._kernel(xi[a][None, :] - nodes.astype(x.dtype))  # r = particle minus node, in cells
             if a == 0 and grid.axisymmetric:
-                w, dw, t_r = _radial_factors(self, xi[a] - nodes.astype(x.dtype), w, dw, x[:, 0], h[a])
+                w, dw, t_r = _radial_factors(self, xi[a][None, :] - nodes.astype(x.dtype), w, dw, x[:, 0], h[a])
             nodes_per_axis.append(nodes * jnp.int32(grid.strides[a]))
             ws.append(w)
             dws.append(dw / h[a])
-            dxs.append(nodes.astype(x.dtype) * h[a] + lower[a] - x[:, a])  # x_i - X_p
+            dxs.append(nodes.astype(x.dtype) * h[a] + lower[a] - x[None, :, a])  # x_i - X_p
         index = _tensor(nodes_per_axis, jnp.add)
         if grid.axisymmetric:
             return AxisymmetricStencil(index, jnp.stack(ws), jnp.stack(dws), jnp.stack(dxs), t_r)
@@ -250,11 +249,11 @@ class ShapeFunction(eqx.Module):
         """True where the particle's whole stencil lies on the grid."""
         lower = jnp.asarray(grid.lower, dtype=x.dtype)
         h = jnp.asarray(grid.spacing, dtype=x.dtype)
-        xi = (x - lower) / h
+        xi = (x - lower[None, :]) / h[None, :]
         base = self._base(xi)
         top = base + self.nodes_per_axis - 1
         cells = jnp.asarray(grid.cells, jnp.int32)
-        return jnp.all((base >= 0) & (top <= cells) & jnp.isfinite(xi), axis=-1)
+        return jnp.all((base >= 0) & (top <= cells[None, :]) & jnp.isfinite(xi), axis=-1)
 
 
 def _radial_factors(shape, r, w, dw, radius, h):
@@ -262,12 +261,12 @@ def _radial_factors(shape, r, w, dw, radius, h):
     ``radius`` r_p (N,): with u = x - X_p, int N (r_p + u) du / (2 l_p r_p) = w + (h / r_p) M1, and
     likewise for dN/dr (001 eqs. 112, 115); the hoop factor is w / r_p (001 eq. 116).  Point
     particles have M1 = 0."""
-    t_r = w / radius  # 001 eq. (116): (1/(2 l_p r_p)) int N dr
+    t_r = w / radius[None, :]  # 001 eq. (116): (1/(2 l_p r_p)) int N dr
     moment = shape._radial_moment(r)
     if moment is not None:
         m1, dm1 = moment
-        w = w + (h / radius) * m1  # 001 eq. (112)
-        dw = dw + (h / radius) * dm1  # 001 eq. (115)
+        w = w + (h / radius)[None, :] * m1  # 001 eq. (112)
+        dw = dw + (h / radius)[None, :] * dm1  # 001 eq. (115)
     return w, dw, t_r
 
 
@@ -437,4 +436,5 @@ register_shape("cubic", CubicBSpline)
 def field_stencil(stencil, field, num_nodes: int):
     """The stencil on stacked velocity fields: each particle's node numbers moved to its field's
     copy of the grid, i -> field_p n + i (``field`` (N,) integers 0..M-1; multimaterial mode)."""
-    return eqx.tree_at(lambda s: s.index, stencil, stencil.index + field.astype(stencil.index.dtype)[None, :] * num_nodes)
+    return eqx.tree_at(lambda s: s.index, stencil,
+                       stencil.index + field.astype(stencil.index.dtype)[None, :] * num_nodes)

@@ -245,7 +245,8 @@ class XLAKernel(Kernel):
         def stacked(stencil, columns):
             per_slot_columns = {name: _column(stencil, column) for name, column in columns.items()}
             layout.clear()
-            layout.update({name: (1 if c.ndim == 2 else c.shape[0], c.ndim == 2) for name, c in per_slot_columns.items()})
+            layout.update({name: (1 if c.ndim == 2 else c.shape[0], c.ndim == 2)
+                           for name, c in per_slot_columns.items()})
             return jnp.concatenate([c[None] if c.ndim == 2 else c for c in per_slot_columns.values()])
 
         nodal = scatter_planar(stencil.index, evaluate_once(stacked, stencil, columns), num_nodes)

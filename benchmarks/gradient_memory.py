@@ -46,8 +46,8 @@ DEFAULT_CSV = Path(__file__).resolve().parent / "results" / "gradient_memory.csv
 SCHEMES = ("fmpm2", "flip", "xpic2", "apic")
 SCENES = ("bar", "disks", "mpm88")
 FIELDS = ["scene", "scheme", "cells", "particles", "steps", "checkpoint", "temp_MiB", "forward_temp_MiB",
-          "rss_compile_MiB",
-          "rss_peak_MiB", "baseline_rss_MiB", "compile_s", "grad_s", "forward_s", "ratio", "gradient", "load_1min"]
+          "rss_compile_MiB", "rss_peak_MiB", "baseline_rss_MiB", "compile_s", "grad_s", "forward_s", "ratio",
+          "gradient", "load_1min"]
 
 
 def peak_rss_mib() -> float:

@@ -15,8 +15,8 @@ Cases: ``bar`` (1D) with 1024 cells x 2 particles per cell (2048 particles, v0 =
 stays in its cell), and ``disks`` (2D) at h = 0.008 (about 15.7k particles).  Every timed run is
 checked for instability (NaN, J <= 0, particles off the grid) at its end.  Each timing is the best
 of ``--repeats`` calls after a warm-up call, with ``jax.block_until_ready``; the jobs of a case are
-timed in interleaved rounds, so a burst of
-load from other processes hits them alike.  Compile time (first call minus best) is reported separately.
+timed in interleaved rounds, so a burst of load from other processes hits them alike.  Compile time
+(first call minus best) is reported separately.
 Besides wall time it records the process CPU time of each call (``time.process_time``, all threads),
 which a busy machine disturbs less than wall time.
 

@@ -3,9 +3,8 @@
 FLIP, PIC, the 0.99 FLIP/PIC blend (000 eq. 2.86), XPIC(2), XPIC(5) (000 eqs. 3.28-3.29), FMPM(1),
 FMPM(4), FMPM(8) (003 Table 2.1), all float64 with the USL update on the default scene (h = 0.05,
 2x2 particles per cell, dt = 1e-3, uGIMP shape functions, grid padded by two cells).  For each scheme
-it records the kinetic,
-strain and total energy and the energy the update dissipates relative to FLIP (000 eq. 2.44), and
-writes
+it records the kinetic, strain and total energy and the energy the update dissipates relative to
+FLIP (000 eq. 2.44), and writes
 
 * ``experiments/results/disks_schemes.csv`` (long format: scheme,time,kinetic,strain,total,dissipated)
 * ``experiments/results/disks_schemes.png`` (total energy vs time; kinetic energy in a second panel)
@@ -189,10 +188,9 @@ def markdown(rows, t_end) -> str:
         )
     lines.append(
         f"\nE0 = {rows[0]['e0']:.6g} (initial kinetic energy); t_end = {t_end:g}; float64, USL, uGIMP shape "
-        f"functions (grid padded by two cells), h = 0.05, 2x2 ppc, dt = 1e-3.  Perturbed runs: initial velocities "
-        f"x (1 + {PERTURBATION:g} xi); "
-        f"'unstable' counts failures before t = {T_SEPARATED:g}.  The blend reuses FLIP's compiled step (beta is "
-        "an array leaf), so its jit column is timing noise.")
+        f"functions (grid padded by two cells), h = 0.05, 2x2 ppc, dt = 1e-3.  Perturbed runs: initial "
+        f"velocities x (1 + {PERTURBATION:g} xi); 'unstable' counts failures before t = {T_SEPARATED:g}.  "
+        "The blend reuses FLIP's compiled step (beta is an array leaf), so its jit column is timing noise.")
     return "\n".join(lines)
 
 

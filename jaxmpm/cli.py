@@ -95,8 +95,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--damping-approach", default=None, choices=list(DAMPING_APPROACHES),
                      help="how grid damping acts (001 §5.1.2-5.2.2; jm.Damping's approach): on the particle update "
                           "(velocity, the default), on the grid momentum extrapolated as momentum (momentum), "
-                          "or on the "
-                          "nodal force (force); needs --alpha-g")
+                          "or on the nodal force (force); needs --alpha-g")
     run.add_argument("--shape", default=None, choices=list(SHAPES.names()), help="shape function " + _defaults("shape"))
     run.add_argument("--update", default=None, choices=["USL", "USF", "MUSL", "USAVG-", "USAVG+"],
                      help="stress update " + _defaults("update"))

@@ -24,8 +24,7 @@ SMOOTH = jm.QuadraticBSpline()
 def case(name):
     """(setup, {parameter: value}) for each case, at the scene's own parameter values.  Every
     scheme family, shape (linear: the conduction case) and update once; 2D for the tensor-product rules
-    (in 3D they are the same
-    code with a third factor, checked by hand: 1e-13, see the issue 15 note), contact with
+    (in 3D they are the same code with a third factor, checked by hand: 1e-13, see the issue 15 note), contact with
     friction (the block on the slope slides from the first step), conduction and diffusion."""
     damping = jm.Damping(0.02, 0.01)
     bar = dict(damping=damping, cells=16)

@@ -295,9 +295,11 @@ class Contact(Term):
             return p + change, change
         ma, pa = self.per_material(m), self.per_material(p)
         m_all, p_all = jnp.sum(ma, axis=0), jnp.sum(pa, axis=0)
-        law = jax.vmap(lambda mass, mom, nrm, near: self.momentum_change(mass, m_all - mass, mom, p_all - mom, nrm,
-                                                                         near),
-                       in_axes=(0, 0, 0, None if touching is None else 0))
+
+        def against_the_rest(mass, mom, nrm, near):
+            return self.momentum_change(mass, m_all - mass, mom, p_all - mom, nrm, near)
+
+        law = jax.vmap(against_the_rest, in_axes=(0, 0, 0, None if touching is None else 0))
         dp = law(ma, pa, normal, touching)  # each material against the rest
         dp = dp - safe_divide(ma[..., None] * jnp.sum(dp, axis=0)[None], m_all[None])  # sum_a Dp^a = 0 (000 eq. 4.12)
         change = dp.reshape(p.shape)

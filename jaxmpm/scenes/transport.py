@@ -11,12 +11,12 @@
 
 ``transport`` is the particle update of the field: "flip" (001 §8, default), "pic" or "xpic:M"
 (000 §3.6; ``jm.Heat(update=...)``).  The rods' held ends are mirrored boundaries (the odd extension
-beyond the end: second order with
-B-splines as with linear shapes); diffusion2d holds its edge nodes (second order with linear
-shapes, its default).  The conduction scenes use :class:`jaxmpm.NoStress` (the particles stay put: pure conduction) and
-dt = cfl times the conduction limit h^2 / (2 D a) (``Simulation.time_step_limits``).  Their
-``reference(t, x)`` takes the particle positions (N, D) as well.  Every scene saves its physical
-parameters (conductivity, density, heat_capacity, length, ...) in ``params`` (HDF5 attributes).
+beyond the end: second order with B-splines as with linear shapes); diffusion2d holds its edge
+nodes (second order with linear shapes, its default).  The conduction scenes use
+:class:`jaxmpm.NoStress` (the particles stay put: pure conduction) and dt = cfl times the
+conduction limit h^2 / (2 D a) (``Simulation.time_step_limits``).  Their ``reference(t, x)`` takes
+the particle positions (N, D) as well.  Every scene saves its physical parameters (conductivity,
+density, heat_capacity, length, ...) in ``params`` (HDF5 attributes).
 """
 
 from __future__ import annotations

@@ -21,8 +21,8 @@ from .transfer.operators import Transfer, gather, scatter
 from .transfer.series import exchange_series, mass_matrix_series, series
 from .schemes import (APIC, FLIP, FMPM, PIC, RPIC, TPIC, XPIC, ParticleDamping, ParticleUpdate, Scheme,
                       with_velocity_gradient)
-from .materials import (ElasticMaterial, HypoElastic, Increment, InelasticMaterial, LinearElastic, Material,
-                        NeoHookean, NoStress, VolumetricFluid)
+from .materials import (ElasticMaterial, HypoElastic, Increment, IncrementalElastic, InelasticMaterial, LinearElastic,
+                        Material, NeoHookean, NoStress, VolumetricFluid)
 from .physics import (BodyForce, Constraint, Contact, Damping, Diffusion, Dirichlet, Fixed, Heat, Mirror, Neumann,
                       NodeSet, ParticleForce, Prescribed, Reaction, Slip, StressDivergence, Term, Traction, Transport,
                       Wall)
@@ -52,8 +52,8 @@ __all__ = [
     "kinetic_energy", "linear_momentum", "load_h5", "resume", "mass_matrix_series", "p2g", "save_h5", "scatter",
     "scene", "stable_dt", "strain_energy", "with_fields", "with_scheme_state",
     "APIC", "RPIC", "TPIC", "with_velocity_gradient", "Wall", "NoStress", "VolumetricFluid",
-    "Diffusion", "Dirichlet", "Heat", "Neumann", "Transport", "HypoElastic", "ParticleForce", "Traction", "Reaction",
-    "Mirror", "compilation_cache",
+    "Diffusion", "Dirichlet", "Heat", "Neumann", "Transport", "HypoElastic", "IncrementalElastic", "ParticleForce",
+    "Traction", "Reaction", "Mirror", "compilation_cache",
     "ElasticMaterial", "InelasticMaterial", "Increment", "ParticleDamping", "Contraction", "Weighted", "Gradient",
     "Divergence", "Affine", "Hoop", "PerSlot", "Kernel", "register_kernel", "series", "exchange_series",
     "grid_phases",

@@ -123,6 +123,10 @@ def build_parser() -> argparse.ArgumentParser:
                      help="diffusivity D >= 0 of a diffusion scene " + _defaults("diffusivity"))
     run.add_argument("--transport-xpic", type=int, default=None, metavar="M",
                      help="update the transported field by XPIC(M) (000 §3.6) instead of FLIP; 1 is PIC")
+    run.add_argument("--conventions", default=None, choices=["jaxmpm", "nairnmpm"],
+                     help="whose rules where MPM codes differ: jaxmpm (default) or nairnmpm (NairnMPM 19.0: "
+                          "the reaction force on fixed nodes, XPIC's series start, the XPIC/PIC position update, "
+                          "the grid damping's velocity)")
     run.add_argument("--dtype", default="f64", choices=["f32", "f64"], help="float precision (default f64)")
     run.add_argument("--max-steps", type=int, default=None, metavar="N",
                      help="refuse a run of more than N steps (default: the step counter's limit 2^31 - 1)")

@@ -10,7 +10,9 @@
 /totals/<name> (T,)           the terms' totals: thermal_energy (jm.Heat), solute (jm.Diffusion)
 /state/<leaf>                 the state a chunked run reached (H5Writer.write_state; jaxmpm.resume)
 attributes on /: scene, scheme, order, beta, alpha_g, alpha_p, damping approach, damping varies (0/1:
-                 a schedule or region scales alpha_g, alpha_p), shape, update, dt, cells, ppc,
+                 a schedule or region scales alpha_g, alpha_p), shape, update, conventions
+                 (jaxmpm/nairnmpm), constrained force (zero/reaction), position and series boundary
+                 (the XPIC family's and FMPM's options; "" for other schemes), dt, cells, ppc,
                  dtype, jaxmpm version, scene parameters (JSON), and every other float
                  parameter the model's registered parts declare (E, nu, density, ...)
 ```
@@ -56,6 +58,10 @@ def run_attributes(sim, dt=None, scene: str | None = None, params: dict | None =
         "alpha_g": 0.0, "alpha_p": 0.0, "damping approach": "velocity", "damping varies": 0,
         "shape": type(sim.shape).__name__,
         "update": sim.update,
+        "conventions": sim.conventions,
+        "constrained force": sim.constrained_force,
+        "position": str(getattr(scheme, "position", "")),
+        "series boundary": str(getattr(scheme, "boundary", "")),
         "dt": float(np.asarray(dt)) if dt is not None else np.nan,
         "cells": np.asarray(sim.grid.cells, dtype=np.int64),
         "grid_lower": np.asarray(sim.grid.lower),

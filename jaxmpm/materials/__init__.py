@@ -4,5 +4,6 @@ elastic and inelastic bases and the :class:`Increment` a strain update hands the
 from .base import ElasticMaterial, Increment, InelasticMaterial, Material  # noqa: F401
 from .linear import LinearElastic  # noqa: F401
 from .hypoelastic import HypoElastic  # noqa: F401
+from .incremental import IncrementalElastic  # noqa: F401
 from .neohookean import NeoHookean  # noqa: F401
 from .fluid import NoStress, VolumetricFluid  # noqa: F401

@@ -24,7 +24,7 @@ from ..core.validate import FINITE, concrete
 from ..core.warn import warn
 from ..materials.base import Material
 from ..physics.body_force import BodyForce
-from ..physics.conditions import as_conditions, build_constraint
+from ..physics.conditions import CONSTRAINED_FORCES, as_conditions, build_constraint
 from ..physics.damping import Damping
 from ..physics.stress import StressDivergence
 from ..physics.term import Term, overrides
@@ -38,6 +38,9 @@ UPDATES = {"USF": "USF", "USL": "USL", "USL-": "USL", "MUSL": "MUSL", "USL+": "M
            "USAVG-": "USAVG-", "USAVG+": "USAVG+", "usavg-": "USAVG-", "usavg+": "USAVG+"}  # 003 §2.2
 # the deformation-gradient increment dF (jaxmpm.model.step.deformation_increment)
 KINEMATICS = ("linear", "exponential")
+# whose rules the step follows where MPM codes differ (``conventions``): each preset is a set of options
+# -- the constrained nodes' force (CONSTRAINED_FORCES) and the scheme's (Scheme.in_conventions)
+CONVENTIONS = {"jaxmpm": {"constrained_force": "zero"}, "nairnmpm": {"constrained_force": "reaction"}}
 
 
 class Simulation(eqx.Module):
@@ -52,7 +55,16 @@ class Simulation(eqx.Module):
     dF = I + grad v dt) or "exponential" (dF = exp(grad v dt), 001 eq. 26).  ``adjoint`` picks the
     derivative rules of reverse mode: "structured" (default; the transfer layer's own rules, whose
     transposes are the cheap adjoint operations) or "autodiff" (JAX differentiates the forward code
-    as written, the reference); it too changes speed, never results (``jaxmpm.transfer.backend``)."""
+    as written, the reference); it too changes speed, never results (``jaxmpm.transfer.backend``).
+
+    ``conventions`` picks whose rules the step follows where MPM codes differ: "jaxmpm" (default)
+    or "nairnmpm", NairnMPM 19.0's (J. A. Nairn's code, the seeds' reference implementation):
+    the reaction force on constrained nodes (``constrained_force="reaction"``), XPIC's series start
+    (``XPIC(boundary="unconstrained_start")``) and the XPIC/PIC position update
+    (``position="PV_tilde"``); the scheme given is returned in those options
+    (:meth:`jaxmpm.Scheme.in_conventions`).  ``constrained_force`` alone: "zero" (v = g, a = 0
+    on constrained components) or "reaction" (v = p/m, the force the reaction m (g - p/m)/dt);
+    None takes the convention's."""
 
     grid: Grid
     shape: ShapeFunction
@@ -64,6 +76,8 @@ class Simulation(eqx.Module):
     backend: str = eqx.field(static=True)
     kinematics: str = eqx.field(static=True, default="linear")
     adjoint: str = eqx.field(static=True, default="structured")
+    conventions: str = eqx.field(static=True, default="jaxmpm")
+    constrained_force: str = eqx.field(static=True, default="zero")
 
     def __init__(
         self,
@@ -80,6 +94,8 @@ class Simulation(eqx.Module):
         backend: str = "auto",
         kinematics: str = "linear",
         adjoint: str = "structured",
+        conventions: str = "jaxmpm",
+        constrained_force: str | None = None,
     ):
         check(isinstance(grid, Grid), f"Simulation: grid must be a jm.Grid, got {type(grid).__name__}")
         # a step holds a few nodal fields of 1 + D (mass, momentum) up to D^2 columns per node
@@ -94,6 +110,14 @@ class Simulation(eqx.Module):
             scheme = scheme_from_name(scheme)
         check(isinstance(scheme, Scheme),
               f"Simulation: unknown scheme {scheme!r}; use a jm.Scheme or one of {SCHEMES.specs()}")
+        check(conventions in CONVENTIONS, f"Simulation: conventions = {conventions!r}; choose 'jaxmpm' (the default) "
+                                          "or 'nairnmpm' (NairnMPM 19.0's rules where the codes differ)")
+        if constrained_force is None:
+            constrained_force = CONVENTIONS[conventions]["constrained_force"]
+        check(constrained_force in CONSTRAINED_FORCES,
+              f"Simulation: constrained_force = {constrained_force!r}; choose 'zero' (v = g, a = 0 on constrained "
+              "nodes) or 'reaction' (v = p/m and the reaction force, NairnMPM's rule)")
+        scheme = scheme.in_conventions(conventions)
         check(isinstance(material, Material),
               f"Simulation: material must be a jm.Material ({', '.join(MATERIALS.names())}), "
               f"got {type(material).__name__}")
@@ -130,6 +154,8 @@ class Simulation(eqx.Module):
                                         "dt) or 'exponential' (dF = exp(grad v dt), 001 eq. 26)")
         self.kinematics = kinematics
         self.adjoint = adjoint
+        self.conventions = conventions
+        self.constrained_force = constrained_force
         self._check_terms()
 
     def _check_terms(self):
@@ -177,6 +203,18 @@ class Simulation(eqx.Module):
         """A copy differentiated with other derivative rules ("structured", "autodiff"; jaxmpm.transfer.backend)."""
         check(adjoint in ADJOINTS, f"Simulation: adjoint = {adjoint!r}; choose one of {', '.join(ADJOINTS)}")
         return self._with_static(adjoint=adjoint)
+
+    def with_conventions(self, conventions: str, constrained_force: str | None = None):
+        """A copy of a model built in jaxmpm's conventions that follows another code's rules where
+        MPM codes differ (``conventions`` in the class docstring): ``Simulation(..., conventions=c)``
+        for a model already built (a scene's ``setup.sim``; the CLI's ``--conventions``)."""
+        check(conventions in CONVENTIONS, f"Simulation: conventions = {conventions!r}; choose 'jaxmpm' (the "
+                                          "default) or 'nairnmpm' (NairnMPM 19.0's rules where the codes differ)")
+        force = CONVENTIONS[conventions]["constrained_force"] if constrained_force is None else constrained_force
+        check(force in CONSTRAINED_FORCES, f"Simulation: constrained_force = {force!r}; choose 'zero' or 'reaction'")
+        new = self._with_static(conventions=conventions, constrained_force=force)
+        object.__setattr__(new, "scheme", self.scheme.in_conventions(conventions))
+        return new
 
     def _with_static(self, **fields):
         """A copy with static (trace-time) fields replaced: the model's hash changes, so jit retraces."""
@@ -244,7 +282,7 @@ class Simulation(eqx.Module):
 
     def constraint(self, dtype):
         """The velocity conditions on every velocity field's nodes."""
-        return build_constraint(self.grid, self.boundary, dtype).tile(self.velocity_fields)
+        return build_constraint(self.grid, self.boundary, dtype, self.constrained_force).tile(self.velocity_fields)
 
     def init(self, particles: Particles, fields: dict | None = None) -> State:
         """Initial state from :func:`jaxmpm.fill` output (or any :class:`Particles`); the fields

@@ -46,7 +46,7 @@ from ..transfer.operators import p2g as scatter_quantities
 # the lumped grid quantities a part may need apart ("grid_reads"); P2G folds p and f otherwise
 LUMPED = frozenset({"v", "a", "momentum", "force"})
 # the grid solution's own names: the phases' results may not take them
-SOLUTION_NAMES = ("v", "a", "v_tilde", "v_tilde_unconstrained", "condition_dv")
+SOLUTION_NAMES = ("v", "a", "v_tilde", "v_tilde_unconstrained", "v_unconstrained", "condition_dv")
 
 
 def folds_force(sim) -> bool:
@@ -174,7 +174,11 @@ def impose_conditions(fields: GridFields, dt, constraint) -> GridSolution:
     :meth:`jaxmpm.Constraint.contact`).  From a folded P2G (:func:`folds_force`) only
     v_tilde = (p + f dt)/m exists (v, a are None); it is the same v_tilde: the conditions act on
     v + a dt in both cases.  ``v_tilde_unconstrained`` is p+/m before any condition (FMPM's
-    unlumped boundary variants start from it, 003 §2.4)."""
+    unlumped boundary variants start from it, 003 §2.4) and ``v_unconstrained`` p/m (XPIC's
+    ``boundary="unconstrained_start"``).  With ``constraint.reaction`` (``constrained_force=
+    "reaction"``) v keeps p/m on the constrained components too and a takes the reaction,
+    a = a_lumped + (v_tilde - (p + f dt)/m)/dt: on free components exactly a_lumped, on
+    constrained ones (g - p/m)/dt (NairnMPM's grid forces at its velocity conditions)."""
     m = fields.mass
     if fields.updated_momentum is not None:
         return GridSolution(v=None, a=None, v_tilde=constraint.apply(safe_divide(fields.updated_momentum, m)))
@@ -186,8 +190,11 @@ def impose_conditions(fields: GridFields, dt, constraint) -> GridSolution:
         v = constraint.apply(v_lumped)
         a = constraint.zero(a_lumped)
         v_tilde = constraint.apply(v + a * dt)
-    solution = GridSolution(v=v, a=a, v_tilde=v_tilde, v_tilde_unconstrained=unconstrained)
     impulse = constraint.particle_impulse(v, v_lumped, m)  # jm.Prescribed drives the particles
+    if constraint.reaction:  # constrained_force="reaction": v stays p/m, the force is the reaction
+        v, a = v_lumped, a_lumped + (v_tilde - unconstrained) / jnp.where(dt > 0, dt, 1.0)  # v + a dt = v_tilde
+        impulse = None  # the reaction in S a dt carries a Prescribed velocity's change to the particles
+    solution = GridSolution(v=v, a=a, v_tilde=v_tilde, v_tilde_unconstrained=unconstrained, v_unconstrained=v_lumped)
     return solution if impulse is None else GridSolution({**solution.values, "condition_dv": impulse})
 
 

@@ -37,6 +37,12 @@ from ..core.validate import FINITE, positive_int
 
 Selector = Union[str, Callable]
 
+# how the grid solve imposes the conditions on a node's constrained components (Simulation's
+# ``constrained_force``): "zero" -- v = g and a = 0 (003 §2.4, jaxmpm's default); "reaction" -- the
+# lumped v = p/m is kept and the force is replaced by the reaction m (g - v)/dt, so that
+# v + a dt = g (NairnMPM 19.0: its FLIP increment S a dt carries the reaction to the particles)
+CONSTRAINED_FORCES = ("zero", "reaction")
+
 
 class NodeSet:
     """A fixed set of grid nodes (a boolean mask over the nodes), compared and hashed by its
@@ -163,7 +169,10 @@ class Constraint(eqx.Module):
     (n, D) holds the outward normal sign (-1, 0, +1) of one-sided walls, or None without walls;
     ``normal`` (n, D) the unit normal of inclined slip planes on their nodes (0 elsewhere), or None;
     ``mirror`` the symmetry planes' images (:class:`MirrorMap`), or None; ``impulse`` (n, D) the
-    components whose change the particles take as an impulse (``Prescribed(impulse=True)``), or None."""
+    components whose change the particles take as an impulse (``Prescribed(impulse=True)``), or None;
+    ``reaction`` how the grid solve imposes them (:data:`CONSTRAINED_FORCES`): False, v = g and
+    a = 0 on constrained components (jaxmpm's default), True, v keeps the lumped p/m and the force
+    becomes the reaction that brings v + a dt to g (NairnMPM's rule)."""
 
     mask: jnp.ndarray
     value: jnp.ndarray
@@ -173,6 +182,7 @@ class Constraint(eqx.Module):
     normal: jnp.ndarray | None = None
     mirror: MirrorMap | None = None
     impulse: jnp.ndarray | None = None
+    reaction: bool = eqx.field(static=True, default=False)
 
     def particle_impulse(self, v, v_free, mass):
         """The nodal velocity change the particles take at the start of the step, v - v_free on the
@@ -227,7 +237,7 @@ class Constraint(eqx.Module):
                                    "jm.Contact (multimaterial mode) yet")
         rep = lambda a: None if a is None else jnp.tile(a, (copies, 1))  # noqa: E731
         return Constraint(rep(self.mask), rep(self.value), rep(self.wall), self.inhomogeneous, rep(self.normal),
-                          impulse=rep(self.impulse))
+                          impulse=rep(self.impulse), reaction=self.reaction)
 
     def zero(self, u):
         """Impose the homogeneous conditions: constrained components set to zero (inclined slip:
@@ -412,10 +422,14 @@ class Mirror(eqx.Module):
         return axis, g, m, np.nonzero(index == k)[0]
 
 
-def build_constraint(grid: Grid, conditions, dtype) -> Constraint:
+def build_constraint(grid: Grid, conditions, dtype, constrained_force: str = "zero") -> Constraint:
     """Fold all conditions into one mask/value pair (later conditions win on overlaps); one-sided
     walls go to ``Constraint.wall`` (two-sided conditions win over walls), inclined slip planes to
-    ``Constraint.normal``, symmetry planes to ``Constraint.mirror`` (their plane nodes slip)."""
+    ``Constraint.normal``, symmetry planes to ``Constraint.mirror`` (their plane nodes slip);
+    ``constrained_force`` (:data:`CONSTRAINED_FORCES`) sets ``Constraint.reaction``."""
+    check(constrained_force in CONSTRAINED_FORCES, f"constrained_force = {constrained_force!r}; choose 'zero' "
+          "(v = g, a = 0 on constrained nodes, jaxmpm's default) or 'reaction' (v = p/m, the force the reaction "
+          "m (g - v)/dt: NairnMPM's rule)")
     mask = np.zeros((grid.num_nodes, grid.dim), dtype=bool)
     value = jnp.zeros((grid.num_nodes, grid.dim), dtype)
     walls = [c for c in conditions if isinstance(c, Wall)]
@@ -447,7 +461,8 @@ def build_constraint(grid: Grid, conditions, dtype) -> Constraint:
     return Constraint(mask=jnp.asarray(mask), value=value,
                       wall=jnp.asarray(wall, dtype) if walls else None, inhomogeneous=inhomogeneous,
                       normal=None if normal is None else jnp.asarray(normal, dtype), mirror=mirror,
-                      impulse=jnp.asarray(impulse) if impulse.any() else None)
+                      impulse=jnp.asarray(impulse) if impulse.any() else None,
+                      reaction=constrained_force == "reaction")
 
 
 def as_conditions(boundary, grid: Grid | None = None) -> tuple:

@@ -35,7 +35,7 @@ SCENE_OPTIONS = {
 
 def setup_from_options(options: dict):
     """The scene ``Setup`` of stored command-line options (see :func:`options_of`)."""
-    defaults = {_attr(option): None for option in SCENE_OPTIONS} | {"max_steps": None}
+    defaults = {_attr(option): None for option in SCENE_OPTIONS} | {"max_steps": None, "conventions": None}
     return build_setup(argparse.Namespace(**{**defaults, "dtype": "f64", **options}))
 
 
@@ -93,4 +93,8 @@ def build_setup(args):
     for name in (k for o, k in SCENE_OPTIONS.items() if _attr(o) == k and k not in ("scheme", "shape", "dtype")):
         if getattr(args, name) is not None:
             kwargs[name] = getattr(args, name)
-    return scene(args.scene, **kwargs)
+    setup = scene(args.scene, **kwargs)
+    conventions = getattr(args, "conventions", None)
+    if conventions is not None:  # every scene: the model's conventions (jm.Simulation.with_conventions)
+        setup.sim = setup.sim.with_conventions(conventions)
+    return setup

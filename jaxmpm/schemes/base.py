@@ -143,6 +143,13 @@ class Scheme(eqx.Module):
     def update(self, V, X, transfer: Transfer, constraint, grid, damping: ParticleDamping, dt) -> ParticleUpdate:
         """The particle update of one step (000 eq. 2.22 / 003 eq. 2.17 in the scheme's form)."""
 
+    def in_conventions(self, conventions: str) -> "Scheme":
+        """The scheme in another code's conventions (``Simulation(conventions=...)``): "jaxmpm"
+        returns it unchanged; "nairnmpm" sets the options in which NairnMPM 19.0 differs
+        (:meth:`jaxmpm.XPIC.in_conventions`).  Schemes NairnMPM does not have, or computes alike,
+        return themselves."""
+        return self
+
     def strain_grid_velocity(self, v, transfer: Transfer, constraint, exchange_dv=None):
         """Grid velocity used for the strain update, from lumped velocities (USF, MUSL: after the
         momentum exchange and the conditions; ``exchange_dv`` the exchange's change Dp/m, for a

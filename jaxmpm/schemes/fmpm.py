@@ -9,6 +9,8 @@ transfer layer's series (:mod:`jaxmpm.transfer.series`).
 
 from __future__ import annotations
 
+import copy
+
 import equinox as eqx
 import jax.numpy as jnp
 
@@ -16,7 +18,7 @@ from ..core.errors import check
 from ..core.registry import register_scheme
 from ..transfer.series import BOUNDARY_MODES, SERIES_FORMS, UNLUMPED_MODES, exchange_series, mass_matrix_series
 from .base import ParticleUpdate, Scheme, dissipated_energy
-from .xpic import BETA, XPIC, _check_beta, _check_order, _number
+from .xpic import BETA, XPIC, _check_beta, _check_order, _number, check_damping_velocity, check_preset_option
 
 
 class FMPM(Scheme):
@@ -25,7 +27,8 @@ class FMPM(Scheme):
         v+ = m~_k^{-1} p+ = sum_{l=1}^{k} (-1)^{l+1} C(k,l) (S+S)^{l-1} v_tilde   (003 eqs. 1.23, 2.13)
         V^{n+1} = S v+ - A_damp dt,    X^{n+1} = X^n + (V^{n+1} + V^n) dt / 2     (003 eq. 2.17)
 
-    ``beta`` (default 0) is jaxmpm's generalisation, not the seeds': a FLIP fraction
+    ``damping_velocity``: the grid damping's u in alpha_g u, "lumped" (default, S v) or "updated"
+    (S v+, NairnMPM's rule).  ``beta`` (default 0) is jaxmpm's generalisation, not the seeds': a FLIP fraction
     V^{n+1} = beta (V^n + S a dt) + (1 - beta) S v+ - A_damp dt.  FMPM(1) is the "new PIC" of
     003 eq. (2.40).  The strain update uses the full-mass velocities.
 
@@ -38,14 +41,28 @@ class FMPM(Scheme):
     order: int = eqx.field(static=True)
     boundary: str = eqx.field(static=True)
     series: str = eqx.field(static=True)
+    damping_velocity: str = eqx.field(static=True, default="lumped")
 
-    def __init__(self, order: int = 2, beta=0.0, boundary: str = "iterates", series: str = "binomial"):
+    def __init__(self, order: int = 2, beta=0.0, boundary: str = "iterates", series: str = "binomial",
+                 damping_velocity: str = "lumped"):
         self.order = _check_order(order, "FMPM")
         self.beta = _check_beta(beta, "FMPM")
         check(boundary in BOUNDARY_MODES, f"FMPM: boundary = {boundary!r}; choose one of {', '.join(BOUNDARY_MODES)}")
         check(series in SERIES_FORMS, f"FMPM: series = {series!r}; choose one of {', '.join(SERIES_FORMS)}")
         self.boundary = boundary
         self.series = series
+        self.damping_velocity = check_damping_velocity(damping_velocity, "FMPM")
+
+    def in_conventions(self, conventions: str):
+        """``conventions="nairnmpm"``: NairnMPM 19.0 damps FMPM(k >= 1) with its full-mass velocity,
+        A_damp = alpha_g S v+ + alpha_p V^n (``damping_velocity="updated"``; MPM_Classes/MatPoint2D
+        MoveParticle); the rest of its FMPM is jaxmpm's.  FMPM(0) is FLIP's."""
+        if conventions != "nairnmpm" or self.order == 0:
+            return self
+        check_preset_option("FMPM", "damping_velocity", self.damping_velocity, "lumped", "updated")
+        new = copy.copy(self)
+        object.__setattr__(new, "damping_velocity", "updated")  # static: the scheme's hash changes
+        return new
 
     def strain_grid_velocity(self, v, transfer, constraint, exchange_dv=None):
         """The full-mass velocity of the strain update, m~_k^{-1} p' (003 eq. 2.3) of the lumped
@@ -74,7 +91,9 @@ class FMPM(Scheme):
         if correction is not None:
             v_plus = v_plus - correction  # 003 eq. (3.22)
         beta = self.beta
-        V_new = beta * (V + Sa * dt) + (1.0 - beta) * transfer.gather(v_plus) - damping.acceleration(Sv, V) * dt
+        Sv_plus = transfer.gather(v_plus)
+        damped = Sv if self.damping_velocity == "lumped" else Sv_plus  # "updated": NairnMPM's S v+
+        V_new = beta * (V + Sa * dt) + (1.0 - beta) * Sv_plus - damping.acceleration(damped, V) * dt
         X_new = X + 0.5 * (V_new + V) * dt  # 003 eq. (2.17)
         diss = dissipated_energy(transfer.particle_mass, Sa, Sv, V_new - V, X_new - X, dt)
         return ParticleUpdate(V_new, X_new, v_plus, diss)

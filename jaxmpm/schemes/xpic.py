@@ -10,19 +10,30 @@ v(m) is the mass-matrix series of the lumped velocity (:func:`jaxmpm.mass_matrix
 
 from __future__ import annotations
 
+import copy
+
 import equinox as eqx
+import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ..core.errors import check
 from ..core.registry import Parameter, register_scheme
 from ..core.validate import FRACTION, positive_int
 from ..transfer.operators import Transfer
-from ..transfer.series import BOUNDARY_MODES, SERIES_FORMS, UNLUMPED_MODES, exchange_series, mass_matrix_series
+from ..transfer.series import (
+    SERIES_FORMS,
+    UNLUMPED_MODES,
+    XPIC_BOUNDARY_MODES,
+    exchange_series,
+    mass_matrix_series,
+)
 from .base import ParticleDamping, ParticleUpdate, Scheme, dissipated_energy
 
 # the effective velocity VV of the position update X^{n+1} = X^n + [VV + (V^{n+1} - V^n)/2] dt
 # (000 eq. 2.22), one value per update of 000 §2.3-2.4 -- see XPIC.position_update
-POSITION_UPDATES = ("Sv", "PV", "first_order", "V", "Sv_first_order", "PV_first_order", "V_end", "second_order")
+POSITION_UPDATES = ("Sv", "PV", "first_order", "V", "Sv_first_order", "PV_first_order", "V_end", "second_order",
+                    "PV_tilde")
 
 
 MAX_SAFE_ORDER = 40
@@ -41,6 +52,33 @@ def _check_order(order, name: str) -> int:
             UserWarning,
         )
     return int(order)
+
+
+# the grid velocity u of the grid damping alpha_g u in A_damp = alpha_g u + alpha_p V^n (000 eq. 2.77):
+# "lumped" u = S v (000 eq. 2.77, the default); "updated" u = the scheme's updated grid velocity --
+# S(v(m) + a dt) for XPIC and PIC, S v+ for FMPM (NairnMPM 19.0, MPM_Classes/MatPoint2D MoveParticle)
+DAMPING_VELOCITIES = ("lumped", "updated")
+
+
+def check_damping_velocity(value, owner: str) -> str:
+    check(value in DAMPING_VELOCITIES,
+          f"{owner}: damping_velocity = {value!r}; choose 'lumped' (alpha_g S v, 000 eq. 2.77) or 'updated' "
+          "(alpha_g times the updated grid velocity, NairnMPM's rule)")
+    return value
+
+
+def check_preset_option(owner: str, name: str, value, default, preset) -> None:
+    """A scheme option the preset sets must be left at its default (or already be the preset's)."""
+    check(value in (default, preset),
+          f"{owner}: {name} = {value!r} with conventions='nairnmpm', which sets {name}={preset!r} "
+          f"(NairnMPM's rule); drop {name}= or use conventions='jaxmpm'")
+
+
+def _is_one(beta) -> bool:
+    """Whether a concrete beta is 1 (pure FLIP); a traced beta counts as a blend."""
+    if isinstance(beta, jax.core.Tracer):
+        return False
+    return bool(np.all(np.asarray(beta) == 1.0))
 
 
 def _check_beta(beta, owner: str):
@@ -72,6 +110,16 @@ class XPIC(Scheme):
       alpha(V^n + S a dt) + (1 - alpha) S v_tilde is the blend's velocity update with beta = alpha
     * ``"second_order"``: X += S v dt + (S a - A_damp) dt^2/2, the grid trajectory  000 eqs.
       (2.70)-(2.72) ("second-order PIC" with ``PIC(position="second_order")``)
+    * ``"PV_tilde"``: VV = P V + S a dt; for XPIC and PIC (beta = 0) X += [S(v(m) + a dt) + (V^{n+1} -
+      V^n)/2] dt, NairnMPM 19.0's XPIC/PIC position update (MPM_Classes/MatPoint2D MoveParticle);
+      not 000 eq. (2.22)'s second order: VV carries a full a dt
+
+    ``damping_velocity`` is the u of the grid damping alpha_g u: "lumped" (default, S v, 000 eq.
+    2.77) or "updated" (P V + S a dt: S(v(m) + a dt) at beta = 0, NairnMPM's rule).
+
+    ``boundary`` is the series' velocity conditions (:func:`jaxmpm.mass_matrix_series`):
+    "iterates" (default), "result", "lumped", or "unconstrained_start", NairnMPM's start of the
+    series from the lumped velocity before the conditions (:func:`jaxmpm.transfer.series.unconstrained_series`).
 
     Decisions where the seed is not explicit: 000 eq. (2.34) writes A_damp without its dt; eq.
     (2.33), which it expands, fixes it to A_damp dt.  000 eqs. (2.54)-(2.56) and (2.70)-(2.71)
@@ -92,15 +140,16 @@ class XPIC(Scheme):
     position: str = eqx.field(static=True)
     boundary: str = eqx.field(static=True)
     series: str = eqx.field(static=True)
+    damping_velocity: str = eqx.field(static=True, default="lumped")
 
     def __init__(self, order: int = 2, beta=0.0, position: str = "Sv", boundary: str = "iterates",
-                 series: str = "binomial"):
+                 series: str = "binomial", damping_velocity: str = "lumped"):
         self.order = _check_order(order, type(self).__name__)
         self.beta = _check_beta(beta, type(self).__name__)
         check(position in POSITION_UPDATES,
               f"{type(self).__name__}: position = {position!r}; choose one of {', '.join(POSITION_UPDATES)}")
-        check(boundary in BOUNDARY_MODES[:3],
-              f"{type(self).__name__}: boundary = {boundary!r}; choose one of {', '.join(BOUNDARY_MODES[:3])}"
+        check(boundary in XPIC_BOUNDARY_MODES,
+              f"{type(self).__name__}: boundary = {boundary!r}; choose one of {', '.join(XPIC_BOUNDARY_MODES)}"
               + ("; the unlumped variants of 003 §2.4 are FMPM's (jm.FMPM(boundary=...))"
                  if boundary in UNLUMPED_MODES else ""))
         check(series in SERIES_FORMS,
@@ -108,6 +157,37 @@ class XPIC(Scheme):
         self.position = position
         self.boundary = boundary
         self.series = series
+        self.damping_velocity = check_damping_velocity(damping_velocity, type(self).__name__)
+
+    def in_conventions(self, conventions: str):
+        """``conventions="nairnmpm"``: NairnMPM 19.0's position update and series start (the third
+        convention, the reaction on constrained nodes, is the Simulation's ``constrained_force``):
+
+        * ``position``: "Sv" for FLIP (order 0, or beta = 1: X += [S v + dV/2] dt with the lumped
+          v, NairnMPM's ``vm`` = S(v+ - a dt)), "PV_tilde" otherwise (XPIC and PIC:
+          X += [S(v(m) + a dt) + dV/2] dt);
+        * ``boundary``: "unconstrained_start" for order >= 2 (the series from p/m before the
+          conditions, only its increments zeroed);
+        * ``damping_velocity``: "lumped" for FLIP (alpha_g S v), "updated" otherwise (alpha_g
+          S(v(m) + a dt), NairnMPM's MoveParticle damps with the velocity it moves the particle by).
+
+        A position or boundary given explicitly and different from these is an InputError (the
+        preset would silently override it)."""
+        if conventions != "nairnmpm":
+            return self
+        flip = self.order == 0 or _is_one(self.beta)
+        position = "Sv" if flip else "PV_tilde"
+        boundary = "unconstrained_start" if self.order >= 2 else self.boundary
+        damping_velocity = "lumped" if flip else "updated"
+        name = type(self).__name__
+        check_preset_option(name, "damping_velocity", self.damping_velocity, "lumped", damping_velocity)
+        check_preset_option(name, "position", self.position, "Sv", position)
+        check_preset_option(name, "boundary", self.boundary, "iterates", boundary)
+        new = copy.copy(self)
+        object.__setattr__(new, "position", position)  # static fields: the scheme's hash changes, jit retraces
+        object.__setattr__(new, "boundary", boundary)
+        object.__setattr__(new, "damping_velocity", damping_velocity)
+        return new
 
     def update(self, V, X, transfer: Transfer, constraint, grid, damping: ParticleDamping, dt):
         Sv = transfer.gather(grid.v)
@@ -118,13 +198,19 @@ class XPIC(Scheme):
         elif self.order == 1:
             Svm = Sv  # v(1) = v
         else:
-            vm = mass_matrix_series(grid.v, self.order, transfer, constraint, self.boundary, self.series)
+            vm = mass_matrix_series(grid.v, self.order, transfer, constraint, self.boundary, self.series,
+                                    free=grid.get("v_unconstrained"))
+            if constraint.reaction and self.boundary != "unconstrained_start":
+                # constrained_force="reaction": v(m) keeps p/m where the reaction a = (g - p/m)/dt acts, so
+                # that v(m) + a dt = g on the constrained components as in the default form
+                vm = constraint.zero(vm) + (grid.v - constraint.zero(grid.v))
             correction = exchange_series(grid.get("exchange_dv"), self.order, transfer, constraint, self.boundary,
                                          self.series)
             Svm = transfer.gather(vm if correction is None else vm - correction)  # 003 eq. (3.18)
-        A_damp = damping.acceleration(Sv, V)  # 000 eq. (2.77)
-        V_new = beta * V + (1.0 - beta) * Svm + (Sa - A_damp) * dt  # 000 eq. (3.28)
         PV = beta * Sv + (1.0 - beta) * Svm  # the blend's P V (000 eq. 2.74)
+        damped = Sv if self.damping_velocity == "lumped" else PV + Sa * dt  # "updated": NairnMPM's S(v(m) + a dt)
+        A_damp = damping.acceleration(damped, V)  # 000 eq. (2.77)
+        V_new = beta * V + (1.0 - beta) * Svm + (Sa - A_damp) * dt  # 000 eq. (3.28)
         X_new = self.position_update(X, V, V_new, Sv, Sa, PV, A_damp, transfer, grid, dt)
         diss = dissipated_energy(transfer.particle_mass, Sa, Sv, V_new - V, X_new - X, dt)
         return ParticleUpdate(V_new, X_new, grid.v_tilde, diss)
@@ -147,6 +233,8 @@ class XPIC(Scheme):
             return X + (PV + 0.5 * Sa * dt + half_dV) * dt  # 000 eqs. (2.39)-(2.40), VV = P V + S a dt/2
         if position == "V_end":
             return X + V_new * dt  # 000 eq. (2.55) "Modified FLIP #2"; the Stomakhin blend (003 §2.3.4)
+        if position == "PV_tilde":
+            return X + (PV + Sa * dt + half_dV) * dt  # NairnMPM 19.0 (MatPoint2D MoveParticle): S(v(m) + a dt)
         return X + (Sv + 0.5 * (Sa - A_damp) * dt) * dt  # "second_order": 000 eq. (2.71), damped
 
 
@@ -157,8 +245,8 @@ class FLIP(XPIC):
     ``FLIP(beta=alpha, position="V_end")`` the PIC/FLIP blend of Stomakhin et al. (003 §2.3.4);
     ``FLIP(position="V")`` is 000 eq. (2.49)'s second form.  All position options: :class:`XPIC`."""
 
-    def __init__(self, beta=1.0, position: str = "Sv"):
-        super().__init__(order=1, beta=beta, position=position)
+    def __init__(self, beta=1.0, position: str = "Sv", damping_velocity: str = "lumped"):
+        super().__init__(order=1, beta=beta, position=position, damping_velocity=damping_velocity)
 
 
 class PIC(XPIC):
@@ -166,8 +254,8 @@ class PIC(XPIC):
     is the second-order PIC of 000 eqs. (2.70)-(2.72), ``PIC(position="first_order")`` "Modified
     PIC #1" (000 eqs. 2.64-2.65)."""
 
-    def __init__(self, position: str = "Sv"):
-        super().__init__(order=1, beta=0.0, position=position)
+    def __init__(self, position: str = "Sv", damping_velocity: str = "lumped"):
+        super().__init__(order=1, beta=0.0, position=position, damping_velocity=damping_velocity)
 
 
 def _number(arg: str, spec: str, kind=float):

@@ -33,6 +33,10 @@ BOUNDARY_MODES = ("iterates", "result", "lumped", "unlumped1", "unlumped2", "unl
                   "collection", "series_start", "pinv_start")
 
 
+# XPIC's own mode (not FMPM's): NairnMPM 19.0's start of the XPIC series (``unconstrained_series``)
+XPIC_BOUNDARY_MODES = BOUNDARY_MODES[:3] + ("unconstrained_start",)
+
+
 # the modes of 003 §1.5 (eqs. 1.51-1.69) and §2.4 (eqs. 2.54-2.56, "Collection of Boundary Conditions")
 # that need p+/m before the velocity conditions (``free`` of :func:`mass_matrix_series`)
 UNLUMPED_MODES = BOUNDARY_MODES[3:]
@@ -119,11 +123,16 @@ def mass_matrix_series(
         "Collection of Boundary Conditions", options 2 and 1), ``"series_start"`` (eqs.
         1.51-1.56), ``"pinv_start"`` (eqs. 1.57-1.69).  They need ``free``, the lumped velocity
         p+/m before the conditions (``u`` is it with the conditions imposed, the lumped method).
+      * ``"unconstrained_start"`` (XPIC only): NairnMPM's series, which starts from the lumped
+        velocity before the conditions (``free`` = p/m) and zeroes only the increments
+        (:func:`unconstrained_series`).
     """
     if boundary in UNLUMPED_MODES:
         return unlumped_series(u, free, order, transfer, constraint, boundary, form)
     if order == 1:
         return u
+    if boundary == "unconstrained_start":
+        return unconstrained_series(u, free, order, transfer, constraint, form)
     if boundary != "iterates":
         total = series(u, order, transfer, None, form)
         return constraint.apply(total) if boundary == "result" else total
@@ -139,6 +148,34 @@ def mass_matrix_series(
     return total
 
 
+def unconstrained_series(u, free, order: int, transfer, constraint, form: str = "binomial"):
+    """NairnMPM 19.0's XPIC(m) series on constrained nodes (NairnMPM_Class/XPICExtrapolationTask,
+    Nodes/MatVelocityField XPICSupport): it starts from the lumped velocity before the conditions,
+    w = ``free`` = p/m on every node, and zeroes on the constrained components only the increments,
+
+        v(m) = sum_{j=0}^{m-1} [Z (I - S+S)]^j w                (Z: zero the constrained components)
+
+    Split w = Z w + g_w (g_w = w - Z w, the constrained components' unconstrained values): the sum
+    is the constrained system of :func:`mass_matrix_series` (003 eqs. 1.49-1.50) with g_w in place
+    of the prescribed velocity g,
+
+        v(m) = g_w + sum_{j<m} (I - Z S+S)^j Z w - sum_{j<m-1} (I - Z S+S)^j Z S+S g_w,
+
+    so the constrained nodes' unconstrained velocities couple into the free ones as a prescribed
+    velocity would.  The result's constrained components are those of ``u`` (the grid velocity with
+    its conditions): the conditions hold on v(m) + a dt as in every other mode."""
+    check(free is not None, "boundary = 'unconstrained_start' needs the lumped velocity before the velocity "
+                            "conditions, p/m (free=...)")
+    check(constraint.wall is None and constraint.normal is None and constraint.mirror is None,
+          "boundary = 'unconstrained_start' (NairnMPM's XPIC series) acts on grid-axis components (Fixed, "
+          "Slip(face), Prescribed); with jm.Wall, an inclined jm.Slip or a jm.Mirror use boundary='iterates'")
+    g_w = free - constraint.zero(free)
+    total = series(constraint.zero(free), order, transfer, constraint.zero, form)
+    coupling = constraint.zero(transfer.s_plus_s(g_w))
+    total = total - series(coupling, order - 1, transfer, constraint.zero, form)
+    return total + (u - constraint.zero(u))  # total: free components; u: the constrained
+
+
 def exchange_series(dv, order: int, transfer, constraint, boundary: str = "iterates", form: str = "binomial"):
     """(m~_{k-1}^a)^{-1} Dp^a = the order k-1 series of Dv^a = Dp^a / m^a, the momentum exchange's
     term XPIC(k) and FMPM(k) subtract when velocity fields exchange momentum (contact: 003 eqs.
@@ -147,7 +184,7 @@ def exchange_series(dv, order: int, transfer, constraint, boundary: str = "itera
     prescribed-velocity terms, unlike :func:`mass_matrix_series`)."""
     if dv is None or order == 1:
         return None
-    project = constraint.zero if boundary == "iterates" else None
+    project = constraint.zero if boundary in ("iterates", "unconstrained_start") else None
     return series(dv if project is None else project(dv), order - 1, transfer, project, form)
 
 

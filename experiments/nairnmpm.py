@@ -1,0 +1,621 @@
+"""jaxmpm against NairnMPM 19.0 (J. A. Nairn's MPM code, the seeds' reference implementation) on
+the ``bar`` scene (issue 28): each case is written as a NairnMPM XML input, run by NairnMPM when
+``$NAIRN_BIN`` names a build (otherwise its stored outputs, tests/reference/nairnmpm/, are used),
+run the same way in jaxmpm, and the two compared step by step.
+
+The matched set-up.  NairnMPM has no 1D mode: the bar is a plane-strain strip (``<Analysis>10``)
+one cell thick in y, nu = 0, y fixed on every node, a unit out-of-plane thickness; jaxmpm runs the
+1D bar of :func:`jaxmpm.scenes.bar` (its grid and particles).  E = 100, rho = 1, L = 25, v0 = 0.1,
+V(x, 0) = v0 sin(pi x / 2L), 16 cells x 2 particles per cell along x, dt = 0.1 h/c, 2560 steps
+(four periods), uGIMP in both (NairnMPM refuses linear shapes under USL-), USL- (NairnMPM
+``<MPMMethod>3`` with ``<SkipPostExtrapolation/>``, jaxmpm ``update="USL"``), the small-strain
+incremental law tau += E dv/dx dt in both (NairnMPM's ``Isotropic`` material;
+:class:`jaxmpm.IncrementalElastic`) and ``ConsistentUnits`` (every number as written, no unit
+conversion).  The end: ``fixed`` (jaxmpm's bar fixes the nodes x <= 0; NairnMPM fixes x on the
+same nodes, x = 0 and -h, and on the extra node layer it adds around a generated grid, x = -2h)
+or ``free`` (no condition in x at all: the bar floats, its centre of mass drifting at v0 2/pi).
+
+What the NairnMPM input is (worked out from NairnMPM's reader; see :func:`nairnmpm_input`):
+
+* the grid: NairnMPM's ``<Grid>`` covers jaxmpm's grid ([-h, 18h] in x) and [0, h] in y, and
+  NairnMPM adds one element layer on every side (its GIMP border; a particle entering it has
+  "left the grid"), so its nodes run from -2h to 19h and -h to 2h; the nodes jaxmpm lacks carry
+  no mass during these runs;
+* the particles: 2 x 2 per cell (``<mp>`` points of a ``<PointList>``, each with its own initial
+  velocity, positions and velocities written with 17 significant digits so that they read back
+  as jaxmpm's float64 values), at x = (2k + 1) h/4 (jaxmpm's) and y = h/4, 3h/4, each of
+  semi-size h/4 (NairnMPM's default particle size, ``lpx = lpy = 0.5`` of a cell) and mass
+  rho (h/2)^2 x 1 (NairnMPM's rho x area x thickness; the grid's thickness is 1).  The two rows
+  give the nodes y = 0 and y = h the same velocities, so dv_x/dy = 0 and the strip is 1D;
+* the factor between the codes: NairnMPM's strip has the cross-section h x 1 where jaxmpm's bar
+  has a unit one, so its momentum and energies are jaxmpm's times h (:data:`THICKNESS` = 1);
+  v_cm = p_x / M is the same in both;
+* the time step: ``<TimeStep>`` dt (NairnMPM keeps it: it only shortens a step beyond its CFL
+  limit, 0.5 h/c by default) and ``<MaxTime>`` (steps - 1/2) dt (NairnMPM steps while t <= MaxTime);
+* the archive: ``<GlobalArchive>`` "Step number", "px", "Kinetic Energy", "Strain Energy",
+  written after every step (``<GlobalArchiveTime>`` dt/2: the archive is written when t has
+  passed the next archive time, which then advances by dt/2 only, so no step is skipped); the
+  file ``<root>.global`` is tab-separated, time (``%g``) then each quantity in ``%e`` -- seven
+  significant digits, which bound the agreement; the step-0 values are not in it;
+* the schemes: FLIP is NairnMPM's default; PIC is ``XPICOrder`` 1, XPIC(m) ``XPICOrder`` m,
+  FMPM(k) ``FMPMOrder`` k of the ``PeriodicXPIC`` custom task with ``periodicSteps`` 1 (every step).
+
+Table columns: max |v_cm jaxmpm - v_cm NairnMPM| / v0 over the steps, max |E_kin| and |E_strain|
+differences / E0 (E0 the initial kinetic energy) and E/E0 at the end in each code; the ``bound``
+columns are the archive's rounding (half a unit in its 7th digit) at the largest value, the
+agreement one can see.  Written to experiments/results/nairnmpm.md.
+
+    python -m experiments.nairnmpm                       # stored NairnMPM outputs (or $NAIRN_BIN)
+    NAIRN_BIN=/path/to/NairnMPM python -m experiments.nairnmpm --store   # rerun NairnMPM, store
+    python -m experiments.nairnmpm --case fmpm:2-fixed --xml   # print one case's XML input
+
+``--conventions`` runs jaxmpm under "jaxmpm" or "nairnmpm" for every case instead of each case's
+own (``Case.conventions``: "nairnmpm" where the codes' rules differ -- FLIP, PIC and XPIC with the
+fixed end (the constrained nodes' reaction), PIC and XPIC on the free bar (XPIC's series start and
+position update) -- and jaxmpm's default elsewhere).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import inspect
+import math
+import os
+import re
+import subprocess
+import tempfile
+import time
+from xml.sax.saxutils import escape
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import equinox as eqx  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+import jaxmpm as jm  # noqa: E402
+
+E, RHO, LENGTH, V0 = 100.0, 1.0, 25.0, 0.1
+THICKNESS = 1.0  # NairnMPM's out-of-plane thickness (its <Grid thickness>; 1 is its default)
+REFERENCE_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "tests", "reference",
+                             "nairnmpm")
+RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "nairnmpm.md")
+ARCHIVE_DIGITS = 7  # NairnMPM's global archive: "%e", seven significant digits
+QUANTITIES = ("px", "kinetic", "strain")  # the stored archive columns besides the step number
+ARCHIVE_TYPES = {"step": "Step number", "px": "px", "kinetic": "Kinetic Energy", "strain": "Strain Energy"}
+
+# jaxmpm update -> NairnMPM (<MPMMethod>, <SkipPostExtrapolation/>): USF 0, USAVG 2, USL 3; "-" skips
+# the post-update extrapolation (NairnMPM's USL-/USAVG-), "+" does it (USL+ = jaxmpm's MUSL)
+UPDATES = {"USL": (3, True), "MUSL": (3, False), "USF": (0, False), "USAVG-": (2, True), "USAVG+": (2, False)}
+# jaxmpm shape -> NairnMPM <GIMP type>
+SHAPES = {"ugimp": ("uGIMP", jm.UGIMP), "linear": ("Dirac", jm.Linear)}
+
+
+@dataclasses.dataclass(frozen=True)
+class Case:
+    """One comparison.  ``scheme`` in jaxmpm's command-line form (``flip``, ``pic``, ``xpic:m``,
+    ``fmpm:k``), ``end`` "fixed" (x fixed on the nodes x <= 0) or "free" (no condition in x),
+    ``shape`` "ugimp" or "linear", ``update`` jaxmpm's ("USL" is USL-, "MUSL" USL+, "USF",
+    "USAVG-", "USAVG+"), ``damping`` (grid alpha, particle alpha) in 1/time, ``steps`` at
+    dt = ``cfl`` h/c, ``cells`` along the bar with ``ppc`` particles each along x."""
+
+    scheme: str
+    end: str = "fixed"
+    shape: str = "ugimp"
+    update: str = "USL"
+    damping: tuple = (0.0, 0.0)
+    steps: int = 2560
+    cells: int = 16
+    ppc: int = 2
+    cfl: float = 0.1
+
+    def __post_init__(self):
+        scheme_name, _, order = self.scheme.partition(":")
+        if scheme_name not in ("flip", "pic", "xpic", "fmpm") or (scheme_name in ("xpic", "fmpm") and not order):
+            raise ValueError(f"Case: scheme {self.scheme!r}; use flip, pic, xpic:m or fmpm:k")
+        if self.end not in ("fixed", "free"):
+            raise ValueError(f"Case: end {self.end!r}; use 'fixed' or 'free'")
+        if self.shape not in SHAPES:
+            raise ValueError(f"Case: shape {self.shape!r}; use one of {', '.join(SHAPES)}")
+        if self.update not in UPDATES:
+            raise ValueError(f"Case: update {self.update!r}; use one of {', '.join(UPDATES)}")
+
+    @property
+    def name(self) -> str:
+        """The file name of the case: ``fmpm5-fixed`` (plus any setting off the defaults)."""
+        parts = [self.scheme.replace(":", ""), self.end]
+        defaults = Case(self.scheme)
+        for field in ("shape", "update", "damping", "steps", "cells", "ppc", "cfl"):
+            value = getattr(self, field)
+            if value != getattr(defaults, field):
+                text = "_".join(f"{v:g}" for v in value) if isinstance(value, tuple) else str(value)
+                parts.append(f"{field}{text}".replace("-", "m").replace("+", "p"))
+        return "-".join(parts)
+
+    @property
+    def label(self) -> str:
+        scheme_name, _, order = self.scheme.partition(":")
+        return f"{scheme_name.upper()}({order})" if order else scheme_name.upper()
+
+    @property
+    def conventions(self) -> str:
+        """The jaxmpm conventions the case is run under: "nairnmpm" where the codes' rules
+        differ (FLIP, PIC, XPIC with the fixed end: the constrained nodes' force; PIC, XPIC:
+        the series start and position update), jaxmpm's default where they agree (FMPM; FLIP on
+        the free bar)."""
+        scheme_name = self.scheme.partition(":")[0]
+        if scheme_name == "fmpm" or (scheme_name == "flip" and self.end == "free"):
+            return "jaxmpm"
+        return "nairnmpm"
+
+    # the matched set-up's numbers
+    @property
+    def h(self) -> float:
+        return LENGTH / self.cells
+
+    @property
+    def dt(self) -> float:
+        return self.cfl * self.h / math.sqrt(E / RHO)
+
+
+CASES = tuple(Case(scheme, end) for scheme in ("flip", "pic", "xpic:2", "xpic:5", "fmpm:1", "fmpm:2", "fmpm:5")
+              for end in ("fixed", "free"))
+
+
+def case_named(name: str) -> Case:
+    """The case of :data:`CASES` called ``name`` (``fmpm5-fixed``; ``fmpm:5-fixed`` works too)."""
+    key = name.replace(":", "")
+    for case in CASES:
+        if case.name == key:
+            return case
+    raise ValueError(f"unknown case {name!r}; choose {', '.join(c.name for c in CASES)}")
+
+
+# ------------------------------------------------------------------------------------- jaxmpm
+def bar_setup(case: Case):
+    """jaxmpm's ``bar`` scene for the case (its grid and particles), float64."""
+    return jm.scenes.bar(scheme=jm.FLIP(), shape=SHAPES[case.shape][1](), cells=case.cells, ppc=case.ppc,
+                         cfl=case.cfl, update=case.update, dtype="f64")
+
+
+class _IncrementalElastic1D(jm.InelasticMaterial):
+    """A 1D stand-in for :class:`jaxmpm.IncrementalElastic` (NairnMPM's ``Isotropic``), used
+    while jaxmpm has none: tau += E (dF - 1) = E dv/dx dt on the particle's state, and the
+    stored energy NairnMPM archives, the work sum (tau_old + tau_new) (dF - 1) / 2 per reference
+    volume (its trapezoidal work increment; for this law equal to tau^2 / 2E up to round-off)."""
+
+    E: jnp.ndarray
+    nu: jnp.ndarray
+    uniaxial = True
+
+    def __init__(self, E, nu=0.0, density=1.0):
+        self.E = jnp.asarray(E, jnp.float64)
+        self.nu = jnp.asarray(nu, jnp.float64)
+        self.density = jnp.asarray(density, jnp.float64)
+
+    def initial_state(self, particles):
+        n = jnp.shape(particles.x)[0]
+        return {"stress": jnp.zeros((n, 1, 1), jnp.float64), "energy": jnp.zeros((n,), jnp.float64)}
+
+    def stress(self, F, state):
+        return state["stress"]
+
+    def update_state(self, increment, state):
+        G = increment.dF - 1.0
+        new = state["stress"] + self.E * G
+        return {"stress": new, "energy": state["energy"] + 0.5 * ((state["stress"] + new) * G)[:, 0, 0]}
+
+    def stored_energy_density(self, F, state):
+        return state["energy"]
+
+
+def material():
+    """NairnMPM's Isotropic law in jaxmpm: :class:`jaxmpm.IncrementalElastic` when it exists, the
+    1D stand-in otherwise."""
+    if hasattr(jm, "IncrementalElastic"):
+        return jm.IncrementalElastic(E=E, nu=0.0, density=RHO)
+    return _IncrementalElastic1D(E, 0.0, RHO)
+
+
+def has_conventions() -> bool:
+    """Whether this jaxmpm's Simulation takes ``conventions=`` (the "nairnmpm" preset)."""
+    return "conventions" in inspect.signature(jm.Simulation.__init__).parameters
+
+
+def simulation(case: Case, conventions: str | None = None):
+    """(sim, state, setup) for the case in jaxmpm; ``conventions`` None takes the case's own.
+    The keyword goes to :class:`jaxmpm.Simulation` only when it is not jaxmpm's default."""
+    conventions = case.conventions if conventions is None else conventions
+    setup = bar_setup(case)
+    kwargs = {}
+    if conventions != "jaxmpm":
+        if not has_conventions():
+            raise NotImplementedError(f"{case.name}: needs jm.Simulation(conventions={conventions!r}), which this "
+                                      "jaxmpm does not have (NairnMPM's fixed-node reaction, XPIC series start "
+                                      "and XPIC/PIC position update)")
+        kwargs["conventions"] = conventions
+    grid_alpha, particle_alpha = case.damping
+    damping = jm.Damping(grid=grid_alpha, particle=particle_alpha) if grid_alpha or particle_alpha else None
+    # the bar scene's own condition (x <= 0 fixed, jm.Fixed) for the fixed end, none for the free one
+    boundary = setup.sim.boundary if case.end == "fixed" else None
+    sim = jm.Simulation(grid=setup.sim.grid, shape=setup.sim.shape, material=material(),
+                        scheme=jm.scheme_from_name(case.scheme), damping=damping, update=case.update,
+                        boundary=boundary, **kwargs)
+    state = sim.init(setup.particles)
+    state = jax.tree_util.tree_map(lambda a: a.astype(jnp.float64) if jnp.issubdtype(a.dtype, jnp.floating) else a,
+                                   state)
+    return sim, state, setup
+
+
+@eqx.filter_jit
+def _rollout(sim, state, dt, steps):
+    _, hist, failure = sim.rollout(state, dt, steps, 1, save_particles=False, checkpoint=False)
+    return hist.momentum[:, 0], hist.kinetic, hist.strain, hist.time, failure.step
+
+
+def run_jaxmpm(case: Case, conventions: str | None = None) -> dict:
+    """The case in jaxmpm: every step's time, p_x, E_kin, E_strain and v_cm, steps 0..N, in
+    NairnMPM's units (momentum and energies times the strip's cross-section h x THICKNESS)."""
+    sim, state, _ = simulation(case, conventions)
+    mass = float(jnp.sum(state.mass))
+    px, kinetic, strain, t, failed = _rollout(sim, state, jnp.float64(case.dt), case.steps)
+    if int(failed) >= 0:
+        raise jm.InstabilityError(int(failed), f"{case.name}: jaxmpm's run failed")
+    section = case.h * THICKNESS
+    px = np.asarray(px)
+    return dict(step=np.arange(case.steps + 1), time=np.asarray(t), px=px * section,
+                kinetic=np.asarray(kinetic) * section, strain=np.asarray(strain) * section, v_cm=px / mass,
+                mass=mass * section)
+
+
+# ----------------------------------------------------------------------------------- NairnMPM
+def _num(x: float) -> str:
+    """A float as NairnMPM reads it back exactly (sscanf %lf of the shortest round-trip repr)."""
+    return repr(float(x))
+
+
+def particles(case: Case):
+    """NairnMPM's material points: (x, y, vx, mass) arrays, 2 rows in y (module docstring)."""
+    setup = bar_setup(case)
+    x = np.asarray(setup.particles.x, dtype=np.float64)[:, 0]
+    v = np.asarray(setup.particles.v, dtype=np.float64)[:, 0]
+    h = case.h
+    rows = np.array([0.25 * h, 0.75 * h])
+    xs, ys = np.meshgrid(x, rows, indexing="ij")
+    vs = np.repeat(v[:, None], 2, axis=1)
+    mass = RHO * (h / case.ppc) * (h / 2.0) * THICKNESS  # rho x (lpx h)(lpy h) x thickness
+    return xs.ravel(), ys.ravel(), vs.ravel(), np.full(xs.size, mass)
+
+
+def nairnmpm_input(case: Case, root: str = "bar") -> str:
+    """The NairnMPM XML input of the case; the archives go to ``<root>.global`` (and particle
+    archives ``<root>.<step>`` at the first and last step) next to the input."""
+    if case.update == "USL" and case.shape == "linear":
+        raise ValueError("NairnMPM refuses linear (Dirac) shapes under USL- (MPMMethod 3 with SkipPostExtrapolation)")
+    setup = bar_setup(case)
+    grid = setup.sim.grid
+    h = case.h
+    dt = case.dt
+    xmin, xmax = float(grid.lower[0]), float(grid.upper[0])
+    method, skip = UPDATES[case.update]
+    scheme_name, _, order = case.scheme.partition(":")
+    x, y, vx, _ = particles(case)
+    pad = 0.5 * h  # the BC rectangles reach half a cell past the nodes they select
+    lines = [
+        "<?xml version='1.0'?>",
+        '<!DOCTYPE JANFEAInput SYSTEM "NairnMPM.dtd">',
+        '<JANFEAInput version="3">',
+        "  <Header>",
+        f"    <Description>{escape(f'jaxmpm experiments/nairnmpm.py, bar, case {case.name}')}</Description>",
+        "    <Analysis>10</Analysis>",
+        "    <ConsistentUnits/>",
+        "  </Header>",
+        "  <MPMHeader>",
+        f"    <MPMMethod>{method}</MPMMethod>",
+    ]
+    if skip:
+        lines.append("    <SkipPostExtrapolation/>")
+    lines += [
+        f'    <GIMP type="{SHAPES[case.shape][0]}"/>',
+        "    <MatlPtsPerElement>4</MatlPtsPerElement>",
+        f"    <ArchiveRoot>{root}</ArchiveRoot>",
+        f"    <ArchiveTime>{_num(10 * case.steps * dt)}</ArchiveTime>",
+        f"    <TimeStep>{_num(dt)}</TimeStep>",
+        f"    <MaxTime>{_num((case.steps - 0.5) * dt)}</MaxTime>",
+        f"    <GlobalArchiveTime>{_num(0.5 * dt)}</GlobalArchiveTime>",
+    ]
+    lines += [f'    <GlobalArchive type="{ARCHIVE_TYPES[k]}"/>' for k in ("step",) + QUANTITIES]
+    grid_alpha, particle_alpha = case.damping
+    # NairnMPM's grid and particle damping (<Damping>, <PDamping>, in 1/time); not yet compared with
+    # jm.Damping(grid=, particle=): check the two codes' definitions before trusting a damped case
+    if grid_alpha:
+        lines.append(f"    <Damping>{_num(grid_alpha)}</Damping>")
+    if particle_alpha:
+        lines.append(f"    <PDamping>{_num(particle_alpha)}</PDamping>")
+    lines += [
+        "  </MPMHeader>",
+        "  <Mesh>",
+        f'    <Grid xmin="{_num(xmin)}" xmax="{_num(xmax)}" ymin="0.0" ymax="{_num(h)}" thickness="{_num(THICKNESS)}">',
+        f'      <Horiz nx="{grid.cells[0]}"/>',
+        '      <Vert ny="1"/>',
+        "    </Grid>",
+        "  </Mesh>",
+        "  <MaterialPoints>",
+        "    <PointList>",
+    ]
+    lines += [f'      <mp mat="1"><pt x="{_num(xi)}" y="{_num(yi)}"/><vel x="{_num(vi)}" y="0.0"/></mp>'
+              for xi, yi, vi in zip(x, y, vx)]
+    lines += [
+        "    </PointList>",
+        "  </MaterialPoints>",
+        '  <Material Type="1" Name="bar">',
+        f"    <rho>{_num(RHO)}</rho>",
+        f"    <E>{_num(E)}</E>",
+        "    <nu>0.0</nu>",
+        "    <alpha>0.0</alpha>",
+        "  </Material>",
+        "  <GridBCs>",
+        # y fixed on every node (NairnMPM's grid with its border layer: x in [xmin - h, xmax + h], y in [-h, 2h])
+        "    <BCShape>",
+        f'      <Rect xmin="{_num(xmin - h - pad)}" xmax="{_num(xmax + h + pad)}" ymin="{_num(-h - pad)}" '
+        f'ymax="{_num(2 * h + pad)}"/>',
+        '      <DisBC dir="2" style="1" vel="0.0"/>',
+        "    </BCShape>",
+    ]
+    if case.end == "fixed":  # x fixed on the nodes x <= 0: 0, -h and NairnMPM's border node -2h
+        lines += [
+            "    <BCShape>",
+            f'      <Rect xmin="{_num(xmin - h - pad)}" xmax="{_num(0.25 * h)}" ymin="{_num(-h - pad)}" '
+            f'ymax="{_num(2 * h + pad)}"/>',
+            '      <DisBC dir="1" style="1" vel="0.0"/>',
+            "    </BCShape>",
+        ]
+    lines.append("  </GridBCs>")
+    if scheme_name != "flip":
+        parameter = "FMPMOrder" if scheme_name == "fmpm" else "XPICOrder"
+        lines += [
+            "  <CustomTasks>",
+            '    <Schedule name="PeriodicXPIC">',
+            f'      <Parameter name="{parameter}">{order or 1}</Parameter>',
+            '      <Parameter name="periodicSteps">1</Parameter>',
+            "    </Schedule>",
+            "  </CustomTasks>",
+        ]
+    lines.append("</JANFEAInput>")
+    return "\n".join(lines) + "\n"
+
+
+def parse_global(path: str) -> dict:
+    """NairnMPM's global archive: {"time": ..., column name: ...} as float arrays, and the
+    columns' text (``"text"``: {name: list of strings}) for exact storage."""
+    names, rows = None, []
+    with open(path) as f:
+        for line in f:
+            line = line.rstrip("\n")
+            if not line:
+                continue
+            if line.startswith("#setColor"):
+                continue
+            if line.startswith("#"):
+                names = re.findall(r'"([^"]*)"', line)
+                continue
+            rows.append(line.split("\t"))
+    if names is None or not rows:
+        raise RuntimeError(f"{path}: no column names or no rows (NairnMPM's global archive format changed?)")
+    columns = list(zip(*rows))
+    if len(columns) != len(names) + 1:
+        raise RuntimeError(f"{path}: {len(columns)} columns for the names {names} and the time")
+    out = {"time": np.array(columns[0], dtype=np.float64), "text": {}}
+    for name, col in zip(names, columns[1:]):
+        out[name] = np.array(col, dtype=np.float64)
+        out["text"][name] = list(col)
+    return out
+
+
+def nairn_version(binary: str) -> str:
+    """The version NairnMPM prints ("NairnMPM 19.0 build 0") and, where its source is a git
+    checkout or ``$NAIRN_COMMIT`` is set, the commit."""
+    out = subprocess.run([binary, "-H"], capture_output=True, text=True, timeout=60).stdout
+    version = out.strip().splitlines()[0].strip() if out.strip() else "NairnMPM (unknown version)"
+    commit = os.environ.get("NAIRN_COMMIT", "")
+    if not commit:
+        try:
+            commit = subprocess.run(["git", "-C", os.path.dirname(os.path.realpath(binary)), "rev-parse", "HEAD"],
+                                    capture_output=True, text=True, timeout=30).stdout.strip()
+        except OSError:
+            commit = ""
+    return f"{version}, commit {commit}" if commit else version
+
+
+def run_nairnmpm(case: Case, workdir: str, binary: str | None = None, timeout: float = 600.0) -> dict:
+    """Run NairnMPM (``binary`` or ``$NAIRN_BIN``) on the case's input in ``workdir``, one thread;
+    returns the steps 1..N: step, time, px, kinetic, strain (NairnMPM's per-strip values),
+    v_cm = px / M, the archive's text of each quantity, the input and the version."""
+    binary = binary or os.environ.get("NAIRN_BIN")
+    if not binary:
+        raise RuntimeError("run_nairnmpm: set $NAIRN_BIN to a NairnMPM executable")
+    xml = nairnmpm_input(case)
+    os.makedirs(workdir, exist_ok=True)
+    path = os.path.join(workdir, f"{case.name}.xml")
+    with open(path, "w") as f:
+        f.write(xml)
+    proc = subprocess.run([binary, "-np", "1", path], capture_output=True, text=True, timeout=timeout, cwd=workdir)
+    with open(os.path.join(workdir, f"{case.name}.out"), "w") as f:
+        f.write(proc.stdout + proc.stderr)
+    if proc.returncode != 0 or "ABNORMAL TERMINATION" in proc.stdout:
+        raise RuntimeError(f"NairnMPM failed on {case.name} (exit {proc.returncode}):\n{proc.stdout[-3000:]}"
+                           f"\n{proc.stderr[-3000:]}")
+    arch = parse_global(os.path.join(workdir, "bar.global"))
+    step = arch[ARCHIVE_TYPES["step"]].astype(np.int64)
+    if not np.array_equal(step, np.arange(1, case.steps + 1)):
+        raise RuntimeError(f"{case.name}: NairnMPM archived steps {step[:3]}...{step[-3:]} ({step.size}), "
+                           f"expected 1..{case.steps}")
+    out = dict(step=step, time=arch["time"], text={k: arch["text"][ARCHIVE_TYPES[k]] for k in QUANTITIES},
+               xml=xml, version=nairn_version(binary))
+    for k in QUANTITIES:
+        out[k] = arch[ARCHIVE_TYPES[k]]
+        out[f"{k}_unit"] = archive_unit(_encode(out["text"][k])[1])
+    out["mass"] = float(np.sum(particles(case)[3]))
+    out["v_cm"] = out["px"] / out["mass"]
+    return out
+
+
+# ------------------------------------------------------------------------- the stored outputs
+def _encode(texts):
+    """NairnMPM's '%e' strings as (signed 7-digit mantissa int32, exponent int16): exactly the
+    archive's digits, compressing to a fraction of float64."""
+    digits, exps = [], []
+    for s in texts:
+        mant, _, ex = s.strip().lower().partition("e")
+        sign = -1 if mant.startswith("-") else 1
+        whole, _, frac = mant.lstrip("+-").partition(".")
+        if len(whole) != 1 or len(frac) != ARCHIVE_DIGITS - 1:
+            raise ValueError(f"not a NairnMPM %e number: {s!r}")
+        digits.append(sign * int(whole + frac))
+        exps.append(int(ex))
+    return np.array(digits, np.int32), np.array(exps, np.int16)
+
+
+def _decode(digits, exps):
+    return digits.astype(np.float64) * 10.0 ** (exps.astype(np.float64) - (ARCHIVE_DIGITS - 1))
+
+
+def archive_unit(exp10):
+    """One unit in the 7th significant digit of archived values of decimal exponents ``exp10``
+    (the archive's resolution; the exponents as stored, not recomputed from the floats)."""
+    return 10.0 ** (np.asarray(exp10, dtype=np.float64) - (ARCHIVE_DIGITS - 1))
+
+
+def store(case: Case, out: dict, directory: str = REFERENCE_DIR) -> str:
+    """Write NairnMPM's outputs for the case to ``<directory>/<case>.npz``: each quantity's
+    archive digits, the steps, dt, the strip's mass, the XML input and NairnMPM's version."""
+    os.makedirs(directory, exist_ok=True)
+    arrays = {}
+    for k in QUANTITIES:
+        arrays[f"{k}_digits"], arrays[f"{k}_exp10"] = _encode(out["text"][k])
+    path = os.path.join(directory, f"{case.name}.npz")
+    np.savez_compressed(path, first_step=np.int32(out["step"][0]), steps=np.int32(out["step"].size),
+                        dt=np.float64(case.dt), mass=np.float64(out["mass"]), xml=np.str_(out["xml"]),
+                        version=np.str_(out["version"]), case=np.str_(repr(case)), **arrays)
+    return path
+
+
+def load_reference(case: Case, directory: str = REFERENCE_DIR) -> dict:
+    """NairnMPM's stored outputs for the case (:func:`store`): step, time (= step dt), px,
+    kinetic, strain (floats of the archive's digits), v_cm, mass, xml, version."""
+    with np.load(os.path.join(directory, f"{case.name}.npz")) as z:
+        step = np.arange(int(z["first_step"]), int(z["first_step"]) + int(z["steps"]))
+        out = dict(step=step, time=step * float(z["dt"]), mass=float(z["mass"]), xml=str(z["xml"]),
+                   version=str(z["version"]))
+        for k in QUANTITIES:
+            out[k] = _decode(z[f"{k}_digits"], z[f"{k}_exp10"])
+            out[f"{k}_unit"] = archive_unit(z[f"{k}_exp10"])
+    out["v_cm"] = out["px"] / out["mass"]
+    return out
+
+
+def compare(case: Case, nairn: dict, jaxm: dict) -> dict:
+    """The agreement over NairnMPM's archived steps: max |dv_cm| / v0, max |dE_kin| / E0,
+    max |dE_strain| / E0, max |d(E_kin + E_strain)| / E0, E/E0 at the end in each code, and
+    each difference over the archive's resolution (half a unit in the 7th digit) at each step
+    (``*_ulps``: <= 1 is agreement to the archive's precision)."""
+    idx = nairn["step"]
+    e0 = float(jaxm["kinetic"][0] + jaxm["strain"][0])
+    out = dict(case=case.name, label=f"{case.label} {case.end}")
+    for k in ("px", "kinetic", "strain"):
+        diff = np.abs(jaxm[k][idx] - nairn[k])
+        out[f"{k}_ulps"] = float(np.max(diff / (0.5 * nairn[f"{k}_unit"])))
+        out[f"{k}_max"] = float(np.max(diff))
+    out["v_cm"] = float(np.max(np.abs(jaxm["v_cm"][idx] - nairn["v_cm"]))) / V0
+    out["v_cm_bound"] = float(0.5 * np.max(nairn["px_unit"])) / nairn["mass"] / V0
+    out["kinetic"] = out["kinetic_max"] / e0
+    out["strain"] = out["strain_max"] / e0
+    total_j = jaxm["kinetic"][idx] + jaxm["strain"][idx]
+    total_n = nairn["kinetic"] + nairn["strain"]
+    out["energy"] = float(np.max(np.abs(total_j - total_n))) / e0
+    out["energy_bound"] = float(0.5 * (np.max(nairn["kinetic_unit"]) + np.max(nairn["strain_unit"])))
+    out["energy_bound"] /= e0
+    out["final_jaxmpm"] = float(total_j[-1]) / e0
+    out["final_nairnmpm"] = float(total_n[-1]) / e0
+    return out
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--case", action="append", help="a case name (fmpm5-fixed; repeatable); default all 14")
+    parser.add_argument("--store", action="store_true",
+                        help="store NairnMPM's outputs under tests/reference/nairnmpm/ (needs $NAIRN_BIN)")
+    parser.add_argument("--xml", action="store_true", help="print the cases' NairnMPM inputs and stop")
+    parser.add_argument("--conventions", choices=("case", "jaxmpm", "nairnmpm"), default="case",
+                        help="jaxmpm's conventions: each case's own (default) or one for all")
+    parser.add_argument("--workdir", help="where NairnMPM runs (default a temporary folder)")
+    parser.add_argument("--out", default=RESULTS)
+    args = parser.parse_args(argv)
+    cases = [case_named(n) for n in args.case] if args.case else list(CASES)
+    if args.xml:
+        for case in cases:
+            print(nairnmpm_input(case))
+        return
+    binary = os.environ.get("NAIRN_BIN")
+    if args.store and not binary:
+        parser.error("--store needs $NAIRN_BIN (a NairnMPM executable)")
+    conventions = None if args.conventions == "case" else args.conventions
+    rows, version = [], None
+    with tempfile.TemporaryDirectory() as tmp:
+        for case in cases:
+            start = time.perf_counter()
+            if binary:
+                nairn = run_nairnmpm(case, os.path.join(args.workdir or tmp, case.name), binary)
+                if args.store:
+                    print(f"stored {store(case, nairn)}")
+            else:
+                nairn = load_reference(case)
+            version = nairn["version"]
+            wall_nairn = time.perf_counter() - start
+            conv = case.conventions if conventions is None else conventions
+            start = time.perf_counter()
+            try:
+                jaxm = run_jaxmpm(case, conv)
+            except NotImplementedError as err:
+                rows.append(dict(case=case.name, label=f"{case.label} {case.end}", conventions=conv, note=str(err)))
+                print(err)
+                continue
+            row = compare(case, nairn, jaxm)
+            row.update(conventions=conv, note="", wall_nairn=wall_nairn, wall_jaxmpm=time.perf_counter() - start)
+            rows.append(row)
+            print(f"{case.name:14s} v_cm {row['v_cm']:.2e} v0 (bound {row['v_cm_bound']:.1e}), "
+                  f"E_kin {row['kinetic']:.2e}, E_strain {row['strain']:.2e} E0; "
+                  f"ulps px {row['px_ulps']:.2f} kin {row['kinetic_ulps']:.2f} strain {row['strain_ulps']:.2f}; "
+                  f"E/E0 end {row['final_jaxmpm']:.6f} / {row['final_nairnmpm']:.6f}", flush=True)
+    source = "run now" if binary else "stored, tests/reference/nairnmpm/"
+    text = [
+        "# jaxmpm against NairnMPM on `bar` (`python -m experiments.nairnmpm`)\n",
+        f"NairnMPM: {version} ({source}).  Plane-strain strip one cell thick (NairnMPM) against the 1D bar "
+        "(jaxmpm); E = 100, rho = 1, L = 25, v0 = 0.1, 16 cells x 2 ppc, uGIMP, USL-, dt = 0.1 h/c, "
+        f"{cases[0].steps} steps, the incremental small-strain law in both; float64.  Differences over NairnMPM's "
+        "archived steps 1..N; E0 the initial energy.  `ulps`: the largest difference over half a unit in the "
+        "archive's 7th digit of the value (p_x, E_kin, E_strain); <= 1 is agreement to the archive's precision.\n",
+        "| case | jaxmpm conventions | max abs(dv_cm)/v0 | bound | max abs(dE_kin)/E0 | max abs(dE_strain)/E0 "
+        "| max abs(dE)/E0 | bound | ulps p_x, E_kin, E_strain | E/E0 end jaxmpm | E/E0 end NairnMPM |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        if r["note"]:
+            text.append(f"| {r['label']} | {r['conventions']} | {r['note']} | | | | | | | | |")
+            continue
+        text.append(f"| {r['label']} | {r['conventions']} | {r['v_cm']:.2e} | {r['v_cm_bound']:.2e} "
+                    f"| {r['kinetic']:.2e} | {r['strain']:.2e} | {r['energy']:.2e} | {r['energy_bound']:.2e} "
+                    f"| {r['px_ulps']:.2f}, {r['kinetic_ulps']:.2f}, {r['strain_ulps']:.2f} "
+                    f"| {r['final_jaxmpm']:.7f} | {r['final_nairnmpm']:.7f} |")
+    print("\n" + "\n".join(text))
+    if args.out:
+        os.makedirs(os.path.dirname(args.out), exist_ok=True)
+        with open(args.out, "w") as f:
+            f.write("\n".join(text) + "\n")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,293 @@
+"""NairnMPM's conventions (issue 28): each option at one step against its formula, and the preset.
+
+NairnMPM 19.0 (J. A. Nairn, github.com/nairnj/nairn-mpm-fea, commit 7f47b022) differs from
+jaxmpm's defaults in three rules, each an option here, checked on one step of a small 1D problem
+(a fixed end, random velocities and a prestrain, so that every nodal force is non-zero) against
+dense NumPy matrices (S from the stencil; m = S^T M 1; S+S = m^-1 S^T M S, 000 eqs. 1.9-1.10):
+
+* ``constrained_force="reaction"`` (Boundary_Conditions/NodalVelBC, GRID_FORCES_CALL): on a
+  constrained node v keeps p/m and the force becomes the reaction m (g - p/m)/dt, so FLIP's
+  increment S a dt carries -v to the particles and FLIP's position update uses S(p/m)
+  (MPM_Classes/MatPoint2D MoveParticle, ``vm = S(v+ - a dt)``);
+* ``XPIC(boundary="unconstrained_start")`` (NairnMPM_Class/XPICExtrapolationTask, Nodes/
+  MatVelocityField XPICSupport): v(m) = sum_{j<m} [Z (I - S+S)]^j (p/m), the start unconstrained
+  and only the increments zeroed;
+* ``position="PV_tilde"`` (MatPoint2D MoveParticle, XPIC branch): X += [S(v(m) + a dt) + dV/2] dt.
+
+The whole-run agreement with NairnMPM's own output is tests/test_nairnmpm.py.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from cases import dense_weights, run_cli
+
+import jaxmpm as jm
+from jaxmpm.model.step import grid_phases, p2g
+
+TOL = 1e-12
+DT = 0.05
+GRID = jm.Grid((-2.0,), (10.0,), (12,))  # h = 1, nodes at -2 ... 10
+FIXED = jm.Fixed(where=lambda x: x[:, 0] <= 1e-9)  # the bar's end: x = 0, -1, -2
+
+
+def particles(n=16, seed=0):
+    rng = np.random.default_rng(seed)
+    x = 0.25 + 7.5 * (np.arange(n) + rng.uniform(0.1, 0.9, n)) / n
+    return jm.Particles(x=x[:, None], v=rng.normal(size=(n, 1)), volume=np.full(n, 0.5))
+
+
+def simulation(scheme, **options):
+    return jm.Simulation(grid=GRID, shape=jm.Linear(), material=jm.LinearElastic(E=3.0, nu=0.0, density=1.0),
+                         scheme=scheme, boundary=FIXED, **options)
+
+
+@functools.lru_cache(maxsize=None)
+def initial_state():
+    sim = simulation(jm.FLIP())
+    state = sim.init(particles())
+    rng = np.random.default_rng(1)
+    F = 1.0 + 0.05 * rng.normal(size=(state.x.shape[0], 1, 1))  # a prestrain: non-zero internal forces
+    return eqx.tree_at(lambda s: s.F, state, jnp.asarray(F))
+
+
+class Dense:
+    """The step's grid quantities as NumPy: S (N, n), M_p, m_i, p_i, f_i (from the library's P2G,
+    tested elsewhere) and the mask Z of the constrained nodes."""
+
+    def __init__(self, sim, state):
+        fields = p2g(sim, state)
+        self.S, _ = dense_weights(fields.transfer.stencil, GRID.num_nodes)
+        self.M = np.asarray(state.mass)
+        self.m = np.asarray(fields.mass)
+        self.p = np.asarray(fields.momentum)[:, 0]
+        self.f = np.asarray(fields.force)[:, 0]
+        self.V = np.asarray(state.v)[:, 0]
+        self.X = np.asarray(state.x)[:, 0]
+        nodes = np.asarray(GRID.node_coordinates())[:, 0]
+        self.free = (nodes > 1e-9) & (self.m > 0)
+        active = self.m > 0
+        self.u = np.where(active, self.p / np.where(active, self.m, 1.0), 0.0)  # p/m, before the conditions
+        self.a = np.where(active, self.f / np.where(active, self.m, 1.0), 0.0)
+        self.SpS = np.where(active[:, None], (self.S.T * self.M) @ self.S / np.where(active, self.m, 1.0)[:, None], 0.0)
+
+    def Z(self, w):
+        return np.where(self.free, w, 0.0)
+
+
+def step(sim, state):
+    new = sim.step(state, DT)
+    return np.asarray(new.v)[:, 0], np.asarray(new.x)[:, 0]
+
+
+def close(actual, expected):
+    scale = max(np.max(np.abs(expected)), 1e-300)
+    assert np.max(np.abs(actual - expected)) <= TOL * scale, np.max(np.abs(actual - expected)) / scale
+
+
+# ------------------------------------------------------------------------------ the grid solve
+def test_reaction_grid_solve_keeps_p_over_m_and_takes_the_reaction_force():
+    """constrained_force="reaction": v = p/m everywhere; a = f/m on free nodes, (0 - p/m)/dt on the
+    fixed ones; v + a dt equal to the default's v_tilde (the conditions hold on it)."""
+    state = initial_state()
+    sim = simulation(jm.FLIP(), constrained_force="reaction")
+    d = Dense(sim, state)
+    solution = grid_phases(sim, p2g(sim, state), DT, sim.constraint(state.x.dtype))
+    plain = simulation(jm.FLIP())
+    default = grid_phases(plain, p2g(plain, state), DT, plain.constraint(state.x.dtype))
+    fixed = (~d.free) & (d.m > 0)
+    assert fixed.sum() == 1  # x = 0 carries mass (linear shapes, particles from x = 0.25)
+    close(np.asarray(solution.v)[:, 0], d.u)
+    close(np.asarray(solution.a)[:, 0], np.where(fixed, -d.u / DT, d.a))
+    np.testing.assert_array_equal(np.asarray(solution.v_tilde), np.asarray(default.v_tilde))
+    np.testing.assert_array_equal(np.asarray(solution.a)[d.free], np.asarray(default.a)[d.free])  # bitwise
+
+
+def test_flip_with_the_reaction_against_nairnmpm_rule():
+    """FLIP: V += S a dt with the reaction, X += [S(p/m) + dV/2] dt (NairnMPM's MoveParticle,
+    vm = S(v+ - a dt)); the default zeroes v and a on the fixed nodes instead."""
+    state = initial_state()
+    d = Dense(simulation(jm.FLIP()), state)
+    a = np.where(d.free, d.a, np.where(d.m > 0, -d.u / DT, 0.0))
+    V_new = d.V + d.S @ a * DT
+    X_new = d.X + (d.S @ d.u + 0.5 * (V_new - d.V)) * DT
+    for sim in (simulation(jm.FLIP(), constrained_force="reaction"), simulation(jm.FLIP(), conventions="nairnmpm")):
+        V, X = step(sim, state)
+        close(V, V_new)
+        close(X, X_new)
+    V0, X0 = step(simulation(jm.FLIP()), state)  # the default: a = 0, v = 0 on the fixed nodes
+    close(V0, d.V + d.S @ d.Z(d.a) * DT)
+    assert np.max(np.abs(V0 - V_new)) > 1e-3 * np.max(np.abs(V_new))  # the conventions differ here
+
+
+def nairnmpm_series(d, order):
+    """sum_{j<m} [Z (I - S+S)]^j u, NairnMPM's XPIC loop written as it runs: v* = u, Dv = u;
+    m - 1 times Dv <- Z (Dv - S+S Dv), v* += Dv."""
+    total, dv = d.u.copy(), d.u.copy()
+    for _ in range(order - 1):
+        dv = d.Z(dv - d.SpS @ dv)
+        total = total + dv
+    return total
+
+
+@pytest.mark.parametrize("order", [2, 5])
+@pytest.mark.parametrize("force", ["zero", "reaction"])
+def test_xpic_unconstrained_start_against_nairnmpm_loop(order, force):
+    """XPIC(m, boundary="unconstrained_start", position="PV_tilde"): V = S(v(m) + a dt) and
+    X += [S(v(m) + a dt) + dV/2] dt with NairnMPM's v(m), whose fixed nodes meet the condition in
+    v(m) + a dt -- under either constrained force."""
+    state = initial_state()
+    scheme = jm.XPIC(order, boundary="unconstrained_start", position="PV_tilde")
+    sim = simulation(scheme, constrained_force=force)
+    d = Dense(sim, state)
+    vm_a = np.where(d.free, nairnmpm_series(d, order) + d.a * DT, 0.0)  # v(m) + a dt, 0 on the fixed nodes
+    V_new = d.S @ vm_a
+    V, X = step(sim, state)
+    close(V, V_new)
+    close(X, d.X + (d.S @ vm_a + 0.5 * (V_new - d.V)) * DT)
+
+
+def test_xpic_series_differs_from_the_default_only_through_the_fixed_nodes():
+    """Without constrained nodes carrying velocity the two starts agree: zero the particles'
+    velocities near the end, then v(m) is the same series (to round-off)."""
+    state = initial_state()
+    x = np.asarray(state.x)[:, 0]
+    quiet = eqx.tree_at(lambda s: s.v, state, jnp.where(jnp.asarray(x)[:, None] < 1.5, 0.0, state.v))
+    a = step(simulation(jm.XPIC(3, boundary="unconstrained_start")), quiet)
+    b = step(simulation(jm.XPIC(3)), quiet)
+    close(a[0], b[0])
+    c = step(simulation(jm.XPIC(3, boundary="unconstrained_start")), state)
+    d = step(simulation(jm.XPIC(3)), state)
+    assert np.max(np.abs(c[0] - d[0])) > 1e-4 * np.max(np.abs(d[0]))
+
+
+def test_pic_position_pv_tilde():
+    """PIC(position="PV_tilde"): X += [S v_tilde + dV/2] dt (NairnMPM's XPIC(1)); V = S v_tilde as
+    in the default."""
+    state = initial_state()
+    sim = simulation(jm.PIC(position="PV_tilde"))
+    d = Dense(sim, state)
+    v_tilde = d.Z(d.u + d.a * DT)
+    V_new = d.S @ v_tilde
+    V, X = step(sim, state)
+    close(V, V_new)
+    close(X, d.X + (d.S @ v_tilde + 0.5 * (V_new - d.V)) * DT)
+
+
+def test_xpic_reaction_with_the_default_series_keeps_the_conditions():
+    """constrained_force="reaction" with XPIC's default series ("iterates"): v(m) keeps p/m on the
+    fixed nodes, so v(m) + a dt = 0 there and the velocity update equals the default's; the
+    position update's S v ("Sv") now sees p/m on them: X moves by S (p/m on the fixed nodes) dt more."""
+    state = initial_state()
+    sim = simulation(jm.XPIC(3), constrained_force="reaction")
+    d = Dense(sim, state)
+    a = step(sim, state)
+    b = step(simulation(jm.XPIC(3)), state)
+    close(a[0], b[0])
+    close(a[1] - b[1], d.S @ np.where(d.free, 0.0, d.u) * DT)
+
+
+ALPHA_G, ALPHA_P = 0.3, 0.2
+
+
+def test_xpic_damping_with_the_updated_velocity():
+    """XPIC(2, damping_velocity="updated") in NairnMPM's form: A_damp = alpha_g S(v(m) + a dt) +
+    alpha_p V^n, V = S(v(m) + a dt) - A_damp dt, X += [S(v(m) + a dt) + dV/2] dt."""
+    state = initial_state()
+    scheme = jm.XPIC(2, boundary="unconstrained_start", position="PV_tilde", damping_velocity="updated")
+    sim = simulation(scheme, damping=jm.Damping(grid=ALPHA_G, particle=ALPHA_P))
+    d = Dense(sim, state)
+    Svm = d.S @ np.where(d.free, nairnmpm_series(d, 2) + d.a * DT, 0.0)
+    V_new = Svm - (ALPHA_G * Svm + ALPHA_P * d.V) * DT
+    V, X = step(sim, state)
+    close(V, V_new)
+    close(X, d.X + (Svm + 0.5 * (V_new - d.V)) * DT)
+    preset = simulation(jm.XPIC(2), damping=jm.Damping(grid=ALPHA_G, particle=ALPHA_P), conventions="nairnmpm")
+    close(step(preset, state)[0], V_new)
+
+
+def test_fmpm_damping_with_the_updated_velocity():
+    """FMPM(2, damping_velocity="updated"): A_damp = alpha_g S v+ + alpha_p V^n with v+ the
+    full-mass velocity (003 eq. 2.13, constrained iterates); the default damps with S v."""
+    state = initial_state()
+    sim = simulation(jm.FMPM(2, damping_velocity="updated"), damping=jm.Damping(grid=ALPHA_G, particle=ALPHA_P))
+    d = Dense(sim, state)
+    v_tilde = d.Z(d.u + d.a * DT)
+    v_plus = v_tilde + (v_tilde - d.Z(d.SpS @ v_tilde))  # sum_{j<2} (I - Z S+S)^j Z v_tilde
+    Sv_plus = d.S @ v_plus
+    V_new = Sv_plus - (ALPHA_G * Sv_plus + ALPHA_P * d.V) * DT
+    V, X = step(sim, state)
+    close(V, V_new)
+    close(X, d.X + 0.5 * (V_new + d.V) * DT)
+    default = step(simulation(jm.FMPM(2), damping=jm.Damping(grid=ALPHA_G, particle=ALPHA_P)), state)[0]
+    close(default, Sv_plus - (ALPHA_G * (d.S @ d.Z(d.u)) + ALPHA_P * d.V) * DT)
+
+
+# -------------------------------------------------------------------------------------- preset
+def test_preset_selects_each_option():
+    cases = [
+        (jm.FLIP(), "Sv", "iterates"),
+        (jm.PIC(), "PV_tilde", "iterates"),
+        (jm.XPIC(2), "PV_tilde", "unconstrained_start"),
+        (jm.XPIC(5, beta=0.2), "PV_tilde", "unconstrained_start"),
+        (jm.XPIC(0), "Sv", "iterates"),
+        (jm.FLIP(beta=0.9), "PV_tilde", "iterates"),
+    ]
+    for scheme, position, boundary in cases:
+        sim = simulation(scheme, conventions="nairnmpm")
+        assert (sim.scheme.position, sim.scheme.boundary) == (position, boundary), scheme
+        assert sim.constrained_force == "reaction" and sim.conventions == "nairnmpm"
+        assert type(sim.scheme) is type(scheme)
+        default = simulation(scheme)
+        assert default.scheme is scheme and default.constrained_force == "zero"
+    for scheme, damping_velocity in [(jm.FLIP(), "lumped"), (jm.PIC(), "updated"), (jm.XPIC(3), "updated"),
+                                     (jm.FMPM(2), "updated"), (jm.FMPM(0), "lumped")]:
+        assert simulation(scheme, conventions="nairnmpm").scheme.damping_velocity == damping_velocity, scheme
+    fmpm = jm.FMPM(0)
+    assert simulation(fmpm, conventions="nairnmpm").scheme is fmpm  # FMPM(0) is FLIP
+    explicit = simulation(jm.FLIP(), conventions="nairnmpm", constrained_force="zero")
+    assert explicit.constrained_force == "zero"
+    later = simulation(jm.XPIC(2)).with_conventions("nairnmpm")
+    assert later.scheme.boundary == "unconstrained_start" and later.constrained_force == "reaction"
+
+
+def test_preset_refuses_options_it_would_override():
+    with pytest.raises(jm.InputError, match="position = 'V'.*conventions='nairnmpm'"):
+        simulation(jm.XPIC(2, position="V"), conventions="nairnmpm")
+    with pytest.raises(jm.InputError, match="boundary = 'result'.*conventions='nairnmpm'"):
+        simulation(jm.XPIC(2, boundary="result"), conventions="nairnmpm")
+    with pytest.raises(jm.InputError, match="damping_velocity = 'fast'"):
+        jm.FMPM(2, damping_velocity="fast")
+    with pytest.raises(jm.InputError, match="conventions = 'nairn'"):
+        simulation(jm.FLIP(), conventions="nairn")
+    with pytest.raises(jm.InputError, match="constrained_force = 'fixed'"):
+        simulation(jm.FLIP(), constrained_force="fixed")
+    with pytest.raises(jm.InputError, match="unconstrained_start.*FMPM|FMPM: boundary = 'unconstrained_start'"):
+        jm.FMPM(2, boundary="unconstrained_start")
+    # one-sided walls, inclined planes and mirrors are not NairnMPM's: the series says so
+    sim = jm.Simulation(grid=GRID, shape=jm.Linear(), material=jm.LinearElastic(E=3.0), boundary=jm.Wall("x-"),
+                        scheme=jm.XPIC(2, boundary="unconstrained_start"))
+    with pytest.raises(jm.InputError, match="unconstrained_start.*grid-axis"):
+        sim.step(sim.init(particles()), DT)
+
+
+def test_cli_conventions(tmp_path, capsys):
+    """`jaxmpm run bar --conventions nairnmpm` runs NairnMPM's rules; the stored command resumes them."""
+    import h5py
+
+    out = tmp_path / "bar.h5"
+    status = run_cli(["run", "bar", "--scheme", "xpic:2", "--conventions", "nairnmpm", "--t-end", "2",
+                      "--frames", "2", "--out", str(out), "--no-progress"])
+    assert status == 0
+    with h5py.File(out) as f:
+        assert '"conventions": "nairnmpm"' in f.attrs["command"]
+    from jaxmpm.scenes.command import setup_from_options
+
+    setup = setup_from_options({"scene": "bar", "scheme": "xpic:2", "conventions": "nairnmpm"})
+    assert setup.sim.conventions == "nairnmpm" and setup.sim.scheme.position == "PV_tilde"
+    assert run_cli(["run", "bar", "--conventions", "other", "--out", str(tmp_path / "x.h5")]) == 2

@@ -59,7 +59,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import inspect
 import math
 import os
 import re
@@ -90,6 +89,9 @@ ARCHIVE_TYPES = {"step": "Step number", "px": "px", "kinetic": "Kinetic Energy",
 # jaxmpm update -> NairnMPM (<MPMMethod>, <SkipPostExtrapolation/>): USF 0, USAVG 2, USL 3; "-" skips
 # the post-update extrapolation (NairnMPM's USL-/USAVG-), "+" does it (USL+ = jaxmpm's MUSL)
 UPDATES = {"USL": (3, True), "MUSL": (3, False), "USF": (0, False), "USAVG-": (2, True), "USAVG+": (2, False)}
+UPDATE_NAMES = {"USL": "usl", "MUSL": "musl", "USF": "usf", "USAVG-": "usavgm", "USAVG+": "usavgp"}  # in case names
+# the damped cases' rates (alpha_g, alpha_p) in 1/time, by their name's suffix
+DAMPING = {"g": (0.05, 0.0), "p": (0.0, 0.03), "gp": (0.05, 0.03)}
 # jaxmpm shape -> NairnMPM <GIMP type>
 SHAPES = {"ugimp": ("uGIMP", jm.UGIMP), "linear": ("Dirac", jm.Linear)}
 
@@ -125,14 +127,24 @@ class Case:
 
     @property
     def name(self) -> str:
-        """The file name of the case: ``fmpm5-fixed`` (plus any setting off the defaults)."""
+        """The file name of the case: scheme and end (``fmpm5-fixed``), then each setting off the
+        defaults: the shape (``linear``), the update (``musl``, ``usf``, ``usavgm``, ``usavgp``),
+        the damping (``damp-g``, ``damp-p``, ``damp-gp`` at :data:`DAMPING`'s rates, else
+        ``damp-g<alpha_g>-p<alpha_p>``), then ``steps<n>``, ``cells<n>``, ``ppc<n>``, ``cfl<x>``."""
         parts = [self.scheme.replace(":", ""), self.end]
+        if self.shape != "ugimp":
+            parts.append(self.shape)
+        if self.update != "USL":
+            parts.append(UPDATE_NAMES[self.update])
+        if self.damping != (0.0, 0.0):
+            named = {v: k for k, v in DAMPING.items()}
+            parts.append(f"damp-{named[self.damping]}" if self.damping in named
+                         else "damp-g{:g}-p{:g}".format(*self.damping))
         defaults = Case(self.scheme)
-        for field in ("shape", "update", "damping", "steps", "cells", "ppc", "cfl"):
+        for field in ("steps", "cells", "ppc", "cfl"):
             value = getattr(self, field)
             if value != getattr(defaults, field):
-                text = "_".join(f"{v:g}" for v in value) if isinstance(value, tuple) else str(value)
-                parts.append(f"{field}{text}".replace("-", "m").replace("+", "p"))
+                parts.append(f"{field}{value:g}")
         return "-".join(parts)
 
     @property
@@ -161,8 +173,19 @@ class Case:
         return self.cfl * self.h / math.sqrt(E / RHO)
 
 
-CASES = tuple(Case(scheme, end) for scheme in ("flip", "pic", "xpic:2", "xpic:5", "fmpm:1", "fmpm:2", "fmpm:5")
-              for end in ("fixed", "free"))
+# uGIMP, USL-, undamped: every scheme, both ends
+BASE_CASES = tuple(Case(scheme, end) for scheme in ("flip", "pic", "xpic:2", "xpic:5", "fmpm:1", "fmpm:2", "fmpm:5")
+                   for end in ("fixed", "free"))
+# linear shapes (NairnMPM's Dirac) under USL+ (it refuses them under USL-)
+LINEAR_CASES = tuple(Case(scheme, end, shape="linear", update="MUSL") for scheme in ("flip", "pic", "xpic:2", "fmpm:2")
+                     for end in ("fixed", "free"))
+# uGIMP under the other updates, fixed end
+UPDATE_CASES = tuple(Case(scheme, update=update) for update in ("MUSL", "USF", "USAVG+", "USAVG-")
+                     for scheme in ("flip", "xpic:2", "fmpm:2"))
+# grid damping, particle damping and both, fixed end, uGIMP, USL-
+DAMPING_CASES = tuple(Case(scheme, damping=rates) for rates in DAMPING.values()
+                      for scheme in ("flip", "pic", "xpic:2", "fmpm:2"))
+CASES = BASE_CASES + LINEAR_CASES + UPDATE_CASES + DAMPING_CASES
 
 
 def case_named(name: str) -> Case:
@@ -181,69 +204,16 @@ def bar_setup(case: Case):
                          cfl=case.cfl, update=case.update, dtype="f64")
 
 
-class _IncrementalElastic1D(jm.InelasticMaterial):
-    """A 1D stand-in for :class:`jaxmpm.IncrementalElastic` (NairnMPM's ``Isotropic``), used
-    while jaxmpm has none: tau += E (dF - 1) = E dv/dx dt on the particle's state, and the
-    stored energy NairnMPM archives, the work sum (tau_old + tau_new) (dF - 1) / 2 per reference
-    volume (its trapezoidal work increment; for this law equal to tau^2 / 2E up to round-off)."""
-
-    E: jnp.ndarray
-    nu: jnp.ndarray
-    uniaxial = True
-
-    def __init__(self, E, nu=0.0, density=1.0):
-        self.E = jnp.asarray(E, jnp.float64)
-        self.nu = jnp.asarray(nu, jnp.float64)
-        self.density = jnp.asarray(density, jnp.float64)
-
-    def initial_state(self, particles):
-        n = jnp.shape(particles.x)[0]
-        return {"stress": jnp.zeros((n, 1, 1), jnp.float64), "energy": jnp.zeros((n,), jnp.float64)}
-
-    def stress(self, F, state):
-        return state["stress"]
-
-    def update_state(self, increment, state):
-        G = increment.dF - 1.0
-        new = state["stress"] + self.E * G
-        return {"stress": new, "energy": state["energy"] + 0.5 * ((state["stress"] + new) * G)[:, 0, 0]}
-
-    def stored_energy_density(self, F, state):
-        return state["energy"]
-
-
-def material():
-    """NairnMPM's Isotropic law in jaxmpm: :class:`jaxmpm.IncrementalElastic` when it exists, the
-    1D stand-in otherwise."""
-    if hasattr(jm, "IncrementalElastic"):
-        return jm.IncrementalElastic(E=E, nu=0.0, density=RHO)
-    return _IncrementalElastic1D(E, 0.0, RHO)
-
-
-def has_conventions() -> bool:
-    """Whether this jaxmpm's Simulation takes ``conventions=`` (the "nairnmpm" preset)."""
-    return "conventions" in inspect.signature(jm.Simulation.__init__).parameters
-
-
 def simulation(case: Case, conventions: str | None = None):
-    """(sim, state, setup) for the case in jaxmpm; ``conventions`` None takes the case's own.
-    The keyword goes to :class:`jaxmpm.Simulation` only when it is not jaxmpm's default."""
-    conventions = case.conventions if conventions is None else conventions
+    """(sim, state, setup) for the case in jaxmpm; ``conventions`` None takes the case's own."""
     setup = bar_setup(case)
-    kwargs = {}
-    if conventions != "jaxmpm":
-        if not has_conventions():
-            raise NotImplementedError(f"{case.name}: needs jm.Simulation(conventions={conventions!r}), which this "
-                                      "jaxmpm does not have (NairnMPM's fixed-node reaction, XPIC series start "
-                                      "and XPIC/PIC position update)")
-        kwargs["conventions"] = conventions
     grid_alpha, particle_alpha = case.damping
-    damping = jm.Damping(grid=grid_alpha, particle=particle_alpha) if grid_alpha or particle_alpha else None
     # the bar scene's own condition (x <= 0 fixed, jm.Fixed) for the fixed end, none for the free one
     boundary = setup.sim.boundary if case.end == "fixed" else None
-    sim = jm.Simulation(grid=setup.sim.grid, shape=setup.sim.shape, material=material(),
-                        scheme=jm.scheme_from_name(case.scheme), damping=damping, update=case.update,
-                        boundary=boundary, **kwargs)
+    sim = jm.Simulation(grid=setup.sim.grid, shape=setup.sim.shape, material=jm.IncrementalElastic(E, 0.0, RHO),
+                        scheme=jm.scheme_from_name(case.scheme), damping=jm.Damping(grid_alpha, particle_alpha),
+                        update=case.update, boundary=boundary,
+                        conventions=case.conventions if conventions is None else conventions)
     state = sim.init(setup.particles)
     state = jax.tree_util.tree_map(lambda a: a.astype(jnp.float64) if jnp.issubdtype(a.dtype, jnp.floating) else a,
                                    state)

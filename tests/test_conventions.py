@@ -22,10 +22,11 @@ from __future__ import annotations
 import functools
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from cases import dense_weights, run_cli
+from cases import central_difference, dense_weights, run_cli
 
 import jaxmpm as jm
 from jaxmpm.model.step import grid_phases, p2g
@@ -152,6 +153,7 @@ def test_xpic_unconstrained_start_against_nairnmpm_loop(order, force):
     close(X, d.X + (d.S @ vm_a + 0.5 * (V_new - d.V)) * DT)
 
 
+@pytest.mark.slow
 def test_xpic_series_differs_from_the_default_only_through_the_fixed_nodes():
     """Without constrained nodes carrying velocity the two starts agree: zero the particles'
     velocities near the end, then v(m) is the same series (to round-off)."""
@@ -291,3 +293,25 @@ def test_cli_conventions(tmp_path, capsys):
     setup = setup_from_options({"scene": "bar", "scheme": "xpic:2", "conventions": "nairnmpm"})
     assert setup.sim.conventions == "nairnmpm" and setup.sim.scheme.position == "PV_tilde"
     assert run_cli(["run", "bar", "--conventions", "other", "--out", str(tmp_path / "x.h5")]) == 2
+
+
+@pytest.mark.slow
+def test_gradient_under_the_preset_against_central_differences():
+    """d/d(alpha_g, E) of a loss after 6 steps of XPIC(3) in NairnMPM's conventions (the reaction,
+    the unconstrained series start, PV_tilde and the updated damping velocity all on the path)
+    equals central differences in float64."""
+    state = initial_state()
+    base = simulation(jm.XPIC(3), damping=jm.Damping(grid=ALPHA_G, particle=ALPHA_P), conventions="nairnmpm")
+
+    def loss(alpha_g, E):
+        sim = jm.set_params(base, alpha_g=alpha_g, E=E)
+        s = jax.lax.fori_loop(0, 6, lambda _, s: sim.step(s, DT), state)
+        return jnp.sum(s.mass[:, None] * s.v**2) + jnp.sum((s.x - state.x) ** 2)
+
+    grad = jax.jit(jax.grad(loss, argnums=(0, 1)))(ALPHA_G, 3.0)
+    f = jax.jit(loss)
+    fd_alpha = central_difference(lambda a: f(a, 3.0), ALPHA_G, 1e-3, order=4)
+    fd_E = central_difference(lambda e: f(ALPHA_G, e), 3.0, 1e-3, order=4)
+    np.testing.assert_allclose(float(grad[0]), float(fd_alpha), rtol=1e-8)
+    np.testing.assert_allclose(float(grad[1]), float(fd_E), rtol=1e-8)
+    assert abs(float(grad[0])) > 1e-3 and abs(float(grad[1])) > 1e-3  # the parameters act

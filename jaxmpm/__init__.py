@@ -11,6 +11,7 @@ from .core.params import PARAMETERS, get_params, set_params
 from .core.fields import GridFields, GridSolution, ParticleField
 from .core.grid import Grid
 from .core.particles import Ball, Box, Disk, Particles, Region, Ring, fill
+from .core.geometry import Mesh, Polygon, point_cloud
 from .core.state import State, with_fields, with_scheme_state
 from .core.measures import angular_momentum, kinetic_energy, linear_momentum, stable_dt, strain_energy
 from .transfer.shapes import (AxisymmetricStencil, CubicBSpline, Linear, QuadraticBSpline, ShapeFunction, Stencil,
@@ -56,5 +57,5 @@ __all__ = [
     "Traction", "Reaction", "Mirror", "compilation_cache",
     "ElasticMaterial", "InelasticMaterial", "Increment", "ParticleDamping", "Contraction", "Weighted", "Gradient",
     "Divergence", "Affine", "Hoop", "PerSlot", "Kernel", "register_kernel", "series", "exchange_series",
-    "grid_phases",
+    "grid_phases", "Mesh", "Polygon", "point_cloud",
 ]

@@ -30,6 +30,7 @@ BLOCKS = {
         ("steps=2000, save_every=20", "steps=20, save_every=10", 1),
         SHORT_BAR + (1,),
     ]),
+    "Bodies from meshes and point clouds": Block(),  # small as it stands: fills, no run
     "Differentiation, calibration, ensembles": Block(
         [SHORT_BAR + (1,),
          ("setup.dt, 400, 20", "setup.dt, 20, 10", 2),  # the calibrated rollout and the ensemble

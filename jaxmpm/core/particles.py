@@ -23,6 +23,9 @@ class Region(eqx.Module):
     def bounds(self):  # pragma: no cover - interface
         raise NotImplementedError
 
+    def check_grid(self, grid) -> None:
+        """Raise InputError when the region cannot be filled on ``grid`` (the default: no check)."""
+
 
 class Box(Region):
     lower: tuple = eqx.field(static=True)
@@ -135,13 +138,15 @@ def fill(
     # lattice over all cells, restricted to the region's bounding box when known
     ranges = []
     if isinstance(region, Region):
+        region.check_grid(grid)
         blo, bhi = (np.array(b, dtype=float) for b in region.bounds())
         check(blo.shape == (dim,), f"fill: region has {blo.shape[0]} axes but the grid has {dim}")
         first = np.clip(np.floor((blo - lower) / h).astype(int), 0, None)
         last = np.minimum(np.ceil((bhi - lower) / h).astype(int), np.array(grid.cells))
         contains = region.contains
     else:
-        check(callable(region), "fill: region must be a jm.Box/Disk/Ball/Ring or a callable mask f(x) -> bool")
+        check(callable(region),
+              "fill: region must be a jm.Box/Disk/Ball/Ring/Polygon/Mesh or a callable mask f(x) -> bool")
         first = np.zeros(dim, int)
         last = np.array(grid.cells)
         contains = region

@@ -11,7 +11,7 @@ import numpy as np
 from .errors import check
 from .grid import Grid
 from .limits import require_memory
-from .validate import FINITE, NON_NEGATIVE, POSITIVE, finite_vector, ndim, positive_int
+from .validate import FINITE, NON_NEGATIVE, POSITIVE, concrete, finite_vector, ndim, positive_int
 
 
 class Region(eqx.Module):
@@ -103,9 +103,46 @@ class Particles(eqx.Module):
     ppc: int = eqx.field(static=True, default=1)
     axisymmetric: bool = eqx.field(static=True, default=False)
 
+    def __check_init__(self):
+        """Where particles enter: shapes, kinds and (for concrete arrays) values, each error naming
+        the argument.  Tracers (a Particles built under jit/grad/vmap) get the shape checks only."""
+        x = _real_array("x", self.x, "positions, one row per particle: shape (N, D)")
+        check(x.ndim == 2 and 1 <= x.shape[1] <= 3,
+              f"jm.Particles: x has shape {tuple(x.shape)}; give positions as (N, D) with D = 1, 2 or 3 "
+              "(one row per particle; a 1D body is x[:, None])")
+        n, d = x.shape
+        check(n >= 1, "jm.Particles: x holds no particles (shape (0, D)); a body needs at least one: "
+                      "check the region given to jm.fill lies on the grid")
+        v = _real_array("v", self.v, f"velocities, shape ({n}, {d})")
+        check(tuple(v.shape) == (n, d), f"jm.Particles: v has shape {tuple(v.shape)} but x has {(n, d)}; "
+                                        "give one velocity per particle (zeros for a body at rest)")
+        volume = _real_array("volume", self.volume, f"reference volumes, shape ({n},)")
+        check(tuple(volume.shape) == (n,), f"jm.Particles: volume has shape {tuple(volume.shape)}; give one "
+                                           f"reference volume per particle, shape ({n},)")
+        if self.mass is not None:
+            mass = _real_array("mass", self.mass, f"masses, shape ({n},)")
+            check(tuple(mass.shape) == (n,), f"jm.Particles: mass has shape {tuple(mass.shape)}; give one mass "
+                                             f"per particle, shape ({n},), or mass=None (density x volume)")
+        positive_int("jm.Particles", "ppc", self.ppc, fix="particles per cell per axis (jm.fill sets it)")
+        for name, value, rule in (("x", self.x, FINITE), ("v", self.v, FINITE), ("volume", self.volume, POSITIVE),
+                                  ("mass", self.mass, POSITIVE)):
+            if value is not None and concrete(value) is not None:
+                rule.check("jm.Particles", name, concrete(value))
+
     @property
     def num(self) -> int:
         return self.x.shape[0]
+
+
+def _real_array(name: str, value, what: str):
+    """``value`` as an array of real numbers (int or float), or an InputError naming ``name``."""
+    try:
+        dtype = np.result_type(value) if not hasattr(value, "dtype") else value.dtype
+    except TypeError:
+        dtype = np.dtype(object)
+    check(np.issubdtype(dtype, np.integer) or np.issubdtype(dtype, np.floating),
+          f"jm.Particles: {name} ({what}) has dtype {dtype}; give real numbers (float32 or float64)")
+    return value if hasattr(value, "shape") else np.asarray(value)
 
 
 def fill(

@@ -43,6 +43,26 @@ KINEMATICS = ("linear", "exponential")
 CONVENTIONS = {"jaxmpm": {"constrained_force": "zero"}, "nairnmpm": {"constrained_force": "reaction"}}
 
 
+def state_positions(particles: Particles):
+    """The positions in the state's precision, by one rule: the precision of ``particles.x``
+    (integer positions take the default float: float64 under ``jax_enable_x64``, else float32);
+    velocities, volumes and masses are cast to it, with a UserWarning when that narrows one of
+    them (float64 velocities with float32 positions run in float32)."""
+    x = jnp.asarray(particles.x)
+    if not jnp.issubdtype(x.dtype, jnp.floating):
+        x = x.astype(jnp.result_type(float))
+    for name in ("v", "volume", "mass"):
+        value = getattr(particles, name)
+        if value is None:
+            continue
+        dtype = jnp.asarray(value).dtype
+        if jnp.issubdtype(dtype, jnp.floating) and jnp.finfo(dtype).bits > jnp.finfo(x.dtype).bits:
+            warn(f"Simulation.init: particles.{name} is {dtype} but the positions are {x.dtype}; the run follows "
+                 f"the positions' precision and casts {name} to {x.dtype}. Give x as {dtype} for a {dtype} run.",
+                 UserWarning)
+    return x
+
+
 class Simulation(eqx.Module):
     """An MPM model.  Float parameters (material constants, beta, damping, gravity, prescribed
     velocities) are array leaves, so ``jax.grad``/``jax.vmap`` reach them; everything that fixes
@@ -145,8 +165,8 @@ class Simulation(eqx.Module):
         self.shape = shape
         self.material = material
         self.scheme = scheme
-        self.terms = ((StressDivergence(), BodyForce(g, body_force)) + ((damping,) if damping is not None else ())
-                      + extra)
+        self.terms = tuple(t.in_conventions(conventions) for t in (StressDivergence(), BodyForce(g, body_force))
+                           + ((damping,) if damping is not None else ()) + extra)
         self.boundary = as_conditions(boundary, grid)
         self.update = UPDATES[update]
         self.backend = backend
@@ -214,6 +234,7 @@ class Simulation(eqx.Module):
         check(force in CONSTRAINED_FORCES, f"Simulation: constrained_force = {force!r}; choose 'zero' or 'reaction'")
         new = self._with_static(conventions=conventions, constrained_force=force)
         object.__setattr__(new, "scheme", self.scheme.in_conventions(conventions))
+        object.__setattr__(new, "terms", tuple(t.in_conventions(conventions) for t in self.terms))
         return new
 
     def _with_static(self, **fields):
@@ -288,7 +309,7 @@ class Simulation(eqx.Module):
         """Initial state from :func:`jaxmpm.fill` output (or any :class:`Particles`); the fields
         the terms declare start at their declared initial values unless ``fields`` gives them."""
         check(isinstance(particles, Particles), "Simulation.init: pass the jm.Particles returned by jm.fill")
-        x = jnp.asarray(particles.x)
+        x = state_positions(particles)
         d = self.grid.dim
         check(x.ndim == 2 and x.shape[1] == d, f"Simulation.init: particles have shape {x.shape}; the grid is {d}D")
         check(particles.axisymmetric == self.grid.axisymmetric,  # 001 §7: masses and volumes per radian
@@ -312,7 +333,9 @@ class Simulation(eqx.Module):
                   "make them equal (the particle half-width is h / (2 ppc))")
         volume = jnp.asarray(particles.volume)
         if particles.mass is None:
-            mass = self.material.density * volume
+            if volume.dtype != x.dtype:  # in the positions' precision (state_positions)
+                volume = volume.astype(x.dtype)
+            mass = self.material.density.astype(x.dtype) * volume
         else:
             mass = jnp.asarray(particles.mass)
             mc, vc, rc = concrete(mass), concrete(volume), concrete(self.material.density)

@@ -221,7 +221,7 @@ def exchange(sim, term, fields: GridFields, dt, constraint):
     3.18, 3.22 -- ``exchange_dv`` = Dp/m, the first change as a velocity."""
     m, force = fields.mass, fields.force
     p, dp = term.exchange_momentum(sim, fields, fields.momentum)
-    p_plus, _ = term.exchange_momentum(sim, fields, p + force * dt)
+    p_plus, _ = term.exchange_updated_momentum(sim, fields, p + force * dt, dt)
     safe_dt = jnp.where(dt > 0, dt, 1.0)
     results = {"exchange_acceleration": safe_divide(p_plus - p - force * dt, m) / safe_dt}
     dv = exchange_dv(term, dp, m, constraint)

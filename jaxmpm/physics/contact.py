@@ -96,6 +96,7 @@ conditions"): a fixed node stays fixed whatever contact asked.
 
 from __future__ import annotations
 
+import copy
 import math
 import numbers
 
@@ -113,6 +114,13 @@ from ..transfer.operators import safe_divide
 from .term import Term
 
 LAWS = ("stick", "frictionless", "coulomb")
+# the weights of the gradients behind the normals: "mass", g^a = sum_p M_p G_pi; "volume", the deformed
+# volume, g^a = sum_p J_p V0_p G_pi (NairnMPM 19.0, CrackVelocityFieldMulti AddVolumeGradient)
+GRADIENTS = ("mass", "volume")
+# the separation criterion in the second application (on p + f dt): "start", the gap at the step's
+# start; "extrapolated", the gap moved over the step by dt (Dp+ . n - dt Df . n / 2) / m_red (NairnMPM
+# 19.0, CoulombFriction GetFrictionalDeltaMomentum)
+SEPARATION_UPDATES = ("start", "extrapolated")
 NORMALS = ("first", "max_gradient", "average")  # or a vector: the specified normal
 
 
@@ -162,9 +170,12 @@ class Contact(Term):
     friction: jnp.ndarray
     separation: float | None = eqx.field(static=True)
     series_correction: bool = eqx.field(static=True)
+    gradient: str = eqx.field(static=True, default="mass")
+    separation_update: str = eqx.field(static=True, default="start")
 
     def __init__(self, law: str = "frictionless", friction=0.0, normal="first", materials: int = 2,
-                 separation: float | None = None, series_correction: bool = True):
+                 separation: float | None = None, series_correction: bool = True, gradient: str = "mass",
+                 separation_update: str = "start"):
         check(law in LAWS, f"Contact: law = {law!r}; choose one of {', '.join(LAWS)}")
         normal = normal_option("Contact", normal)
         materials = positive_int("Contact", "materials", materials)
@@ -178,6 +189,13 @@ class Contact(Term):
         check(isinstance(series_correction, bool),
               f"Contact: series_correction = {series_correction!r}; use True or False")
         self.series_correction = series_correction
+        check(gradient in GRADIENTS, f"Contact: gradient = {gradient!r}; choose 'mass' (sum_p M_p G_pi, the default) "
+                                     "or 'volume' (sum_p J_p V0_p G_pi, NairnMPM's deformed-volume gradients)")
+        self.gradient = gradient
+        check(separation_update in SEPARATION_UPDATES,
+              f"Contact: separation_update = {separation_update!r}; choose 'start' (the gap at the step's start in "
+              "both applications) or 'extrapolated' (NairnMPM: moved over the step in the second)")
+        self.separation_update = separation_update
         self.friction = NON_NEGATIVE.leaf("Contact", "friction", friction, fix="the Coulomb coefficient mu")
         mu = concrete(self.friction)
         check(law == "coulomb" or mu is None or not np.any(mu), f"Contact: friction = {friction} needs law='coulomb'")
@@ -201,16 +219,29 @@ class Contact(Term):
         """sum_p M_p G_pi: the material mass gradients, for the contact normals (Nairn contact notes
         §3.2; the stacked scatter sums each material's particles only, S^a of 000 eq. 4.4); with a
         ``separation`` criterion also sum_p S_pi M_p X_p, the materials' nodal mass moments."""
-        out = {"mass_gradient": Gradient(state.mass)}
+        weight = state.mass if self.gradient == "mass" else jnp.linalg.det(state.F) * state.volume0  # J_p V0_p
+        out = {"mass_gradient": Gradient(weight)}
         if self.separation is not None:
             out["mass_moment"] = Weighted(state.mass[:, None] * state.x)
         return out
 
-    def touching(self, fields, m0, m1, normal, h):
+    def touching(self, fields, m0, m1, normal, h, updated=None):
         """The separation criterion: True where the materials' nodal centres of mass x^a = (S^T M X)^a / m^a
-        are closer along n than ``separation`` cells, (x^1 - x^0) . n <= separation h."""
+        are closer along n than ``separation`` cells, gap = (x^1 - x^0) . n - separation h <= 0.
+        ``updated`` = (p + f dt, f, dt) in the second application under ``separation_update=
+        "extrapolated"``: the gap moved over the step, gap + dt (Dp+ . n - dt Df . n / 2) / m_red with
+        Dp+ = (m^0 p+^1 - m^1 p+^0)/m, Df likewise of f, m_red = m^0 m^1 / m (NairnMPM 19.0,
+        CoulombFriction GetFrictionalDeltaMomentum; there the test is gap < 0)."""
         x0, x1 = (safe_divide(q, mass) for q, mass in zip(self.split(fields.values["mass_moment"]), (m0, m1)))
-        return jnp.sum((x1 - x0) * normal, axis=-1) <= self.separation * h
+        gap = jnp.sum((x1 - x0) * normal, axis=-1) - self.separation * h
+        if updated is None:
+            return gap <= 0.0
+        p_plus, force, dt = updated
+        m = m0 + m1
+        stick_p = safe_divide(m0[:, None] * self.split(p_plus)[1] - m1[:, None] * self.split(p_plus)[0], m)
+        stick_f = safe_divide(m0[:, None] * self.split(force)[1] - m1[:, None] * self.split(force)[0], m)
+        rate = jnp.sum((stick_p - 0.5 * dt * stick_f) * normal, axis=-1)
+        return gap + dt * safe_divide(rate, safe_divide(m0 * m1, m)) < 0.0
 
     # ------------------------------------------------------------------ the contact law
     def per_material(self, a):
@@ -324,18 +355,43 @@ class Contact(Term):
     def grid_reads(self, sim) -> frozenset:
         return frozenset({"momentum", "force"})  # the law acts on p and on p + f dt (003 eq. 3.19)
 
-    def exchange_momentum(self, sim, fields, p):
+    def exchange_momentum(self, sim, fields, p, dt=None):
         """The contact law on stacked nodal momenta ``p`` (M n, D): (p after contact, the change)
         (module docstring; 003 eqs. 3.9, 3.12).  The exchange phase applies it to p and to
-        p + f dt, then the velocity conditions follow."""
+        p + f dt, then the velocity conditions follow; ``dt`` (the second application with
+        ``separation_update="extrapolated"``) moves the gap over the step."""
         m = fields.mass
         if self.materials == 2:
             normal = self.contact_normal(fields["mass_gradient"])
-            touching = None if self.separation is None else self.touching(fields, *self.split(m), normal, sim.grid.h)
+            touching = None
+            if self.separation is not None:
+                touching = self.touching(fields, *self.split(m), normal, sim.grid.h,
+                                         None if dt is None else (p, fields.force, dt))
         else:
+            check(dt is None, "Contact: separation_update='extrapolated' is built for two materials; use 'start'")
             normal = self.material_normals(fields["mass_gradient"], m)
             touching = None if self.separation is None else self.touching_rest(fields, m, normal, sim.grid.h)
         return self.apply(p, m, normal, touching)
+
+    def exchange_updated_momentum(self, sim, fields, p_plus, dt):
+        """The second application, on p + f dt; with ``separation_update="extrapolated"`` the gap
+        moved over the step (:meth:`touching`)."""
+        extrapolate = self.separation is not None and self.separation_update == "extrapolated"
+        return self.exchange_momentum(sim, fields, p_plus, dt if extrapolate else None)
+
+    def in_conventions(self, conventions: str):
+        """``conventions="nairnmpm"``: deformed-volume gradients for the normals and the
+        extrapolated separation (NairnMPM 19.0's rules; module docstring)."""
+        if conventions != "nairnmpm":
+            return self
+        for name, default, preset in (("gradient", "mass", "volume"), ("separation_update", "start", "extrapolated")):
+            value = getattr(self, name)
+            check(value in (default, preset), f"Contact: {name} = {value!r} with conventions='nairnmpm', which sets "
+                                              f"{name}={preset!r}; drop {name}= or use conventions='jaxmpm'")
+        new = copy.copy(self)
+        object.__setattr__(new, "gradient", "volume")  # static fields: the model's hash changes
+        object.__setattr__(new, "separation_update", "extrapolated")
+        return new
 
     def particle_action(self, sim, old, new, transfer, solution, dt):
         """Record each particle's share of the contact force, M_p S (Dp^a+ / (m^a dt))."""

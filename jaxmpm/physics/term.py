@@ -100,7 +100,17 @@ class Term(eqx.Module):
         D) on the velocity fields, or None when the term exchanges nothing."""
         return None
 
+    def exchange_updated_momentum(self, sim, fields, p_plus, dt):
+        """The exchange on the updated momenta p + f dt (the second application, 003 eq. 3.19);
+        by default :meth:`exchange_momentum` on them.  A law whose second call differs (contact's
+        extrapolated separation) overrides it; ``fields`` holds the step's p and f."""
+        return self.exchange_momentum(sim, fields, p_plus)
+
     series_correction = False  # an exchanging term: XPIC/FMPM subtract its series term (003 eqs. 3.18, 3.22)
+
+    def in_conventions(self, conventions: str) -> "Term":
+        """The term in another code's rules (``Simulation(conventions=...)``): itself by default."""
+        return self
 
     def read_grid(self, sim, fields, solution, dt) -> dict:
         """Phase "readers": {name: array} added to the grid solution."""

@@ -1,0 +1,59 @@
+"""Particles are checked where they enter (issue 29, item 2): jm.Particles rejects what it cannot
+hold with one InputError naming the argument; Simulation.init follows one precision rule (the
+positions'), warning when it narrows another array."""
+
+import warnings
+
+import numpy as np
+import pytest
+
+import jaxmpm as jm
+
+GRID = jm.Grid((0.0,), (4.0,), (4,))
+
+
+def particles(**overrides):
+    kwargs = dict(x=np.array([[1.0], [2.0], [3.0]]), v=np.zeros((3, 1)), volume=np.ones(3))
+    kwargs.update(overrides)
+    return jm.Particles(**kwargs)
+
+
+@pytest.mark.parametrize("overrides, message", [
+    (dict(x=np.zeros((0, 1)), v=np.zeros((0, 1)), volume=np.zeros(0)), "x holds no particles"),
+    (dict(v=np.zeros((2, 1))), r"v has shape \(2, 1\) but x has \(3, 1\)"),
+    (dict(v=np.zeros(3)), r"v has shape \(3,\) but x has \(3, 1\)"),
+    (dict(volume=np.ones(2)), r"volume has shape \(2,\); give one reference volume per particle, shape \(3,\)"),
+    (dict(mass=np.ones(4)), r"mass has shape \(4,\)"),
+    (dict(x=np.array([["a"], ["b"], ["c"]])), r"x \(positions.*\) has dtype <U1; give real numbers"),
+    (dict(x=np.ones((3, 1)) * 1j), "x .* has dtype complex128"),
+    (dict(v=np.array([["fast"]] * 3)), "v .* has dtype <U4"),
+    (dict(x=np.array([1.0, 2.0, 3.0])), r"x has shape \(3,\); give positions as \(N, D\)"),
+    (dict(x=np.ones((3, 4)), v=np.zeros((3, 4))), r"x has shape \(3, 4\); give positions as \(N, D\) with D = 1, 2"),
+    (dict(x=np.array([[1.0], [np.nan], [3.0]])), "x = .* must be a finite number"),
+    (dict(v=np.array([[0.0], [np.inf], [0.0]])), "v = .* must be a finite number"),
+    (dict(volume=np.array([1.0, 0.0, 1.0])), "volume = .* must be positive"),
+    (dict(mass=-np.ones(3)), "mass = .* must be positive"),
+    (dict(ppc=0), "ppc"),
+])
+def test_bad_particles_get_one_line(overrides, message):
+    with pytest.raises(jm.InputError, match=message):
+        particles(**overrides)
+
+
+def test_integer_positions_are_positions():
+    """Integer positions inside the grid are inside it (they take the default float), not "outside"."""
+    sim = jm.Simulation(grid=GRID, shape=jm.Linear(), material=jm.LinearElastic(E=1.0), scheme=jm.FLIP())
+    state = sim.init(particles(x=np.array([[1], [2], [3]])))
+    assert state.x.dtype == np.float64
+    np.testing.assert_array_equal(np.asarray(state.x)[:, 0], [1.0, 2.0, 3.0])
+
+
+def test_precision_follows_the_positions_and_warns_when_it_narrows():
+    sim = jm.Simulation(grid=GRID, shape=jm.Linear(), material=jm.LinearElastic(E=1.0), scheme=jm.FLIP())
+    with pytest.warns(UserWarning, match="particles.v is float64 but the positions are float32"):
+        state = sim.init(particles(x=np.array([[1.0], [2.0], [3.0]], np.float32), volume=np.ones(3, np.float32)))
+    assert state.x.dtype == state.v.dtype == state.mass.dtype == np.float32
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # float32 velocities with float64 positions widen: no warning
+        state = sim.init(particles(v=np.zeros((3, 1), np.float32)))
+    assert state.v.dtype == np.float64

@@ -31,8 +31,10 @@ uses -n), so the two changes are equal and opposite and momentum is conserved (N
 §3.2: normals found per material that are not equal and opposite do not conserve it).  The
 gradient options use the material mass gradients g^a_i = sum_p M_p G_pi.  G_pi is the gradient of
 S_i at the particle, so g^a points out of material a (a particle on the -x side of node i has
-G_pi > 0).  NairnMPM extrapolates volume gradients sum_p V_p G_pi instead (notes §3.2, for bodies
-of different densities); the two agree for bodies of one density.  ``normal=``
+G_pi > 0).  NairnMPM extrapolates the deformed-volume gradients sum_p J_p V0_p G_pi instead (notes
+§3.2, for bodies of different densities; NairnMPM 19.0, CrackVelocityFieldMulti AddVolumeGradient):
+``gradient="volume"`` (set by ``Simulation(conventions="nairnmpm")``); they differ from the mass
+gradients wherever J != 1, even for bodies of one density.  ``normal=``
 
 * ``"first"`` (default): material 0's, n = g^0 / |g^0| (notes eq. 3.1 for material 0) -- body 0
   is the reference ("master") surface: exact where body 0 is flat, so number the flat (or flatter)
@@ -74,8 +76,12 @@ a corner; NairnMPM's default, a logistic regression of the particle positions ar
 Contact nodes are the nodes where both materials have mass -- the bodies then interact from about
 one cell apart.  The optional separation criterion (``separation=s``, in cells) narrows them to
 the nodes where the materials' nodal centres of mass x^a_i = sum_p S_pi M_p X_p / m^a_i are closer
-along the normal than s h: (x^1 - x^0) . n <= s h (a displacement check in the spirit of
-NairnMPM's contact by displacements).
+along the normal than s h: (x^1 - x^0) . n <= s h (NairnMPM's contact by position,
+``<ContactPosition>``).  In the second application, on the updated momenta, NairnMPM moves the gap
+over the step, (x^1 - x^0) . n - s h + dt (Dp+ . n - dt Df . n / 2) / m_red < 0 (Dp+, Df the stick
+changes of p + f dt and of f, m_red = m^0 m^1 / m; CoulombFriction GetFrictionalDeltaMomentum):
+``separation_update="extrapolated"`` (set by ``conventions="nairnmpm"``); the default "start" keeps
+the gap of the step's start in both applications.
 
 More than two materials (``materials=M``): each material a meets *the rest* on a node -- the
 other materials' mass m - m^a and momentum p - p^a as one body (NairnMPM's multimaterial contact)

@@ -39,7 +39,8 @@ What the NairnMPM input is (worked out from NairnMPM's reader; see :func:`nairnm
 * the schemes: FLIP is NairnMPM's default; PIC ``XPICOrder`` 1, XPIC(m) ``XPICOrder`` m, FMPM(k)
   ``FMPMOrder`` k of the ``PeriodicXPIC`` custom task every step; jaxmpm runs PIC and XPIC under
   ``conventions="nairnmpm"`` (the position update from v(m) + a dt; there are no boundary
-  conditions, so the series start and the reaction do not matter), FLIP and FMPM in its own;
+  conditions, so the series start and the reaction do not matter), FLIP and FMPM on one field in
+  its own, every contact case under ``conventions="nairnmpm"`` (:attr:`Case2D.conventions`);
 * contact (``Case2D.contact`` other than "none"): ``<MultiMaterialMode>`` (each material its own
   velocity field) with a ``CoulombFriction`` contact law (``<Material Type="61">``: ``coeff`` -1 is
   its stick law, 0 frictionless, mu > 0 Coulomb; Materials/CoulombFriction.cpp) named by
@@ -60,13 +61,13 @@ What the NairnMPM input is (worked out from NairnMPM's reader; see :func:`nairnm
   separation in both codes (with ``separation=None`` in jaxmpm).
 
 Where the codes' rules differed, each confirmed by a scratch copy of jaxmpm that followed
-NairnMPM's rule and then agreed to the archive's precision (:data:`RULES`): the gradient normals
+NairnMPM's rule and then agreed to the archive's precision (:data:`RULES`): XPIC/FMPM with contact
+(NairnMPM applies the contact law to every increment of the series), the gradient normals
 (NairnMPM's deformed-volume gradients) and the position separation (NairnMPM extrapolates it over
-the step in the second contact call) are now jaxmpm options (``jm.Contact(gradient="volume",
-separation_update="extrapolated")``, both selected by ``conventions="nairnmpm"``) and those cases
-agree; XPIC/FMPM with contact (NairnMPM applies the contact law to every increment of the series)
-and Coulomb friction on the impact's line (NairnMPM's stick/slide test on a round-off tangential)
-still differ (:data:`DIFFERS`).
+the step in the second contact call) are now jaxmpm options (``jm.Contact(series="incremental",
+gradient="volume", separation_update="extrapolated")``, all selected by ``conventions="nairnmpm"``)
+and those cases agree; Coulomb friction on the impact's line (NairnMPM's stick/slide test on a
+round-off tangential) still differs (:data:`DIFFERS`).
 
 Table columns: per quantity (disk 1's p_x and p_y, the kinetic and strain energy) the largest
 difference over half a unit in the archive's 7th digit of the value (``ulps``; <= 1 is agreement
@@ -192,7 +193,8 @@ class Case2D:
     def conventions(self) -> str:
         """jaxmpm's conventions for the case: "nairnmpm" for PIC and XPIC (their position update from
         v(m) + a dt) and with contact (deformed-volume gradient normals, the extrapolated position
-        separation), jaxmpm's own for FLIP and FMPM on one field (the codes' rules agree)."""
+        separation, the law on the XPIC/FMPM series' increments), jaxmpm's own for FLIP and FMPM on
+        one field (the codes' rules agree)."""
         return "nairnmpm" if self.scheme.partition(":")[0] in ("pic", "xpic") or self.contact != "none" else "jaxmpm"
 
     @property
@@ -214,13 +216,7 @@ CASES = (
 )
 
 # the cases whose rules differ (case name -> the rule), each confirmed in a scratch copy (RULES)
-_SERIES = ("contact in the XPIC/FMPM series: NairnMPM applies the law to every increment of the series "
-           "(CrackVelocityFieldMulti::MaterialXPICIncrementOnCVF), jaxmpm subtracts the order k-1 series of "
-           "the exchange Dp/m (003 eqs. 3.18, 3.22)")
 DIFFERS = {
-    "fmpm2-frictionless": _SERIES,
-    "fmpm2-stick": _SERIES,
-    "xpic2-frictionless": _SERIES,
     "flip-coulomb0.3": ("Coulomb stick/slide test: NairnMPM compares Dp.t^ (t^ the unit tangential) with mu |Dp.n|, "
                         "which on the impact's line, where the tangential is round-off, is ~0.7 |Dp.n| and slides "
                         "along a grid axis; jaxmpm compares |Dp_t|"),
@@ -535,18 +531,24 @@ final particles to round-off.
 
 1. **Contact in the XPIC/FMPM series** (FMPM(2) frictionless and stick, XPIC(2) frictionless).
    jaxmpm (003 eqs. 3.18, 3.22): v(k) = series_k(v~) - series_{k-1}(Dv), Dv = Dp/m the change of the
-   first contact call.  NairnMPM (NairnMPM_Class/XPICExtrapolationTask.cpp GetDeltaV ->
-   ImposeIncrementalContact; Nodes/CrackVelocityFieldMulti.cpp MaterialXPICIncrementOnCVF): the
-   series is summed as increments, v(1) = v~ (FMPM; XPIC: v(1) = v, then v* = v~ + the increments),
-   D_k = (I - S+S) D_{k-1}, and on every contact node the law is applied again to the accumulated
-   stick change, Dp_acc += (m^a/m) sum_b m^b D_k^b - m^a D_k^a (starting from the stick change of the
-   updated momenta), L = law(Dp_acc) with the step's normal and separation, and D_k^a += (L - N)/m^a,
-   D_k^b -= (L - N)/m^b, N = L (N starting from the law's change of the updated momenta).  With stick
+   first contact call.  NairnMPM (NairnMPM_Class/XPICExtrapolationTask.cpp Execute, GetDeltaV ->
+   ImposeIncrementalContact, UpdateXStar; Nodes/MatVelocityField.cpp XPICSupport;
+   Nodes/CrackVelocityFieldMulti.cpp MaterialXPICIncrementOnCVF, with the cache that the lumped
+   contact's calls leave, Nodes/MaterialContactNode.cpp SetContactInfo, ContactSetDelPi): the
+   series is summed as increments, D_1 = v~ (FMPM; XPIC: D_1 = v, then v* = v~ + the increments),
+   D_k = Z (I - S+S) D_{k-1}, and on every contact node the law is applied again to the accumulated
+   stick change, A += (m^a/m) sum_b m^b D_k^b - m^a D_k^a (starting from the stick change of the
+   updated momenta, the second contact call's), L = law(A) with the step's normal and
+   separation, and D_k^a += (L - N)/m^a, D_k^b -= (L - N)/m^b, N = L (N starting from the second
+   call's applied change); for XPIC the changes also go to the force (AddFtotScaled).  With stick
    every increment moves with the centre of mass, so FMPM stick is NairnMPM's one-field FMPM exactly
    (E/E0 0.8066210 both); jaxmpm's does not revert (0.7873).  Effect: FMPM(2) frictionless E/E0 at
    t = 3 0.4447 (jaxmpm) against 0.5800 (NairnMPM), particles 0.29 h apart; XPIC(2) frictionless 0.4893
    against 0.3784.  Scratch (jaxmpm's FMPM/XPIC update with the incremental contact): FMPM(2) stick
    and frictionless, XPIC(2) frictionless <= 1 ulp at every step, final particles 3.6e-14 h, 1.1e-14 v0.
+   Now the option ``jm.Contact(series="incremental")`` (set by ``conventions="nairnmpm"``; the law on
+   the increments is jaxmpm's :class:`jaxmpm.physics.contact.ContactIncrements`, the loop
+   ``jaxmpm.transfer.series.exchange_increments``): these cases agree (final particles <= 4.1e-14 h).
 2. **Gradient normals** (``normal="average"``, ``"max_gradient"``).  jaxmpm: g^a = sum_p M_p G_pi.
    NairnMPM: g^a = sum_p V_p G_pi with V_p = det(F_p) m_p / rho_p, the deformed area times the thickness
    (Nodes/CrackVelocityFieldMulti.cpp AddVolumeGradient, MPM_Classes/MatPoint2D.cpp GetVolume

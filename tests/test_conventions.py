@@ -288,6 +288,8 @@ def test_cli_conventions(tmp_path, capsys):
     assert status == 0
     with h5py.File(out) as f:
         assert '"conventions": "nairnmpm"' in f.attrs["command"]
+        assert (f.attrs["conventions"], f.attrs["constrained force"]) == ("nairnmpm", "reaction")
+        assert (f.attrs["position"], f.attrs["series boundary"]) == ("PV_tilde", "unconstrained_start")
     from jaxmpm.scenes.command import setup_from_options
 
     setup = setup_from_options({"scene": "bar", "scheme": "xpic:2", "conventions": "nairnmpm"})
@@ -389,3 +391,254 @@ def test_contact_extrapolated_separation_in_the_second_application():
         plus, _ = contact.exchange_updated_momentum(sim, fields, jnp.asarray(p_plus), dt)
         expected, _ = contact.apply(jnp.asarray(p_plus), fields.mass, normal, jnp.asarray(second))
         close(np.asarray(plus), np.asarray(expected))
+
+
+# ---------------------------------------------- contact on the XPIC/FMPM series' increments (NairnMPM's rule)
+def nairnmpm_law(stick, both, normal, law, mu=0.0):
+    """jaxmpm's contact law (003 eq. 3.9) on a stick change, NumPy: material 0's Dp on the nodes ``both``."""
+    if law == "stick":
+        return np.where(both[:, None], stick, 0.0)
+    dpn = stick @ normal
+    approach = both & (dpn < 0)
+    normal_part = dpn[:, None] * normal[None]
+    if law == "frictionless":
+        return np.where(approach[:, None], normal_part, 0.0)
+    tangential = stick - normal_part
+    t_norm = np.linalg.norm(tangential, axis=1)
+    limit = mu * np.abs(dpn)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        sliding = normal_part + limit[:, None] * tangential / t_norm[:, None]
+    return np.where(approach[:, None], np.where((t_norm > limit)[:, None], sliding, stick), 0.0)
+
+
+def nairnmpm_contact_step(sim, state, scheme, law, mu=0.0, separation=None, dt=0.01):
+    """One USL step of FMPM(2) or XPIC(2) with NairnMPM's incremental contact, written with dense
+    S (N, 2n) and S+S (2n, 2n) over the two materials' stacked fields (NairnMPM_Class/XPICExtrapolationTask,
+    Nodes/CrackVelocityFieldMulti MaterialXPICIncrementOnCVF): the lumped law on p and on p' + f dt; the
+    series D_1 = v~ (FMPM) or v (XPIC), R = (I - S+S) D_1 and on every contact node A = the stick change of
+    p' + f dt plus that of R, L = law(A), D_2 = R + (L - N)/m^a (N the second call's change); v+ = D_1 + D_2,
+    V = S v+, X += (V + V^n) dt/2 (FMPM); v* = v~ + D_2, V = S v*, X += (S v* + dV/2) dt (XPIC,
+    PV_tilde).  The normal is (1, 0); the separation criterion, the gap moved over the step by A (NairnMPM's
+    GetFrictionalDeltaMomentum with the second call's force stick change; at s = 1 both the move by A and
+    the force term change the result here, by 0.1 and 0.07 of the velocities)."""
+    fields = p2g(sim, state)
+    n = sim.grid.num_nodes
+    S, _ = dense_weights(sim.stencil(state), 2 * n)  # each particle on its material's copy of the nodes
+    M, X, V = np.asarray(state.mass), np.asarray(state.x), np.asarray(state.v)
+    m, p, f = np.asarray(fields.mass), np.asarray(fields.momentum), np.asarray(fields.force)
+    m0, m1 = m[:n], m[n:]
+    both = (m0 > 0) & (m1 > 0)
+    active = m > 0
+    safe = np.where(active, m, 1.0)
+    SpS = np.where(active[:, None], (S.T * M) @ S / safe[:, None], 0.0)
+    normal = np.array([1.0, 0.0])
+    mt = np.where(both, m0 + m1, 1.0)
+
+    def stick(q):
+        return np.where(both[:, None], (m0[:, None] * q[n:] - m1[:, None] * q[:n]) / mt[:, None], 0.0)
+
+    def per_mass(dp):
+        return np.concatenate([np.where((m0 > 0)[:, None], dp / np.where(m0 > 0, m0, 1.0)[:, None], 0.0),
+                               -np.where((m1 > 0)[:, None], dp / np.where(m1 > 0, m1, 1.0)[:, None], 0.0)])
+
+    touch_first = touch_second = touch_series = None
+    if separation is not None:
+        q = (S.T * M) @ X
+        x_mean = q / safe[:, None]
+        gap = (x_mean[n:] - x_mean[:n]) @ normal - separation * sim.grid.h
+        m_red = np.where(both, m0 * m1 / mt, 1.0)
+        stick_f = stick(f)
+        touch_first = gap <= 0
+
+        def touch_series(acc):
+            return gap + dt * ((acc - 0.5 * dt * stick_f) @ normal) / m_red < 0
+
+    def lumped_law(stick_change, touching):
+        return nairnmpm_law(stick_change, both if touching is None else both & touching, normal, law, mu)
+
+    dp = lumped_law(stick(p), touch_first)
+    p1 = p + np.concatenate([dp, -dp])
+    up = p1 + f * dt
+    if separation is not None:
+        touch_second = touch_series(stick(up))
+    dp_plus = lumped_law(stick(up), touch_second)
+    p_plus = up + np.concatenate([dp_plus, -dp_plus])
+    v, v_tilde = p1 / safe[:, None], p_plus / safe[:, None]
+    d1 = v_tilde if scheme == "fmpm" else v
+    r = d1 - SpS @ d1
+    acc = stick(up) + stick(m[:, None] * r)
+    L = lumped_law(acc, None if separation is None else touch_series(acc))
+    d2 = r + per_mass(L - dp_plus)
+    if scheme == "fmpm":
+        V_new = S @ (d1 + d2)
+        return V_new, X + 0.5 * (V_new + V) * dt, (dp, dp_plus, L)
+    Sv_star = S @ (v_tilde + d2)
+    return Sv_star, X + (Sv_star + 0.5 * (Sv_star - V)) * dt, (dp, dp_plus, L)
+
+
+def incremental_sim(pair_sim, scheme, update="USL", **contact):
+    return jm.Simulation(grid=pair_sim.grid, shape=pair_sim.shape, material=pair_sim.material, scheme=scheme,
+                         update=update, terms=(jm.Contact(normal=(1.0, 0.0), series="incremental", **contact),))
+
+
+@pytest.mark.parametrize("scheme, law, options", [
+    ("fmpm", "stick", {}), ("fmpm", "frictionless", {}), ("xpic", "stick", {}), ("xpic", "frictionless", {}),
+    ("fmpm", "coulomb", {"friction": 0.3}),
+    ("fmpm", "frictionless", {"separation": 1.0, "separation_update": "extrapolated"}),
+])
+def test_incremental_contact_series_against_nairnmpm_loop(scheme, law, options):
+    """Contact(series="incremental"): one step of FMPM(2) and XPIC(2, position="PV_tilde") on the two
+    blocks equals NairnMPM's loop written out densely (:func:`nairnmpm_contact_step`); the law acts in
+    the increment (L differs from the second call's change on some node), the result differs from
+    the default series="separate" (frictionless), and conventions="nairnmpm" selects it (XPIC, stick)."""
+    pair, state, _ = contact_pair()
+    dt = 0.01
+    make = jm.FMPM(2) if scheme == "fmpm" else jm.XPIC(2, position="PV_tilde")
+    sim = incremental_sim(pair, make, law=law, **options)
+    V_ref, X_ref, (_, dp_plus, L) = nairnmpm_contact_step(sim, state, scheme, law, options.get("friction", 0.0),
+                                                          options.get("separation"), dt)
+    assert np.max(np.abs(L - dp_plus)) > 1e-3 * np.max(np.abs(dp_plus))  # the increment's law acts
+    new = sim.step(state, dt)
+    close(np.asarray(new.v), V_ref)
+    close(np.asarray(new.x) - np.asarray(state.x), X_ref - np.asarray(state.x))
+    if law == "frictionless" and not options:  # the default differs
+        separate = jm.Simulation(grid=pair.grid, shape=pair.shape, material=pair.material, scheme=make,
+                                 terms=(jm.Contact(law=law, normal=(1.0, 0.0)),)).step(state, dt)
+        assert np.max(np.abs(np.asarray(separate.v) - V_ref)) > 1e-6 * np.max(np.abs(V_ref))
+    if scheme == "xpic" and law == "stick":  # the preset: XPIC's NairnMPM options and the incremental contact
+        preset = jm.Simulation(grid=pair.grid, shape=pair.shape, material=pair.material, scheme=jm.XPIC(2),
+                               terms=(jm.Contact(law=law, normal=(1.0, 0.0)),), conventions="nairnmpm")
+        assert preset.term(jm.Contact).series == "incremental"
+        close(np.asarray(preset.step(state, dt).v), V_ref)
+
+
+@pytest.mark.parametrize("update", ["USL", "USF", "MUSL"])
+def test_incremental_stick_equals_the_one_field_run(update):
+    """With stick every increment moves with the centre of mass, so FMPM(2) with Contact(law="stick",
+    series="incremental") is the one-field FMPM(2) (positions, velocities, F over 4 steps, to round-off),
+    the strain-update series of USF and MUSL included; the default series="separate" is not."""
+    pair, state, _ = contact_pair()
+    dt = 0.01
+    one = jm.Simulation(grid=pair.grid, shape=pair.shape, material=pair.material, scheme=jm.FMPM(2), update=update)
+    single = one.init(jm.Particles(x=np.asarray(state.x), v=np.asarray(state.v), volume=np.asarray(state.volume0)))
+    single = eqx.tree_at(lambda s: s.F, single, state.F)
+    np.testing.assert_array_equal(np.asarray(single.mass), np.asarray(state.mass))
+
+    def run(sim, s):
+        return jax.jit(lambda s: jax.lax.fori_loop(0, 4, lambda _, s: sim.step(s, dt), s))(s)
+
+    ref = run(one, single)
+    new = run(incremental_sim(pair, jm.FMPM(2), update, law="stick"), state)
+    for name in ("x", "v", "F"):
+        close(np.asarray(getattr(new, name)) - np.asarray(getattr(state, name)),
+              np.asarray(getattr(ref, name)) - np.asarray(getattr(state, name)))
+    separate = jm.Simulation(grid=pair.grid, shape=pair.shape, material=pair.material, scheme=jm.FMPM(2),
+                             update=update, terms=(jm.Contact(law="stick", normal=(1.0, 0.0)),))
+    dv = np.max(np.abs(np.asarray(run(separate, state).v) - np.asarray(ref.v)))
+    assert dv > 1e-6 * np.max(np.abs(np.asarray(ref.v)))
+
+
+def test_incremental_series_refusals():
+    """series="incremental": two materials only, not with series_correction=False, not with a series
+    mode other than the constrained iterates; the preset leaves more materials "separate"."""
+    with pytest.raises(jm.InputError, match="series = 'fast'"):
+        jm.Contact(series="fast")
+    with pytest.raises(jm.InputError, match="materials = 3"):
+        jm.Contact(series="incremental", materials=3)
+    with pytest.raises(jm.InputError, match="series_correction=False"):
+        jm.Contact(series="incremental", series_correction=False)
+    pair, state, _ = contact_pair()
+    with pytest.raises(jm.InputError, match="boundary = 'result' with the exchange on the series' increments"):
+        incremental_sim(pair, jm.FMPM(2, boundary="result")).step(state, 0.01)
+    assert jm.Contact(materials=3).in_conventions("nairnmpm").series == "separate"
+    assert jm.Contact(series_correction=False).in_conventions("nairnmpm").series == "separate"
+    assert jm.Contact().in_conventions("nairnmpm").series == "incremental"
+
+
+@pytest.mark.slow
+def test_gradient_through_the_incremental_series_against_central_differences():
+    """d/d(mu, E) of a loss after 2 steps of FMPM(2) with Coulomb contact on the series' increments
+    (Contact(series="incremental"): the law inside the series' fori_loop) equals central differences
+    in float64."""
+    pair, state, _ = contact_pair()
+    base = incremental_sim(pair, jm.FMPM(2), law="coulomb", friction=0.3)
+
+    def loss(mu, E):
+        sim = jm.set_params(base, friction=mu, E=E)
+        s = jax.lax.fori_loop(0, 2, lambda _, s: sim.step(s, 0.01), state)
+        return jnp.sum(s.mass[:, None] * s.v**2) + jnp.sum((s.x - state.x) ** 2)
+
+    grad = jax.jit(jax.grad(loss, argnums=(0, 1)))(0.3, 50.0)
+    f = jax.jit(loss)
+    fd_mu = central_difference(lambda mu: f(mu, 50.0), 0.3, 1e-4, order=4)
+    fd_E = central_difference(lambda e: f(0.3, e), 50.0, 1e-2, order=4)
+    np.testing.assert_allclose(float(grad[0]), float(fd_mu), rtol=1e-7)
+    np.testing.assert_allclose(float(grad[1]), float(fd_E), rtol=1e-7)
+    assert abs(float(grad[0])) > 1e-4 and abs(float(grad[1])) > 1e-4  # the parameters act
+
+
+def apart_bars(scheme, conventions, **contact):
+    """Two 1D bars apart (no node carries both materials), a fixed end (x = 0) and a prescribed velocity
+    0.2 on the last node of the second bar (x = 3.75, with mass), a prestrain: one step's (V, X - X^n)."""
+    grid = jm.Grid((0.0,), (4.0,), (16,))
+    a = jm.fill(grid, jm.Box((0.0,), (1.5,)), ppc=2, velocity=0.4)
+    b = jm.fill(grid, jm.Box((2.5,), (3.75,)), ppc=2, velocity=-0.3)
+    scale = np.linspace(0.5, 1.5, a.num + b.num)[:, None]  # non-uniform velocities
+    particles = jm.Particles(x=np.concatenate([a.x, b.x]), v=np.concatenate([a.v, b.v]) * scale,
+                             volume=np.concatenate([a.volume, b.volume]), ppc=2)
+    boundary = [jm.Fixed(where=lambda x: x[:, 0] <= 1e-9),
+                jm.Prescribed(lambda x: np.abs(x[:, 0] - 3.75) < 1e-9, 0.2)]
+    sim = jm.Simulation(grid=grid, shape=jm.Linear(), material=jm.LinearElastic(E=3.0, nu=0.0, density=1.0),
+                        scheme=scheme, boundary=boundary, conventions=conventions,
+                        terms=(jm.Contact(law="frictionless", **contact),))
+    state = sim.init(particles, fields={"material": jnp.asarray(np.concatenate([np.zeros(a.num), np.ones(b.num)]))})
+    state = eqx.tree_at(lambda s: s.F, state, 1.0 + 0.05 * jnp.sin(7.0 * state.x[:, :, None]))
+    m = np.asarray(p2g(sim, state).mass)
+    assert m[0] > 0 and m[grid.num_nodes + 15] > 0 and not np.any((m[:17] > 0) & (m[17:] > 0))
+    new = sim.step(state, DT)
+    return sim, np.asarray(new.v)[:, 0], np.asarray(new.x - state.x)[:, 0]
+
+
+@pytest.mark.parametrize("scheme, conventions", [pytest.param(jm.FMPM(3), "jaxmpm", marks=pytest.mark.slow),
+                                                 (jm.XPIC(3), "jaxmpm"), (jm.XPIC(3), "nairnmpm")])
+def test_incremental_series_without_contact_nodes_is_the_series(scheme, conventions):
+    """Without contact nodes (:func:`apart_bars`) the incremental series -- its start (Z u + g, or p/m)
+    and the conditions on its result -- equals the plain series: FMPM's v+ and XPIC's v(m) in the
+    constrained iterates (an inhomogeneous condition), and under NairnMPM's conventions XPIC's
+    unconstrained start with the reaction, to round-off."""
+    sim, V, dX = apart_bars(scheme, conventions, series="incremental")
+    assert sim.term(jm.Contact).series == "incremental"
+    _, V0, dX0 = apart_bars(scheme, conventions, series_correction=False)  # the plain series
+    close(V, V0)
+    close(dX, dX0)
+
+
+def test_incremental_series_keeps_the_conditions_on_a_contact_node():
+    """The two blocks with Coulomb contact (normal (1, 0)) and v_y = 0 on the contact column x = 0.5
+    (jm.Slip, axis 1): the law on the series' increments acts after their zeroing (NairnMPM's order),
+    and as the increment's normal stick change moves the sliding limit mu |Dp.n| it changes the
+    constrained v_y inside the series; FMPM(2)'s v+ (the strain velocity) keeps v_y = 0 there for both
+    materials: the conditions hold on the result."""
+    from jaxmpm.schemes.base import combine_damping
+
+    pair, state, _ = contact_pair()
+    where = lambda x: np.abs(x[:, 0] - 0.5) < 1e-9  # noqa: E731
+    sim = jm.Simulation(grid=pair.grid, shape=pair.shape, material=pair.material, scheme=jm.FMPM(2),
+                        boundary=[jm.Slip(where, axis=1)],
+                        terms=(jm.Contact(law="coulomb", friction=0.3, normal=(1.0, 0.0), series="incremental"),))
+    dt = jnp.asarray(0.01)
+    constraint = sim.constraint(state.x.dtype)
+    fields = p2g(sim, state)
+    solution = grid_phases(sim, fields, dt, constraint)
+    upd = sim.scheme.update(state.v, state.x, fields.transfer, constraint, solution, combine_damping([]), dt)
+    n = sim.grid.num_nodes
+    column = where(np.asarray(sim.grid.node_coordinates()))
+    m = np.asarray(fields.mass)
+    on = column & (m[:n] > 0) & (m[n:] > 0)  # the constrained contact nodes
+    assert on.sum() >= 3
+    v_plus = np.asarray(upd.strain_velocity)
+    assert np.all(v_plus[:n][on, 1] == 0.0) and np.all(v_plus[n:][on, 1] == 0.0)
+    hook = solution["exchange_series"]
+    v_tilde = solution.v_tilde
+    change, _ = hook.adjust(constraint.zero(v_tilde - fields.transfer.s_plus_s(v_tilde)), hook.initial())
+    assert np.max(np.abs(np.asarray(change)[:n][on, 1])) > 1e-6  # the law moves the constrained component

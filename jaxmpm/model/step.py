@@ -218,13 +218,19 @@ def exchange(sim, term, fields: GridFields, dt, constraint):
     p' + f dt (003 eqs. 3.9, 3.12, 3.19: the second change Dp+ = f^C dt is the exchange force),
     giving p' and f' = (p+' - p')/dt.  Results: ``exchange_acceleration`` (f' - f)/m, each
     velocity field's exchange force per mass, and -- for the XPIC/FMPM series term of 003 eqs.
-    3.18, 3.22 -- ``exchange_dv`` = Dp/m, the first change as a velocity."""
+    3.18, 3.22 -- ``exchange_dv`` = Dp/m, the first change as a velocity; or, where the term applies
+    the exchange to the series' increments (``Term.exchange_increments``, contact's
+    ``series="incremental"``), ``exchange_series``, its hook cached from the second application."""
     m, force = fields.mass, fields.force
     p, dp = term.exchange_momentum(sim, fields, fields.momentum)
-    p_plus, _ = term.exchange_updated_momentum(sim, fields, p + force * dt, dt)
+    updated = p + force * dt
+    p_plus, dp_plus = term.exchange_updated_momentum(sim, fields, updated, dt)
     safe_dt = jnp.where(dt > 0, dt, 1.0)
     results = {"exchange_acceleration": safe_divide(p_plus - p - force * dt, m) / safe_dt}
-    dv = exchange_dv(term, dp, m, constraint)
+    increments = term.exchange_increments(sim, fields, updated, dp_plus, dt, updated=True)
+    dv = exchange_dv(term, dp, m, constraint) if increments is None else None
+    if increments is not None:
+        results["exchange_series"] = increments
     if dv is not None:
         results["exchange_dv"] = dv
     return fields.replace(momentum=p, force=(p_plus - p) / safe_dt), results
@@ -262,21 +268,27 @@ def grid_phases(sim, fields: GridFields, dt, constraint) -> GridSolution:
     return solution
 
 
-def lumped_velocity(sim, fields: GridFields, momentum, constraint):
+def lumped_velocity(sim, fields: GridFields, momentum, constraint, dt=None):
     """(v, Dv): the lumped grid velocity of nodal momenta (USF's start-of-step velocity, MUSL's
     re-extrapolated one) after the momentum exchange and with the velocity conditions, and the
-    exchange's change as a velocity (None without an exchange or its series term)."""
+    exchange's change as a velocity (None without an exchange or its series term) -- or, where the
+    term applies the exchange to the series' increments, its hook (``Term.exchange_increments``,
+    cached from this first application; ``dt`` the step's)."""
     exchanger = sim.exchange_term
     dv = None
     if exchanger is not None:
-        momentum, dp = exchanger.exchange_momentum(sim, fields, momentum)
-        dv = exchange_dv(exchanger, dp, fields.mass, constraint)
+        after, dp = exchanger.exchange_momentum(sim, fields, momentum)
+        dv = exchanger.exchange_increments(sim, fields, momentum, dp, 0.0 if dt is None else dt, updated=False)
+        if dv is None:
+            dv = exchange_dv(exchanger, dp, fields.mass, constraint)
+        momentum = after
     return constraint.apply(safe_divide(momentum, fields.mass)), dv
 
 
 def strain_velocity(sim, v, transfer, constraint, exchange_dv=None):
     """The grid velocity of a USF/MUSL strain update: the scheme's (FMPM: its series), with the
-    exchange's series term when velocity fields exchange momentum (003 §2.1.2, §2.1.6)."""
+    exchange's series term when velocity fields exchange momentum (003 §2.1.2, §2.1.6), or the
+    exchange on the series' increments (``exchange_dv`` the term's hook, :func:`lumped_velocity`)."""
     if exchange_dv is None:
         return sim.scheme.strain_grid_velocity(v, transfer, constraint)
     return sim.scheme.strain_grid_velocity(v, transfer, constraint, exchange_dv=exchange_dv)
@@ -300,7 +312,7 @@ def step(sim, state, dt):
     if sim.update in ("USF", "USAVG-", "USAVG+"):  # stress first, with the start-of-step velocity
         fields = p2g(sim, state, force=False)
         transfer = fields.transfer
-        v0, dv = lumped_velocity(sim, fields, fields.momentum, constraint)
+        v0, dv = lumped_velocity(sim, fields, fields.momentum, constraint, dt)
         v_strain = strain_velocity(sim, v0, transfer, constraint, dv)
         dF = deformation_increment(strain_rate(sim, transfer, v_strain), strain_dt(sim, dt), sim.kinematics)
         F = dF @ state.F
@@ -336,7 +348,7 @@ def g2p(sim, state, transfer: Transfer, constraint, grid: GridSolution, dt, fiel
             check(sim.exchange_term is None, f"g2p: under {sim.update} a model whose terms exchange momentum "
                                              "(jm.Contact) needs the step's P2G fields: g2p(..., fields=...)")
             fields = GridFields(transfer, {})
-        v_new, dv = lumped_velocity(sim, fields, momentum, constraint)
+        v_new, dv = lumped_velocity(sim, fields, momentum, constraint, dt)
         v_strain = strain_velocity(sim, v_new, transfer, constraint, dv)
         dF = deformation_increment(strain_rate(sim, transfer, v_strain), strain_dt(sim, dt), sim.kinematics)
     if dF is not None:

@@ -98,6 +98,39 @@ Dp^1 = -Dp^0 exactly; the two-material code path is that special case.
 Order with velocity boundary conditions on the same node: contact first, on momenta, then the
 conditions on the velocities (NairnMPM's order, 003 §2.1 "Reimpose velocity boundary
 conditions"): a fixed node stays fixed whatever contact asked.
+
+**Contact in XPIC(m)'s and FMPM(k)'s series** (m, k >= 2), ``series=``:
+
+* ``"separate"`` (default, 003 eqs. 3.16-3.22): the series runs on the velocities after the
+  exchange and subtracts the series of the first change, v(k) = series_k(v~) - series_{k-1}(Dp/m)
+  (:func:`jaxmpm.transfer.series.exchange_series`; ``series_correction=False`` drops that term);
+* ``"incremental"`` (NairnMPM 19.0's rule): the series is summed as increments,
+  D_1 = v~ (FMPM; XPIC: v, the sum is then v(m) + a dt = v~ + the increments),
+  D_k = Z (I - S+S) D_{k-1} (Z the velocity conditions), and on every contact node the law acts
+  again on each increment: with A the accumulated stick change (from the stick change of p + f dt,
+  the second application's) and N the change applied so far (from the second application's Dp+),
+  A += (m^0 m^1 D_k^1 - m^1 m^0 D_k^0)/m, L = law(A) with the step's normal and gap (moved over the
+  step by A under ``separation_update="extrapolated"``), D_k^0 += (L - N)/m^0, D_k^1 -= (L - N)/m^1,
+  N = L (:class:`ContactIncrements`, summed by :func:`jaxmpm.transfer.series.exchange_increments`).
+  After the series the node's change is the law of the whole series' stick change.  For XPIC
+  these changes are a force (NairnMPM's ``AddFtotScaled``): a += sum_k (L_k - N_k)/(m dt) and v(m)
+  is the rest, so S(v(m) + a dt) is NairnMPM's S v*; FMPM's stay velocities.  The conditions hold
+  on the result (the law acts after the increments' zeroing, as in NairnMPM, and may move a
+  constrained component within the series).  FMPM's strain-update series (USF, MUSL) does the same
+  from the first application (A from the stick change of p, N its Dp; the gap moved by A alone,
+  NairnMPM's zero ``startDelFi``).  With stick every increment moves with the centre of mass, so
+  FMPM with stick is the one-field FMPM exactly (the default is not).  The series is summed as the
+  increments whatever the scheme's ``series=`` form (binomial and Neumann agree to round-off
+  without contact).  Sources: NairnMPM_Class/XPICExtrapolationTask (Execute, GetDeltaV,
+  ImposeIncrementalContact, UpdateXStar), Nodes/MatVelocityField (XPICSupport),
+  Nodes/CrackVelocityFieldMulti (MaterialXPICIncrementOnCVF), Nodes/MaterialContactNode
+  (SetContactInfo, ContactSetDelPi), Materials/CoulombFriction (GetFrictionalDeltaMomentum).
+  Two materials (more: an InputError; jaxmpm's multimaterial law, which takes the momentum
+  imbalance back, is not NairnMPM's either).  Selected by ``conventions="nairnmpm"`` with
+  ``gradient="volume"`` and ``separation_update="extrapolated"``.  On the ``disks`` impact
+  (experiments/nairnmpm_2d.py): FMPM(2) frictionless E/E0 at t = 3 0.4447 (separate) against
+  0.5800 (incremental, = NairnMPM's), XPIC(2) frictionless 0.4893 against 0.3784.  The particles'
+  ``contact_force`` is the second application's force in both forms.
 """
 
 from __future__ import annotations
@@ -128,6 +161,10 @@ GRADIENTS = ("mass", "volume")
 # 19.0, CoulombFriction GetFrictionalDeltaMomentum)
 SEPARATION_UPDATES = ("start", "extrapolated")
 NORMALS = ("first", "max_gradient", "average")  # or a vector: the specified normal
+# the exchange in XPIC(m)/FMPM(k)'s series (m, k >= 2): "separate", the order k-1 series of the first change
+# Dp/m subtracted (003 eqs. 3.18, 3.22); "incremental", the law applied again to every increment of the series
+# (NairnMPM 19.0, CrackVelocityFieldMulti MaterialXPICIncrementOnCVF; :class:`ContactIncrements`)
+SERIES = ("separate", "incremental")
 
 
 def normal_option(owner: str, value):
@@ -166,7 +203,8 @@ class Contact(Term):
     """``materials`` (default 2) materials, each with its own velocity field, coupled by a contact
     law on the nodes where two or more have mass (module docstring).  ``law``: "stick",
     "frictionless" or "coulomb" (with ``friction`` mu >= 0); ``normal``: "first" (default),
-    "max_gradient", "average" or a vector (module docstring).
+    "max_gradient", "average" or a vector (module docstring); ``series``: the exchange in XPIC/FMPM's
+    series, "separate" (003 eqs. 3.18, 3.22) or "incremental" (NairnMPM's, module docstring).
     Particles carry their material id in the field ``material`` (0..M-1;
     ``sim.init(particles, fields={"material": ids})``)."""
 
@@ -178,10 +216,11 @@ class Contact(Term):
     series_correction: bool = eqx.field(static=True)
     gradient: str = eqx.field(static=True, default="mass")
     separation_update: str = eqx.field(static=True, default="start")
+    series: str = eqx.field(static=True, default="separate")
 
     def __init__(self, law: str = "frictionless", friction=0.0, normal="first", materials: int = 2,
                  separation: float | None = None, series_correction: bool = True, gradient: str = "mass",
-                 separation_update: str = "start"):
+                 separation_update: str = "start", series: str = "separate"):
         check(law in LAWS, f"Contact: law = {law!r}; choose one of {', '.join(LAWS)}")
         normal = normal_option("Contact", normal)
         materials = positive_int("Contact", "materials", materials)
@@ -202,6 +241,17 @@ class Contact(Term):
               f"Contact: separation_update = {separation_update!r}; choose 'start' (the gap at the step's start in "
               "both applications) or 'extrapolated' (NairnMPM: moved over the step in the second)")
         self.separation_update = separation_update
+        check(series in SERIES, f"Contact: series = {series!r}; choose 'separate' (003 eqs. 3.18, 3.22: XPIC/FMPM "
+                                "subtract the series of the exchange Dp/m, the default) or 'incremental' (NairnMPM: "
+                                "the law applied again to every increment of the series)")
+        check(series == "separate" or series_correction,
+              "Contact: series='incremental' with series_correction=False; the incremental series is the "
+              "exchange's series term in NairnMPM's form: drop series_correction=False or use series='separate'")
+        check(series == "separate" or materials == 2,
+              f"Contact: series='incremental' with materials = {materials}; it is built for two materials (for more, "
+              "jaxmpm's law takes the momentum imbalance back in proportion to mass and NairnMPM's does not, so "
+              "there is no NairnMPM increment to follow): use series='separate'")
+        self.series = series
         self.friction = NON_NEGATIVE.leaf("Contact", "friction", friction, fix="the Coulomb coefficient mu")
         mu = concrete(self.friction)
         check(law == "coulomb" or mu is None or not np.any(mu), f"Contact: friction = {friction} needs law='coulomb'")
@@ -238,16 +288,28 @@ class Contact(Term):
         "extrapolated"``: the gap moved over the step, gap + dt (Dp+ . n - dt Df . n / 2) / m_red with
         Dp+ = (m^0 p+^1 - m^1 p+^0)/m, Df likewise of f, m_red = m^0 m^1 / m (NairnMPM 19.0,
         CoulombFriction GetFrictionalDeltaMomentum; there the test is gap < 0)."""
-        x0, x1 = (safe_divide(q, mass) for q, mass in zip(self.split(fields.values["mass_moment"]), (m0, m1)))
-        gap = jnp.sum((x1 - x0) * normal, axis=-1) - self.separation * h
+        gap = self.gap(fields, m0, m1, normal, h)
         if updated is None:
             return gap <= 0.0
         p_plus, force, dt = updated
-        m = m0 + m1
-        stick_p = safe_divide(m0[:, None] * self.split(p_plus)[1] - m1[:, None] * self.split(p_plus)[0], m)
-        stick_f = safe_divide(m0[:, None] * self.split(force)[1] - m1[:, None] * self.split(force)[0], m)
+        return self.moved_gap(gap, m0, m1, normal, self.stick(m0, m1, p_plus), self.stick(m0, m1, force), dt) < 0.0
+
+    def gap(self, fields, m0, m1, normal, h):
+        """(x^1 - x^0) . n - separation h from the materials' nodal centres of mass x^a = (S^T M X)^a / m^a."""
+        x0, x1 = (safe_divide(q, mass) for q, mass in zip(self.split(fields.values["mass_moment"]), (m0, m1)))
+        return jnp.sum((x1 - x0) * normal, axis=-1) - self.separation * h
+
+    def stick(self, m0, m1, a):
+        """The stick change of material 0 of a stacked nodal momentum (or force) ``a``, (m^0 a^1 - m^1 a^0)/m."""
+        a0, a1 = self.split(a)
+        return safe_divide(m0[:, None] * a1 - m1[:, None] * a0, m0 + m1)
+
+    @staticmethod
+    def moved_gap(gap, m0, m1, normal, stick_p, stick_f, dt):
+        """The gap moved over the step, gap + dt (Dp . n - dt Df . n / 2) / m_red (NairnMPM 19.0,
+        CoulombFriction GetFrictionalDeltaMomentum), Dp and Df stick changes of material 0."""
         rate = jnp.sum((stick_p - 0.5 * dt * stick_f) * normal, axis=-1)
-        return gap + dt * safe_divide(rate, safe_divide(m0 * m1, m)) < 0.0
+        return gap + dt * safe_divide(rate, safe_divide(m0 * m1, m0 + m1))
 
     # ------------------------------------------------------------------ the contact law
     def per_material(self, a):
@@ -301,11 +363,16 @@ class Contact(Term):
         stick change (m0 p1 - m1 p0)/m on contact nodes (003 eqs. 3.9, 3.12); ``touching``
         (the separation criterion) narrows the contact nodes.  With more materials, material 1
         is the rest (module docstring)."""
-        m = m0 + m1
+        stick = safe_divide(m0[:, None] * p1 - m1[:, None] * p0, m0 + m1)  # 003 eq. (3.12)
+        return self.law_change(stick, m0, m1, normal, touching)
+
+    def law_change(self, stick, m0, m1, normal, touching=None):
+        """The law's Dp of material 0 for the stick change ``stick`` (003 eq. 3.9): ``stick`` itself
+        (stick), its normal part where the materials approach (frictionless), or Coulomb's, on the
+        contact nodes (both materials present, narrowed by ``touching``); 0 elsewhere."""
         contact = (m0 > 0) & (m1 > 0)
         if touching is not None:
             contact = contact & touching
-        stick = safe_divide(m0[:, None] * p1 - m1[:, None] * p0, m)  # 003 eq. (3.12)
         if self.law == "stick":
             return jnp.where(contact[:, None], stick, 0.0)
         dpn = jnp.sum(stick * normal, axis=-1)  # < 0: the materials approach along n
@@ -385,24 +452,103 @@ class Contact(Term):
         extrapolate = self.separation is not None and self.separation_update == "extrapolated"
         return self.exchange_momentum(sim, fields, p_plus, dt if extrapolate else None)
 
+    def exchange_increments(self, sim, fields, p, change, dt, updated: bool):
+        """With ``series="incremental"``: the law on the increments of the XPIC/FMPM series,
+        :class:`ContactIncrements`, cached from one application of the law -- ``p`` the momenta it
+        was applied to (before it), ``change`` its change; ``updated``: the second application (on
+        p + f dt), whose force stick change moves the gap (``separation_update="extrapolated"``); else
+        the first (USF's and MUSL's strain-update series).  None with ``series="separate"``."""
+        if self.series != "incremental" or not self.series_correction:
+            return None
+        m0, m1 = self.split(fields.mass)
+        normal = self.contact_normal(fields["mass_gradient"])
+        stick_f = jnp.zeros_like(normal)
+        gap = None
+        if self.separation is not None:
+            gap = self.gap(fields, m0, m1, normal, sim.grid.h)
+            if updated:
+                stick_f = self.stick(m0, m1, fields.force)
+        return ContactIncrements(self, m0, m1, normal, gap, stick_f, jnp.asarray(dt, p.dtype),
+                                 self.stick(m0, m1, p), self.split(change)[0])
+
     def in_conventions(self, conventions: str):
-        """``conventions="nairnmpm"``: deformed-volume gradients for the normals and the
-        extrapolated separation (NairnMPM 19.0's rules; module docstring)."""
+        """``conventions="nairnmpm"``: deformed-volume gradients for the normals, the extrapolated
+        separation and the law on the series' increments (NairnMPM 19.0's rules; module docstring).
+        The increments only for two materials: with more, jaxmpm's law is not NairnMPM's lumped one
+        either (it takes the momentum imbalance back), and ``series`` stays "separate"."""
         if conventions != "nairnmpm":
             return self
-        for name, default, preset in (("gradient", "mass", "volume"), ("separation_update", "start", "extrapolated")):
+        series = "incremental" if self.materials == 2 and self.series_correction else self.series
+        for name, default, preset in (("gradient", "mass", "volume"), ("separation_update", "start", "extrapolated"),
+                                      ("series", "separate", series)):
             value = getattr(self, name)
             check(value in (default, preset), f"Contact: {name} = {value!r} with conventions='nairnmpm', which sets "
                                               f"{name}={preset!r}; drop {name}= or use conventions='jaxmpm'")
         new = copy.copy(self)
         object.__setattr__(new, "gradient", "volume")  # static fields: the model's hash changes
         object.__setattr__(new, "separation_update", "extrapolated")
+        object.__setattr__(new, "series", series)
         return new
 
     def particle_action(self, sim, old, new, transfer, solution, dt):
         """Record each particle's share of the contact force, M_p S (Dp^a+ / (m^a dt))."""
         force = transfer.particle_share(solution["exchange_acceleration"])
         return eqx.tree_at(lambda s: s.fields, new, {**new.fields, "contact_force": force})
+
+
+class ContactIncrements(eqx.Module):
+    """NairnMPM's contact on the increments of the XPIC(m)/FMPM(k) series (``Contact(series=
+    "incremental")``), the hook :func:`jaxmpm.transfer.series.exchange_increments` calls on every
+    increment D_k = P (I - S+S) D_{k-1} (NairnMPM 19.0: NairnMPM_Class/XPICExtrapolationTask
+    GetDeltaV -> ImposeIncrementalContact, Nodes/CrackVelocityFieldMulti MaterialXPICIncrementOnCVF).
+
+    It holds what one application of the law cached (NairnMPM's ``SetContactInfo``/``ContactSetDelPi``,
+    Nodes/MaterialContactNode): the masses m^0, m^1, the normal n, the gap (with a ``separation``;
+    None: every contact node touches), the stick change Df of the nodal forces (second application;
+    zero after the first, as NairnMPM's ``startDelFi``), dt, the stick change of the momenta the law
+    was applied to, ``stick`` (its ``priorDelPiZero``), and the law's change, ``applied`` (its
+    ``netDelPi``).  On each increment, with A the accumulated stick change and N the change applied
+    so far (the carry, starting from (``stick``, ``applied``)):
+
+        A <- A + (m^0 m^1 D^1 - m^1 m^0 D^0) / m          the increment's stick change, material 0
+        L  = law(A)                                       n, the gap moved by A (``moved_gap`` with Df) under
+                                                          separation_update="extrapolated", else the gap
+        D^0 += (L - N) / m^0,   D^1 -= (L - N) / m^1,   N <- L
+
+    so that after the series the law's change on the node is the law of the whole series' stick
+    change.  Two materials (``Contact`` refuses more with series="incremental")."""
+
+    contact: Contact
+    m0: jnp.ndarray
+    m1: jnp.ndarray
+    normal: jnp.ndarray
+    gap: jnp.ndarray | None
+    stick_force: jnp.ndarray
+    dt: jnp.ndarray
+    stick: jnp.ndarray
+    applied: jnp.ndarray
+
+    def initial(self):
+        """The carry before the first increment: (accumulated stick change, change applied)."""
+        return self.stick, self.applied
+
+    def adjust(self, increment, carry):
+        """(the change the law makes to the stacked velocity ``increment`` (2n, D), the new carry)."""
+        contact, m0, m1 = self.contact, self.m0, self.m1
+        accumulated, applied = carry
+        d0, d1 = contact.split(increment)
+        accumulated = accumulated + safe_divide(m0[:, None] * (m1[:, None] * d1) - m1[:, None] * (m0[:, None] * d0),
+                                                m0 + m1)
+        touching = None
+        if self.gap is not None:
+            if contact.separation_update == "extrapolated":
+                touching = contact.moved_gap(self.gap, m0, m1, self.normal, accumulated, self.stick_force,
+                                             self.dt) < 0.0
+            else:
+                touching = self.gap <= 0.0
+        law = contact.law_change(accumulated, m0, m1, self.normal, touching)
+        delta = law - applied
+        return jnp.concatenate([safe_divide(delta, m0), -safe_divide(delta, m1)]), (accumulated, law)
 
 
 register_term("contact", Contact, doc="materials with their own velocity fields and a contact law (003 ch. 3)",

@@ -14,7 +14,9 @@ default to "nothing":
      damping, 001 eqs. 58-60).  Added up: the order of the terms does not matter.
   2. **exchange** -- ``exchange_momentum(sim, fields, p)``: momentum exchange between the
      velocity fields (contact, 003 eqs. 3.9-3.12), applied to p and to p + f dt (003 eq. 3.19).
-     At most one term of a model exchanges momentum (checked when the model is built).
+     At most one term of a model exchanges momentum (checked when the model is built).  Its
+     ``exchange_increments(...)`` may give XPIC/FMPM's series a hook that applies the exchange to
+     every increment of the series (contact's NairnMPM rule) in place of the separate series term.
   3. **velocity conditions** -- the model's :class:`jaxmpm.Constraint`, one operator.
   4. **readers** -- ``read_grid(sim, fields, solution, dt)``: named results for later stages
      (reaction forces, a transport's nodal fields).  They add names; they cannot change v, a or
@@ -107,6 +109,15 @@ class Term(eqx.Module):
         return self.exchange_momentum(sim, fields, p_plus)
 
     series_correction = False  # an exchanging term: XPIC/FMPM subtract its series term (003 eqs. 3.18, 3.22)
+
+    def exchange_increments(self, sim, fields, p, change, dt, updated: bool):
+        """The exchange on the increments of the XPIC/FMPM series, an object with ``initial()`` and
+        ``adjust(increment, carry) -> (change, carry)`` that :func:`jaxmpm.transfer.series.exchange_increments`
+        calls on every increment (contact's ``series="incremental"``, NairnMPM's rule), cached from the
+        exchange that took momenta ``p`` to ``p + change`` (``updated``: the second application, on
+        p + f dt); or None (default): the series subtracts the exchange's series term instead, with
+        ``series_correction`` (003 eqs. 3.18, 3.22)."""
+        return None
 
     def in_conventions(self, conventions: str) -> "Term":
         """The term in another code's rules (``Simulation(conventions=...)``): itself by default."""

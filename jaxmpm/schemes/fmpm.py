@@ -16,7 +16,14 @@ import jax.numpy as jnp
 
 from ..core.errors import check
 from ..core.registry import register_scheme
-from ..transfer.series import BOUNDARY_MODES, SERIES_FORMS, UNLUMPED_MODES, exchange_series, mass_matrix_series
+from ..transfer.series import (
+    BOUNDARY_MODES,
+    SERIES_FORMS,
+    UNLUMPED_MODES,
+    exchange_series,
+    incremental_series,
+    mass_matrix_series,
+)
 from .base import ParticleUpdate, Scheme, dissipated_energy
 from .xpic import BETA, XPIC, _check_beta, _check_order, _number, check_damping_velocity, check_preset_option
 
@@ -68,13 +75,18 @@ class FMPM(Scheme):
         """The full-mass velocity of the strain update, m~_k^{-1} p' (003 eq. 2.3) of the lumped
         velocity ``v`` (USF's start-of-step or MUSL's re-extrapolated one, after the momentum
         exchange and the conditions); with velocity fields that exchanged momentum, minus the
-        exchange's series term m~_{k-1}^{-1} Dp (003 §2.1.2, eqs. 3.16-3.22)."""
+        exchange's series term m~_{k-1}^{-1} Dp (003 §2.1.2, eqs. 3.16-3.22) for ``exchange_dv`` =
+        Dp/m, or the series with the exchange on its increments for ``exchange_dv`` the exchanging
+        term's hook (``Term.exchange_increments``: contact's ``series="incremental"``, NairnMPM's
+        XPIC_STRAIN_UPDATE)."""
         if self.order == 0:
             return v  # FMPM(0) = FLIP: lumped velocities
         check(self.boundary not in UNLUMPED_MODES,
               f"FMPM: boundary = {self.boundary!r} is built for the USL update (its series starts from p+/m "
               "before the conditions); USF/MUSL/USAVG re-extrapolate velocities that have no such start: "
               "use update='USL' or boundary='iterates'")
+        if hasattr(exchange_dv, "adjust"):  # the exchange on the series' increments (contact's "incremental")
+            return incremental_series(v, self.order, transfer, constraint, exchange_dv, self.boundary)[0]
         v_full = mass_matrix_series(v, self.order, transfer, constraint, self.boundary, self.series)  # 003 eq. (2.3)
         correction = exchange_series(exchange_dv, self.order, transfer, constraint, self.boundary, self.series)
         return v_full if correction is None else v_full - correction
@@ -84,12 +96,18 @@ class FMPM(Scheme):
             return XPIC(order=0).update(V, X, transfer, constraint, grid, damping, dt)
         Sv = transfer.gather(grid.v)
         Sa = transfer.gather(grid.a)
-        v_plus = mass_matrix_series(grid.v_tilde, self.order, transfer, constraint, self.boundary, self.series,
-                                    free=grid.values.get("v_tilde_unconstrained"))  # 003 eq. (2.13)
-        correction = exchange_series(grid.get("exchange_dv"), self.order, transfer, constraint, self.boundary,
-                                     self.series)
-        if correction is not None:
-            v_plus = v_plus - correction  # 003 eq. (3.22)
+        if grid.get("exchange_series") is not None:
+            # the exchange on every increment of the series from v~ (contact's series="incremental", NairnMPM's
+            # rule); the law's changes stay velocities (NairnMPM adds no force for FMPM)
+            v_plus, _ = incremental_series(grid.v_tilde, self.order, transfer, constraint, grid["exchange_series"],
+                                           self.boundary)
+        else:
+            v_plus = mass_matrix_series(grid.v_tilde, self.order, transfer, constraint, self.boundary, self.series,
+                                        free=grid.values.get("v_tilde_unconstrained"))  # 003 eq. (2.13)
+            correction = exchange_series(grid.get("exchange_dv"), self.order, transfer, constraint, self.boundary,
+                                         self.series)
+            if correction is not None:
+                v_plus = v_plus - correction  # 003 eq. (3.22)
         beta = self.beta
         Sv_plus = transfer.gather(v_plus)
         damped = Sv if self.damping_velocity == "lumped" else Sv_plus  # "updated": NairnMPM's S v+

@@ -26,6 +26,7 @@ from ..transfer.series import (
     UNLUMPED_MODES,
     XPIC_BOUNDARY_MODES,
     exchange_series,
+    incremental_series,
     mass_matrix_series,
 )
 from .base import ParticleDamping, ParticleUpdate, Scheme, dissipated_energy
@@ -197,6 +198,14 @@ class XPIC(Scheme):
             Svm, beta = Sv, 1.0  # P = I: FLIP (003 Table 2.1, "FMPM(0)/XPIC(0)")
         elif self.order == 1:
             Svm = Sv  # v(1) = v
+        elif grid.get("exchange_series") is not None:
+            # the exchange on every increment of the series (contact's series="incremental", NairnMPM's rule):
+            # the sum v + sum_k D_k holds the law's changes e = sum_k E_k, which are a force, a += e/dt
+            # (NairnMPM's AddFtotScaled), and v(m) is the rest: v(m) + a dt = v~ + sum_k D_k, NairnMPM's v*
+            total, exchanged = incremental_series(grid.v, self.order, transfer, constraint, grid["exchange_series"],
+                                                  self.boundary, free=grid.get("v_unconstrained"))
+            Svm = transfer.gather(total - exchanged)
+            Sa = Sa + transfer.gather(exchanged) / jnp.where(dt > 0, dt, 1.0)
         else:
             vm = mass_matrix_series(grid.v, self.order, transfer, constraint, self.boundary, self.series,
                                     free=grid.get("v_unconstrained"))

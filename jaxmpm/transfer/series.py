@@ -13,7 +13,8 @@ lumped momenta (003 eqs. 1.23, 2.3-2.5).  Its users:
   velocity conditions of 003 §1.5 and §2.4 (``boundary``: constrained iterates, the result, the
   lumped method, the unlumped variants and the collection solve);
 * the momentum exchange between velocity fields (contact): :func:`exchange_series`, the term
-  m~_{k-1}^{-1} Dp of 003 eqs. (3.16)-(3.22);
+  m~_{k-1}^{-1} Dp of 003 eqs. (3.16)-(3.22); or, NairnMPM's form, the exchange applied to every
+  increment of the series (:func:`incremental_series`, :func:`exchange_increments`);
 * the XPIC stress smoothing (000 §3.7, ``jaxmpm.physics.stress``) and the XPIC transport update
   (000 §3.6, ``jaxmpm.physics.transport``): :func:`series` itself.
 
@@ -186,6 +187,74 @@ def exchange_series(dv, order: int, transfer, constraint, boundary: str = "itera
         return None
     project = constraint.zero if boundary in ("iterates", "unconstrained_start") else None
     return series(dv if project is None else project(dv), order - 1, transfer, project, form)
+
+
+# the series modes whose increments are the constrained iterates Z (I - S+S) D, where an exchange can act
+INCREMENTAL_MODES = ("iterates", "unconstrained_start")
+
+
+def exchange_increments(start, order: int, transfer, project, exchange):
+    """The series sum_{k=1}^{m} D_k summed as increments with an exchange acting on each, m = ``order``:
+
+        D_1 = start,   D_k = R_k + E_k,   R_k = P (I - S+S) D_{k-1},   (E_k, c_k) = exchange.adjust(R_k, c_{k-1})
+
+    (c_1 = ``exchange.initial()``; P = ``project``, None the identity).  Without an exchange (E_k = 0)
+    this is :func:`series` in the "neumann" form, sum_{j<m} (P (I - S+S))^j start.  Returns the sum
+    and sum_k E_k, the exchange's share of it.  NairnMPM 19.0's XPIC/FMPM loop
+    (NairnMPM_Class/XPICExtrapolationTask Execute, GetDeltaV, UpdateXStar; Nodes/MatVelocityField
+    XPICSupport): D_k from S+S of the previous increment, the velocity conditions zeroed, then the
+    contact law on the increment (``exchange``: :class:`jaxmpm.physics.contact.ContactIncrements`).  A
+    ``fori_loop`` of ``order - 1`` steps carrying the exchange's state: differentiable, static length."""
+    if project is None:
+        project = _identity
+    zero = jnp.zeros_like(start)
+    if order == 1:
+        return start, zero
+
+    def body(_, carry):
+        term, total, exchanged, state = carry
+        term = project(term - transfer.s_plus_s(term))  # R_k = P (I - S+S) D_{k-1}
+        change, state = exchange.adjust(term, state)
+        term = term + change
+        return term, total + term, exchanged + change, state
+
+    _, total, exchanged, _ = jax.lax.fori_loop(1, order, body, (start, start, zero, exchange.initial()))
+    return total, exchanged
+
+
+def incremental_series(u, order: int, transfer, constraint, exchange, boundary: str = "iterates", free=None):
+    """XPIC(m)'s v(m) or FMPM(k)'s v+ with the momentum exchange on every increment of the series
+    (contact's ``series="incremental"``, NairnMPM's rule), in place of :func:`mass_matrix_series`
+    minus :func:`exchange_series`.  ``u`` is the lumped velocity after the exchange with the
+    conditions; the series (:func:`exchange_increments`, P = ``constraint.zero``) starts from
+
+    * ``boundary="iterates"``: Z u + g (g the prescribed velocities; = u where u meets the
+      conditions), the constrained system of :func:`mass_matrix_series` (the same sum without an
+      exchange: the increments Z (I - S+S) D stay in the range of Z);
+    * ``boundary="unconstrained_start"`` (XPIC): ``free`` = p/m before the conditions, as
+      :func:`unconstrained_series`.
+
+    Returns (v, e): v the sum with the constrained components of ``u`` (the conditions hold on the
+    result, as in every mode; the exchange acts after the zeroing, NairnMPM's order, so it may move
+    a constrained component inside the series), e = Z sum_k E_k the exchange's share (XPIC takes it as
+    a force, NairnMPM's ``AddFtotScaled``)."""
+    check(boundary in INCREMENTAL_MODES,
+          f"boundary = {boundary!r} with the exchange on the series' increments (jm.Contact(series='incremental')): "
+          f"it is built for the constrained iterates; use boundary={' or '.join(map(repr, INCREMENTAL_MODES))}, "
+          "or jm.Contact(series='separate')")
+    if boundary == "unconstrained_start":
+        check(free is not None, "boundary = 'unconstrained_start' needs the lumped velocity before the velocity "
+                                "conditions, p/m (free=...)")
+        check(constraint.wall is None and constraint.normal is None and constraint.mirror is None,
+              "boundary = 'unconstrained_start' (NairnMPM's XPIC series) acts on grid-axis components (Fixed, "
+              "Slip(face), Prescribed); with jm.Wall, an inclined jm.Slip or a jm.Mirror use boundary='iterates'")
+        start = free
+    else:
+        start = constraint.zero(u)
+        if constraint.inhomogeneous:
+            start = start + constraint.prescribed(u)
+    total, exchanged = exchange_increments(start, order, transfer, constraint.zero, exchange)
+    return constraint.zero(total) + (u - constraint.zero(u)), constraint.zero(exchanged)
 
 
 def unlumped_series(u, free, order: int, transfer, constraint, boundary: str, form: str = "binomial"):

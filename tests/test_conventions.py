@@ -351,6 +351,11 @@ def test_contact_volume_gradient_is_deformed_volume():
     preset = jm.Simulation(grid=sim.grid, shape=sim.shape, material=sim.material, scheme=jm.FLIP(),
                            terms=(jm.Contact(normal="average"),), conventions="nairnmpm")
     assert preset.term(jm.Contact).gradient == "volume" and preset.term(jm.Contact).separation_update == "extrapolated"
+    from jaxmpm.io.hdf5 import run_attributes
+
+    attrs = run_attributes(preset, 0.01, "pair", {}, 2)
+    assert (attrs["contact gradient"], attrs["contact separation update"]) == ("volume", "extrapolated")
+    assert attrs["contact series"] == "incremental" and attrs["contact law"] == "frictionless"
 
 
 def test_contact_extrapolated_separation_in_the_second_application():

@@ -471,6 +471,13 @@ class Contact(Term):
         return ContactIncrements(self, m0, m1, normal, gap, stick_f, jnp.asarray(dt, p.dtype),
                                  self.stick(m0, m1, p), self.split(change)[0])
 
+    def attributes(self) -> dict:
+        """The contact set-up as HDF5 root attributes (the friction is a registered parameter)."""
+        return {"contact law": self.law, "contact normal": str(self.normal), "contact materials": self.materials,
+                "contact separation": np.nan if self.separation is None else float(self.separation),
+                "contact gradient": self.gradient, "contact separation update": self.separation_update,
+                "contact series": self.series}
+
     def in_conventions(self, conventions: str):
         """``conventions="nairnmpm"``: deformed-volume gradients for the normals, the extrapolated
         separation and the law on the series' increments (NairnMPM 19.0's rules; module docstring).

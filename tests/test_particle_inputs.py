@@ -57,3 +57,14 @@ def test_precision_follows_the_positions_and_warns_when_it_narrows():
         warnings.simplefilter("error")  # float32 velocities with float64 positions widen: no warning
         state = sim.init(particles(v=np.zeros((3, 1), np.float32)))
     assert state.v.dtype == np.float64
+
+
+def test_terms_simulation_adds_itself_are_refused():
+    """Passing a scene's sim.terms back into Simulation(terms=...) would double the stress (a
+    factor-2 force, found while building the NairnMPM comparison): an InputError says so."""
+    setup = jm.scenes.bar(t_end=1.0, frames=2)
+    kwargs = dict(grid=setup.sim.grid, shape=setup.sim.shape, material=setup.sim.material, scheme=jm.FLIP())
+    with pytest.raises(jm.InputError, match="terms holds a StressDivergence, which Simulation adds itself"):
+        jm.Simulation(terms=setup.sim.terms, **kwargs)
+    with pytest.raises(jm.InputError, match="terms holds a jm.Damping; give it as damping="):
+        jm.Simulation(terms=(jm.Damping(grid=0.1),), **kwargs)

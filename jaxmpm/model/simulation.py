@@ -161,6 +161,13 @@ class Simulation(eqx.Module):
         extra = (terms,) if isinstance(terms, Term) else tuple(terms)
         for t in extra:
             check(isinstance(t, Term), f"Simulation: terms must be jm.Term instances, got {t!r}")
+            check(not isinstance(t, (StressDivergence, BodyForce)),
+                  f"Simulation: terms holds a {type(t).__name__}, which Simulation adds itself (from material, "
+                  "gravity and body_force); given again it would act twice. Pass only the extra terms, e.g. "
+                  "terms=[t for t in setup.sim.terms if isinstance(t, jm.Contact)]")
+            check(not isinstance(t, Damping),
+                  "Simulation: terms holds a jm.Damping; give it as damping=jm.Damping(...) "
+                  "(Simulation adds one, zero by default, so in terms it would act twice)")
         self.grid = grid
         self.shape = shape
         self.material = material

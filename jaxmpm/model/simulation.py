@@ -146,6 +146,7 @@ class Simulation(eqx.Module):
         check(backend in POLICIES, f"Simulation: backend = {backend!r}; choose one of {', '.join(POLICIES)}")
         check(adjoint in ADJOINTS, f"Simulation: adjoint = {adjoint!r}; choose 'structured' (the transfer layer's "
                                    "derivative rules, the default) or 'autodiff' (JAX's own, the reference)")
+        damping_given = damping is not None and damping is not False
         # None: zero damping, still a differentiable parameter; False: no damping in the model at
         # all (nothing compiled for it -- "model no more than a scene needs")
         if damping is False:
@@ -161,18 +162,26 @@ class Simulation(eqx.Module):
         extra = (terms,) if isinstance(terms, Term) else tuple(terms)
         for t in extra:
             check(isinstance(t, Term), f"Simulation: terms must be jm.Term instances, got {t!r}")
-            check(not isinstance(t, (StressDivergence, BodyForce)),
-                  f"Simulation: terms holds a {type(t).__name__}, which Simulation adds itself (from material, "
-                  "gravity and body_force); given again it would act twice. Pass only the extra terms, e.g. "
-                  "terms=[t for t in setup.sim.terms if isinstance(t, jm.Contact)]")
-            check(not isinstance(t, Damping),
-                  "Simulation: terms holds a jm.Damping; give it as damping=jm.Damping(...) "
-                  "(Simulation adds one, zero by default, so in terms it would act twice)")
+        # the terms Simulation adds itself; one of the same class in terms= replaces it (as with_term
+        # does), so a scene's sim.terms given back, or jm.StressDivergence(xpic=m), never act twice
+        stress, body = StressDivergence(), BodyForce(g, body_force)
+        for t in extra:
+            if isinstance(t, StressDivergence):
+                stress = t
+            elif isinstance(t, BodyForce):
+                check(gravity is None and body_force is None,
+                      "Simulation: terms holds a BodyForce and gravity=/body_force= give another; give it once")
+                body = t
+            elif isinstance(t, Damping):
+                check(not damping_given,
+                      "Simulation: terms holds a jm.Damping and damping= gives another; give damping once")
+                damping = t
+        extra = tuple(t for t in extra if not isinstance(t, (StressDivergence, BodyForce, Damping)))
         self.grid = grid
         self.shape = shape
         self.material = material
         self.scheme = scheme
-        self.terms = tuple(t.in_conventions(conventions) for t in (StressDivergence(), BodyForce(g, body_force))
+        self.terms = tuple(t.in_conventions(conventions) for t in (stress, body)
                            + ((damping,) if damping is not None else ()) + extra)
         self.boundary = as_conditions(boundary, grid)
         self.update = UPDATES[update]

@@ -1,16 +1,19 @@
-"""Resuming an interrupted run from its HDF5 file (``jaxmpm resume FILE.h5`` on the command line).
+"""Resuming a run from its HDF5 file (``jaxmpm resume FILE.h5`` on the command line).
 
-A chunked run (:func:`jaxmpm.run.driver.run` with a writer) that stops on SIGINT/SIGTERM leaves every
-finished frame in its file and the full state reached under ``/state`` (:meth:`H5Writer.write_state`);
-:func:`resume` reads that state back bit for bit and runs the same compiled loop on to the end
-of the run's schedule, appending to the same file.  On the CPU the result equals the
-uninterrupted run bitwise (``tests/test_resume.py``).
+A chunked run (:func:`jaxmpm.run.driver.run` with a writer) publishes every chunk's frames together
+with the full state reached (:meth:`H5Writer.write_state`, under ``/state``), and its file is
+replaced by rename, never written in place (:class:`jaxmpm.H5Writer`): whatever stops the run --
+Ctrl-C, SIGTERM, ``kill -9``, an out-of-memory kill -- the file holds its last chunk's frames and
+state.  :func:`resume` reads that state back bit for bit and runs the same compiled loop on to the
+end of the run's schedule, appending to the same file.  On the CPU the result equals the
+uninterrupted run bitwise (``tests/test_resume.py``, ``tests/test_crash_safety.py``).
 """
 
 from __future__ import annotations
 
 import json
 import os
+import shlex
 
 import h5py
 
@@ -19,12 +22,31 @@ from .core.errors import InputError, check
 
 def run_info(path) -> dict:
     """The root attributes of a run's file that resuming needs (``dt``, ``command``, ``scene``)."""
-    check(os.path.exists(path), f"resume: {os.fspath(path)} does not exist")
+    from .io.hdf5 import working_paths
+
+    if not os.path.exists(path):
+        started = any(os.path.exists(p) for p in working_paths(path))
+        check(False, f"resume: {os.fspath(path)} does not exist" + (
+            "; its run was stopped while creating it, before anything was saved: start the run again"
+            if started else ""))
     try:
         with h5py.File(path, "r") as f:
             return {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
     except OSError as err:
         raise InputError(f"resume: cannot read {os.fspath(path)} as a jaxmpm HDF5 file ({err})") from None
+
+
+def restart_command(info: dict, path) -> str:
+    """What to do with a file that cannot be continued: the ``jaxmpm run`` command that writes it
+    again (from its stored options), or a plain sentence for a file of the Python API."""
+    if "command" not in info:
+        return "run it again"
+    options = json.loads(info["command"])
+    words = ["jaxmpm", "run", str(options.get("scene", "SCENE"))]
+    for key, value in options.items():
+        if key != "scene":
+            words += [f"--{key.replace('_', '-')}", str(value)]
+    return "start it again: `" + shlex.join(words + ["--out", os.fspath(path), "--force"]) + "`"
 
 
 def resume(path, model=None, state=None, *, progress: bool = False, check_stability: bool = True):
@@ -34,8 +56,12 @@ def resume(path, model=None, state=None, *, progress: bool = False, check_stabil
     ``model`` is the :class:`jaxmpm.scenes.Setup` that made the run (``jm.scene(...)``), or its
     :class:`Simulation` with ``state`` the run's initial state (for the state's structure; its
     values are not used).  Left out, the run is rebuilt from the options the command line
-    stored in the file (``jaxmpm run``).  A run that already reached its end returns its final
-    state and runs nothing."""
+    stored in the file (``jaxmpm run``).  The file is one that :class:`jaxmpm.H5Writer` wrote
+    during a run -- stopped by a signal or killed at any moment -- or one :func:`jaxmpm.save_h5`
+    wrote with the run's schedule (``steps=``, ``save_every=``).  The run continues from the
+    state saved last; frames saved after it (by a chunk whose state was not saved) are computed
+    again, to the same bits.  A run that already reached its end returns its final state and
+    runs nothing."""
     from .io.hdf5 import H5Writer, read_state
 
     info = run_info(path)
@@ -50,15 +76,17 @@ def resume(path, model=None, state=None, *, progress: bool = False, check_stabil
     else:
         check(state is not None, "resume: with a Simulation, pass state= (the run's initial state)")
         sim, template, dt = model, state, float(info["dt"])
-    loaded, schedule = read_state(path, template)
+    again = restart_command(info, path)
+    loaded, schedule = read_state(path, template, again=again)
     if schedule["complete"]:
         return loaded
     start, steps, save_every = schedule["start step"], schedule["steps"], schedule["save every"]
     with H5Writer(path, sim, loaded, mode="a") as writer:
         expected = (int(loaded.step) - start) // save_every + 1
-        check(writer.frames == expected, f"resume: {os.fspath(path)} holds {writer.frames} frames but its state "
-                                         f"(step {int(loaded.step)}) belongs after frame {expected}; the file "
-                                         "was modified after the run stopped")
+        check(writer.frames >= expected, f"resume: {os.fspath(path)} holds {writer.frames} frames but its state "
+                                         f"(step {int(loaded.step)}) comes after frame {expected}; the file was "
+                                         f"modified after its run stopped; {again}")
+        writer.truncate(expected)  # frames saved after the state: computed again
         final, _ = sim.run(loaded, dt, steps, save_every, writer=writer, start_step=start, progress=progress,
                            check_stability=check_stability)
     return final

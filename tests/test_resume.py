@@ -1,7 +1,8 @@
 """Interrupt and resume (issue 11, item 4): SIGINT/SIGTERM stop a chunked run at a chunk boundary,
 the file keeps every finished frame and the full state reached, and resuming equals the
 uninterrupted run bitwise on the CPU -- every chunk is a call of one compiled loop whose frame and
-step counts are runtime values, so the chunking does not change the arithmetic.
+step counts are runtime values, so the chunking does not change the arithmetic.  Files of
+jm.save_h5 with the run's schedule resume too (issue 29); SIGKILL: tests/test_crash_safety.py.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import sys
 import time
 
 import h5py
+import jax
 import numpy as np
 import pytest
 
@@ -114,6 +116,43 @@ def test_resume_errors_name_the_problem(tmp_path):
     other = jm.scene("bar", cells=16, t_end=2.0, frames=8)  # another particle count
     with pytest.raises(jm.InputError, match=r"/state/x is float64\[16, 1\] but the model's state has float64\[32, 1\]"):
         jm.resume(cut, other)
+
+
+def test_a_save_h5_file_with_its_schedule_is_resumable(tmp_path):
+    """jm.save_h5 with steps= and save_every= stores the state reached: jm.resume(path, setup)
+    continues a part of a run kept in memory to the file of the whole run, bit for bit."""
+    setup = jm.scene("bar", **BAR)
+    final, history = setup.run()
+    whole = tmp_path / "whole.h5"
+    jm.save_h5(whole, setup.sim, history, state=final, dt=setup.dt, steps=setup.steps, save_every=setup.save_every)
+    assert jm.resume(whole, setup).step == setup.steps  # finished: nothing to run
+    part, part_history = setup.sim.run(setup.state, setup.dt, 3 * setup.save_every, setup.save_every)
+    cut = tmp_path / "cut.h5"
+    jm.save_h5(cut, setup.sim, part_history, state=part, dt=setup.dt, steps=setup.steps, save_every=setup.save_every)
+    resumed = jm.resume(cut, setup)
+    np.testing.assert_array_equal(np.asarray(resumed.x), np.asarray(final.x))
+    assert_same_files(whole, cut)
+    with pytest.raises(jm.InputError, match="the state is at step 0, where a run from step 0 saving every 8 steps "
+                                            "has 1 frames, but the history holds 4"):
+        jm.save_h5(cut, setup.sim, part_history, state=setup.state, steps=setup.steps, save_every=setup.save_every)
+    with pytest.raises(jm.InputError, match="pass both steps= and save_every="):
+        jm.save_h5(cut, setup.sim, part_history, state=part, steps=setup.steps)
+
+
+def test_frames_after_the_saved_state_are_computed_again(tmp_path):
+    """A file whose last frames came after its state (a chunk published without it): resume drops
+    them and computes them again, to the same bits."""
+    setup = jm.scene("bar", **BAR)
+    final, history = setup.run()
+    whole = tmp_path / "whole.h5"
+    jm.save_h5(whole, setup.sim, history, state=final, dt=setup.dt, steps=setup.steps, save_every=setup.save_every)
+    part, part_history = setup.sim.run(setup.state, setup.dt, 2 * setup.save_every, setup.save_every)
+    cut = tmp_path / "cut.h5"
+    with jm.H5Writer(cut, setup.sim, setup.state, dt=setup.dt) as writer, writer.batch():
+        writer.append(jax.tree_util.tree_map(lambda a: a[:6], history))  # frames 0..5
+        writer.write_state(part, 0, setup.steps, setup.save_every)  # the state of frame 2
+    jm.resume(cut, setup)
+    assert_same_files(whole, cut)
 
 
 def cli(*args, **popen):

@@ -1,4 +1,6 @@
-"""HDF5 output in the layout of docs/design.md, written chunk by chunk, with an XDMF sidecar.
+"""HDF5 output in the layout of docs/design.md, written chunk by chunk, with an XDMF sidecar; the
+file survives a kill at any moment (see :class:`H5Writer`: it is replaced by rename, never written
+in place).
 
 ```
 /time (T,)   /particles/x (T,N,D)  /particles/v (T,N,D)  /particles/mass (N,)  /particles/volume0 (N,)
@@ -8,7 +10,9 @@
 /particles/material (N,)      multimaterial mode: the material id of each particle (int32)
 /materials/<name> (T,M[,D])   multimaterial mode: kinetic, strain, momentum, contact_force per material
 /totals/<name> (T,)           the terms' totals: thermal_energy (jm.Heat), solute (jm.Diffusion)
-/state/<leaf>                 the state a chunked run reached (H5Writer.write_state; jaxmpm.resume)
+/state/<leaf>                 the state a chunked run reached, saved with every chunk's frames
+                              (H5Writer.write_state; jaxmpm.resume); attributes start step, steps,
+                              save every, complete
 attributes on /: scene, scheme, order, beta, alpha_g, alpha_p, damping approach, damping varies (0/1:
                  a schedule or region scales alpha_g, alpha_p), shape, update, conventions
                  (jaxmpm/nairnmpm), constrained force (zero/reaction), position and series boundary
@@ -23,13 +27,14 @@ HDF5 virtual datasets into ``FILE.h5``, no data of their own; see :func:`write_x
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 
 import h5py
 import numpy as np
 
-from .xdmf import write_xdmf, xdmf_paths  # noqa: F401  (xdmf_paths re-exported)
+from .xdmf import copy_into_place, link_into_place, remove, same_file, views_copies, write_xdmf, xdmf_paths
 
 _SERIES = {
     "time": "time",
@@ -81,51 +86,93 @@ def run_attributes(sim, dt=None, scene: str | None = None, params: dict | None =
 
 
 class H5Writer:
-    """Append-as-you-go HDF5 writer: ``append(history_chunk)`` grows every dataset along time and
-    flushes, so an interrupted run keeps all frames written so far.  Use as a context manager.
+    """Append-as-you-go HDF5 writer whose file survives a kill at any moment.  Use as a context manager.
 
-    ``mode="w"`` creates (or truncates) ``path``; ``mode="a"`` reopens a file this writer made to
-    append to it (:func:`jaxmpm.resume`).  ``write_state`` stores the full state reached under
-    ``/state`` (every leaf of the :class:`State` pytree, with the run's schedule as attributes)."""
+    ``append(history_chunk)`` adds frames and ``write_state(state, ...)`` stores the full state
+    reached under ``/state`` (every leaf of the :class:`State` pytree, with the run's schedule as
+    attributes); each is published at once, or both together at the end of a ``with
+    writer.batch():`` block -- a chunked run publishes every chunk's frames with the state reached.
+
+    ``FILE.h5`` is never written in place.  The writer keeps two copies of it, ``FILE.h5.0.tmp``
+    and ``FILE.h5.1.tmp``, one of which *is* ``FILE.h5`` (a second hard link to the same file).
+    Publishing opens the other copy, adds what it lacks (the operations since it was last published,
+    kept in memory), closes it -- HDF5 has then written every byte of it -- and renames a link to it
+    over ``FILE.h5``; POSIX ``rename(2)`` replaces the name atomically.  So ``FILE.h5`` is at every
+    moment a closed, complete HDF5 file holding whole publications: first the header (attributes,
+    mass, volume0), then every chunk's frames and the state reached together.  A kill (``kill -9``,
+    an out-of-memory kill) leaves it as of its last publication; the ``.tmp`` copies and
+    ``FILE.h5.lock`` stay beside it until the next writer of the path removes them.  The XDMF
+    sidecar's views file is kept the same way (:func:`jaxmpm.io.xdmf.write_xdmf`).  Where hard
+    links are not available, the copy is copied to ``FILE.h5`` instead (the same guarantee, a full
+    copy per publication).  ``FILE.h5.lock`` (``flock``) keeps a second writer of the same path out.
+
+    ``mode="w"`` creates ``path``, publishing its header at once (an existing file is replaced
+    then); ``mode="a"`` continues a file this writer made (:func:`jaxmpm.resume`).  ``attrs`` are
+    root attributes added to the header (the CLI's ``command``)."""
 
     def __init__(self, path, sim, state, dt=None, scene: str | None = None, params: dict | None = None,
-                 ppc=None, xdmf: bool = True, mode: str = "w"):
+                 ppc=None, xdmf: bool = True, mode: str = "w", attrs: dict | None = None):
         from ..core.errors import check
 
         check(mode in ("w", "a"), f"H5Writer: mode = {mode!r}; use 'w' (create) or 'a' (append)")
         self.path = os.fspath(path)
         self.xdmf = xdmf
+        self.n, self.dim = np.asarray(state.x).shape
+        self.frames = 0
+        self._log = []  # operations not yet in both copies: ("frames", {path: array}), ("state", ...), ("truncate", T)
+        self._applied = [0, 0]  # per copy, how much of the log it holds (None: unknown, copied from FILE.h5 again)
+        self._current = 0  # the copy that FILE.h5 is
+        self._held = 0  # depth of batch()
+        self._links = True  # hard links work here (else each publication copies)
+        self._closed = True
+        self._lock = None
         if mode == "a":
             check(os.path.exists(self.path), f"H5Writer: {self.path} does not exist; mode='a' appends to a run's file")
-            self.file = h5py.File(self.path, "a")
-            self.frames = int(self.file["time"].shape[0]) if "time" in self.file else 0
-            self.n, self.dim = np.asarray(state.x).shape
-            return
-        self.file = h5py.File(self.path, "w")
-        attrs = run_attributes(sim, dt, scene, params, ppc)
-        attrs["dtype"] = str(np.asarray(state.x).dtype)
-        for k, v in attrs.items():
-            self.file.attrs[k] = v
-        self.file.create_dataset("particles/mass", data=np.asarray(state.mass))
-        self.file.create_dataset("particles/volume0", data=np.asarray(state.volume0))
-        if "material" in state.fields:  # multimaterial mode: each particle's material id, once
-            self.file.create_dataset("particles/material", data=np.asarray(state.fields["material"]).astype(np.int32))
-        self.frames = 0
-        self.n, self.dim = np.asarray(state.x).shape
+        self._lock = _take_lock(self.path)
+        self._closed = False
+        try:
+            remove(*working_paths(self.path))
+            if mode == "a":
+                self._open_existing()
+            else:
+                self._create(run_attributes(sim, dt, scene, params, ppc) | dict(attrs or {}), state)
+        except BaseException:
+            self._closed = True
+            _release_lock(self._lock, self.path)
+            raise
 
-    def write_state(self, state, start_step: int, steps: int, save_every: int) -> None:
-        """Store ``state`` under ``/state`` (replacing an earlier one), with the schedule of the
-        run it belongs to: its first frame's step, its length in steps and ``save_every``."""
-        if "state" in self.file:
-            del self.file["state"]
-        group = self.file.create_group("state")
-        for name, leaf in state_leaves(state):
-            group.create_dataset(name, data=np.asarray(leaf))
-        group.attrs["start step"] = int(start_step)
-        group.attrs["steps"] = int(steps)
-        group.attrs["save every"] = int(save_every)
-        group.attrs["complete"] = int(state.step) >= int(start_step) + int(steps)
-        self.file.flush()
+    def _copy_path(self, index: int) -> str:
+        return working_paths(self.path)[index]
+
+    def _create(self, attrs, state) -> None:
+        attrs["dtype"] = str(np.asarray(state.x).dtype)
+        first = self._copy_path(0)
+        with h5py.File(first, "w") as f:
+            for k, v in attrs.items():
+                f.attrs[k] = v
+            f.create_dataset("particles/mass", data=np.asarray(state.mass))
+            f.create_dataset("particles/volume0", data=np.asarray(state.volume0))
+            if "material" in state.fields:  # multimaterial mode: each particle's material id, once
+                f.create_dataset("particles/material", data=np.asarray(state.fields["material"]).astype(np.int32))
+        copy_into_place(first, self._copy_path(1))
+        if self.xdmf:  # the XDMF of an earlier file of this name would list its frames (its views fit any)
+            remove(xdmf_paths(self.path)[0])
+        self._publish(0)  # FILE.h5 exists from here on: readable, with no frames yet
+
+    def _open_existing(self) -> None:
+        with h5py.File(self.path, "r") as f:
+            self.frames = int(f["time"].shape[0]) if "time" in f else 0
+        self._link_or_copy(self.path, self._copy_path(0))  # FILE.h5 itself: it is only read
+        copy_into_place(self.path, self._copy_path(1))
+
+    def _link_or_copy(self, source: str, target: str) -> None:
+        """Make ``target`` name the file ``source`` names, in one step (a hard link, or a copy where
+        hard links fail)."""
+        self._links = link_into_place(source, target, self._links)
+
+    def _publish(self, index: int) -> None:
+        self._link_or_copy(self._copy_path(index), self.path)
+        self._current = index
 
     def append(self, history) -> None:
         """Append the frames of a :class:`jaxmpm.History` (leading axis = time)."""
@@ -136,29 +183,91 @@ class H5Writer:
         series += [(value, f"particles/{field}") for field, value in history.fields.items()]
         series += [(value, f"materials/{name}") for name, value in history.by_material.items()]
         series += [(value, f"totals/{name}") for name, value in history.totals.items()]
-        for value, name in series:
-            if value is None:
-                continue
-            arr = np.asarray(value)
-            if name not in self.file:
-                self.file.create_dataset(name, data=arr, maxshape=(None,) + arr.shape[1:],
-                                         chunks=(max(1, min(64, arr.shape[0])),) + arr.shape[1:])
-            else:
-                ds = self.file[name]
-                ds.resize(ds.shape[0] + arr.shape[0], axis=0)
-                ds[-arr.shape[0]:] = arr
+        self._log.append(("frames", {name: np.asarray(value) for value, name in series if value is not None}))
         self.frames += t.size
         self.flush()
 
+    def write_state(self, state, start_step: int, steps: int, save_every: int) -> None:
+        """Store ``state`` under ``/state`` (replacing an earlier one), with the schedule of the
+        run it belongs to: its first frame's step, its length in steps and ``save_every``."""
+        leaves = [(name, np.asarray(leaf)) for name, leaf in state_leaves(state)]
+        attrs = {"start step": int(start_step), "steps": int(steps), "save every": int(save_every),
+                 "complete": int(state.step) >= int(start_step) + int(steps)}
+        self._log.append(("state", leaves, attrs))
+        self.flush()
+
+    def truncate(self, frames: int) -> None:
+        """Keep only the first ``frames`` frames (:func:`jaxmpm.resume` drops the frames saved after
+        the state it continues from; it computes them again, to the same bits)."""
+        if frames < self.frames:
+            self._log.append(("truncate", int(frames)))
+            self.frames = int(frames)
+            self.flush()
+
+    @contextlib.contextmanager
+    def batch(self):
+        """Publish everything appended or written inside the block together, at its end (also when
+        it ends with an exception)."""
+        self._held += 1
+        try:
+            yield self
+        finally:
+            self._held -= 1
+            if not self._held:
+                self.flush()
+
     def flush(self) -> None:
-        self.file.flush()
+        """Publish what was appended or written since the last publication, in one step (see the
+        class notes), then update the XDMF sidecar.  Inside :meth:`batch` it waits for the end."""
+        if self._held or self._closed:
+            return
+        if same_file(self._copy_path(1 - self._current), self.path):  # published, interrupted before recorded
+            self._current = 1 - self._current
+        if self._applied[self._current] == len(self._log):
+            return
+        index = 1 - self._current
+        try:
+            self._bring_up_to_date(index)
+        except BaseException:
+            self._applied[index] = None  # in an unknown state: copied from FILE.h5 again next time
+            raise
+        self._publish(index)
+        done = min(self._applied)
+        del self._log[:done]
+        self._applied = [a - done for a in self._applied]
         if self.xdmf:
-            write_xdmf(self.path, self.file)
+            with h5py.File(self.path, "r") as f:
+                write_xdmf(self.path, f)
+
+    def _bring_up_to_date(self, index: int) -> None:
+        path = self._copy_path(index)
+        if self._applied[index] is None or not os.path.exists(path):
+            self._recopy(index)
+        try:
+            f = h5py.File(path, "r+")
+        except OSError:  # held open (and so locked) by a reader since it was FILE.h5: write a fresh copy
+            self._recopy(index)
+            f = h5py.File(path, "r+")
+        with f:
+            _apply(f, self._log[self._applied[index]:])
+        self._applied[index] = len(self._log)
+
+    def _recopy(self, index: int) -> None:
+        """The copy ``index`` made again from FILE.h5 (a new file: a reader of the old one keeps it)."""
+        copy_into_place(self.path, self._copy_path(index))
+        self._applied[index] = self._applied[self._current]
 
     def close(self) -> None:
-        if self.file.id.valid:
+        """Publish what is left, remove the working copies and the lock; ``FILE.h5`` stays."""
+        if self._closed:
+            return
+        try:
+            self._held = 0
             self.flush()
-            self.file.close()
+        finally:
+            self._closed = True
+            remove(*working_paths(self.path))
+            _release_lock(self._lock, self.path)
 
     def __enter__(self):
         return self
@@ -166,15 +275,144 @@ class H5Writer:
     def __exit__(self, *exc):
         self.close()
 
+    def __del__(self):  # a writer left open: published and its files removed, as h5py closes a file
+        try:
+            self.close()
+        except Exception:  # pragma: no cover  (interpreter shutdown)
+            pass
+
+
+def working_paths(path) -> tuple[str, ...]:
+    """The files an :class:`H5Writer` keeps beside ``path`` while it writes: its two copies
+    (``FILE.h5.0.tmp``, ``FILE.h5.1.tmp``), those of the XDMF views file (``FILE.xdmf.h5.0.tmp``,
+    ``FILE.xdmf.h5.1.tmp``) and the temporaries renamed into place (``*.tmp``, ``*.partial``).  A
+    kill leaves some of them; the next writer of ``path`` removes them (so may anyone: they are not
+    needed to read or resume ``FILE.h5``)."""
+    path = os.fspath(path)
+    xdmf_path, views_path = xdmf_paths(path)
+    copies = (path + ".0.tmp", path + ".1.tmp") + views_copies(views_path)
+    return copies + tuple(p + ".tmp" for p in (path, views_path) + copies) + (xdmf_path + ".partial",)
+
+
+def _take_lock(path: str):
+    """An exclusive ``flock`` on ``FILE.h5.lock`` for the writer's life (a kill releases it), or an
+    InputError naming the process that holds it.  None where ``fcntl`` is missing (Windows)."""
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover
+        return None
+    from ..core.errors import check
+
+    fd = os.open(path + ".lock", os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        holder = os.pread(fd, 32, 0).decode(errors="replace").strip()
+        os.close(fd)
+        check(holder != str(os.getpid()), f"{path} is already open in an H5Writer of this process; close it "
+                                          "first (use the writer in a `with` block)")
+        check(False, f"{path} is being written by another process{' (pid ' + holder + ')' if holder else ''}; "
+                     "wait for it to end, or stop it, first")
+    os.ftruncate(fd, 0)
+    os.pwrite(fd, str(os.getpid()).encode(), 0)
+    return fd
+
+
+def _release_lock(fd, path: str) -> None:
+    if fd is not None:
+        remove(path + ".lock")
+        os.close(fd)
+
+
+def _apply(f: h5py.File, operations) -> None:
+    """Apply a writer's logged operations to an open copy: frames and truncations in order, then
+    the last state (each state replaces the one before)."""
+    state = None
+    for operation in operations:
+        if operation[0] == "frames":
+            _append_frames(f, operation[1])
+        elif operation[0] == "truncate":
+            _truncate(f, operation[1])
+        else:
+            state = operation
+    if state is not None:
+        _write_state(f, *state[1:])
+
+
+def _append_frames(f: h5py.File, arrays: dict) -> None:
+    for name, arr in arrays.items():
+        if name not in f:
+            f.create_dataset(name, data=arr, maxshape=(None,) + arr.shape[1:],
+                             chunks=(max(1, min(64, arr.shape[0])),) + arr.shape[1:])
+        else:
+            ds = f[name]
+            ds.resize(ds.shape[0] + arr.shape[0], axis=0)
+            ds[-arr.shape[0]:] = arr
+
+
+def _truncate(f: h5py.File, frames: int) -> None:
+    """Every per-frame dataset (those that grow along time) cut to ``frames`` frames."""
+    series = []
+    f.visititems(lambda name, obj: series.append(obj) if isinstance(obj, h5py.Dataset) and obj.maxshape
+                 and obj.maxshape[0] is None and not name.startswith("state/") else None)
+    for ds in series:
+        if ds.shape[0] > frames:
+            ds.resize(frames, axis=0)
+
+
+def _write_state(f: h5py.File, leaves, attrs: dict) -> None:
+    """``/state``: its datasets overwritten in place when they have the leaves' names, shapes and
+    dtypes (no new space in the file each chunk), else made again."""
+    group = f.get("state")
+    if group is not None:
+        held = {}
+        group.visititems(lambda name, obj: held.__setitem__(name, (obj.shape, obj.dtype))
+                         if isinstance(obj, h5py.Dataset) else None)
+        if held != {name: (value.shape, value.dtype) for name, value in leaves}:
+            del f["state"]
+            group = None
+    if group is None:
+        group = f.create_group("state")
+        for name, value in leaves:
+            group.create_dataset(name, data=value)
+    else:
+        for name, value in leaves:
+            if value.size:
+                group[name][()] = value
+    for k, v in attrs.items():
+        group.attrs[k] = v
+
 
 def save_h5(path, sim, history, state=None, dt=None, scene: str | None = None, params: dict | None = None,
-            ppc=None) -> None:
-    """Write a whole history at once (``state`` supplies particle mass/volume0; it defaults to a
-    state with the history's particle count and unit values if omitted)."""
+            ppc=None, *, steps: int | None = None, save_every: int | None = None, start_step: int = 0) -> None:
+    """Write a whole history at once.  ``state`` supplies particle mass and volume0 (the initial or
+    the final State).
+
+    With the run's schedule -- ``steps`` and ``save_every`` as given to ``sim.run``, ``start_step``
+    the step of the history's first frame (0 for a scene) -- ``state`` is the state the run
+    reached (its final state, or ``RunInterrupted.state``); it is stored under ``/state`` and the
+    file can be continued like a ``jaxmpm run`` file: ``jm.resume(path, setup)`` runs it to
+    ``steps`` in the same file (a finished run: returns ``state``)."""
+    from ..core.errors import check
+
     if state is None:
         raise TypeError("save_h5: pass state=... (the initial or final State) for particle mass and volume0")
-    with H5Writer(path, sim, state, dt=dt, scene=scene, params=params, ppc=ppc) as w:
+    resumable = steps is not None or save_every is not None
+    if resumable:
+        check(steps is not None and save_every is not None,
+              "save_h5: pass both steps= and save_every= (the run's schedule) to make the file resumable")
+        for name, value, least in (("steps", steps, 0), ("save_every", save_every, 1), ("start_step", start_step, 0)):
+            check(isinstance(value, (int, np.integer)) and not isinstance(value, bool) and value >= least,
+                  f"save_h5: {name} = {value!r} must be an integer >= {least}")
+        reached, frames = int(state.step) - int(start_step), int(np.asarray(history.time).shape[0])
+        check(0 <= reached <= steps and reached // save_every + 1 == frames,
+              f"save_h5: the state is at step {int(state.step)}, where a run from step {start_step} saving every "
+              f"{save_every} steps has {reached // save_every + 1 if reached >= 0 else 0} frames, but the history "
+              f"holds {frames}; pass the state the run reached (its final state, or RunInterrupted.state)")
+    with H5Writer(path, sim, state, dt=dt, scene=scene, params=params, ppc=ppc) as w, w.batch():
         w.append(history)
+        if resumable:
+            w.write_state(state, start_step, steps, save_every)
 
 
 def _key_name(key) -> str:
@@ -193,18 +431,24 @@ def state_leaves(state):
     return [("/".join(_key_name(k) for k in path), leaf) for path, leaf in leaves]
 
 
-def read_state(path, template):
+def read_state(path, template, again: str = "start the run again"):
     """The state stored under ``/state`` of ``path`` (see :meth:`H5Writer.write_state`), as a
     :class:`State` shaped like ``template`` (the run's initial state), plus the schedule:
-    ``(state, {"start step", "steps", "save every", "complete"})``."""
+    ``(state, {"start step", "steps", "save every", "complete"})``.  ``again`` ends the message
+    of a file without a state (what to do instead)."""
     import jax
     import jax.numpy as jnp
 
     from ..core.errors import check
 
     with h5py.File(path, "r") as f:
-        check("state" in f, f"{os.fspath(path)} holds no saved state (/state): it was written by an older "
-                            "jaxmpm or a run that failed before its first chunk; rerun it")
+        if "state" not in f:
+            frames = int(f["time"].shape[0]) if "time" in f else 0
+            check(frames, f"{os.fspath(path)} holds no frames and no saved state (/state): its run was stopped "
+                          f"before the first frame was saved, so there is nothing to continue; {again}")
+            check(False, f"{os.fspath(path)} holds {frames} frame{'s' * (frames != 1)} but no saved state (/state) "
+                         "to continue from: it was written by jm.save_h5 without steps= and save_every=, or by "
+                         f"an earlier jaxmpm, which saved the state only on Ctrl-C; {again}")
         group = f["state"]
         leaves = []
         for name, leaf in state_leaves(template):

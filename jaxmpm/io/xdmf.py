@@ -10,9 +10,59 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 
 import h5py
 import numpy as np
+
+
+def same_file(a: str, b: str) -> bool:
+    """Whether two paths name one file (False where either is missing)."""
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
+def remove(*paths) -> None:
+    """Remove the files that exist among ``paths``."""
+    for p in paths:
+        try:
+            os.unlink(p)
+        except FileNotFoundError:
+            pass
+
+
+def copy_into_place(source: str, target: str) -> None:
+    """``target`` replaced in one step by a copy of ``source`` (a new file: a reader of the old one
+    keeps it)."""
+    shutil.copyfile(source, target + ".tmp")
+    os.replace(target + ".tmp", target)
+
+
+def link_into_place(source: str, target: str, links: bool = True) -> bool:
+    """Make ``target`` name the file ``source`` names, in one step: a hard link renamed over it
+    (POSIX ``rename`` is atomic), or, where hard links fail (or ``links`` is False), a copy renamed
+    over it.  Returns whether a hard link did it."""
+    if links:
+        link = target + ".tmp"
+        remove(link)
+        try:
+            os.link(source, link)
+        except OSError:
+            pass
+        else:
+            os.replace(link, target)
+            remove(link)  # left when the two names were already one file (rename does nothing then)
+            return True
+    copy_into_place(source, target)
+    return False
+
+
+def views_copies(views_path: str) -> tuple[str, str]:
+    """The two copies of the views file ``FILE.xdmf.h5`` that :func:`write_xdmf` keeps while a writer
+    runs (one of them is the views file itself)."""
+    return views_path + ".0.tmp", views_path + ".1.tmp"
 
 
 def _xdmf_type(dtype) -> str:
@@ -57,28 +107,54 @@ def _replace_view(g: h5py.File, path: str, layout) -> None:
     g.create_virtual_dataset(path, layout, fillvalue=0)
 
 
+def _views_held(path: str, signature: str):
+    """The frames the views file ``path`` holds, or None (missing, unreadable, or of another file)."""
+    try:
+        with h5py.File(path, "r") as g:
+            return int(g.attrs["frames"]) if g.attrs.get("signature") == signature else None
+    except (OSError, KeyError):
+        return None
+
+
 def _write_frame_views(views_path: str, h5_name: str, f: h5py.File, series: list[str], T: int, N: int, D: int):
     """Create (or extend) the views file: ``/index`` (N, 1) int64, the Polyvertex connectivity
     0..N-1, and for each frame t ``/particles/<name>/<t>`` (t as six digits), an HDF5 virtual
     dataset that is frame t of ``h5_name:/particles/<name>`` (no data is copied; a matrix per
     particle is flattened to a row); in 1D also ``/points/<t>`` (N, 2), the position with a zero
     second coordinate.  A views file whose particle count, dtypes or fields differ from ``f`` is
-    rebuilt; otherwise only the frames it lacks are added."""
+    rebuilt; otherwise only the frames it lacks are added.
+
+    Like ``FILE.h5`` (:class:`jaxmpm.H5Writer`), the views file is never written in place: of its
+    two copies (:func:`views_copies`), one is the views file itself (a second hard link) and the
+    other, which lags one update behind, receives the frames it lacks and is then renamed over it,
+    so that a kill leaves the old views or the new, never half of them."""
     signature = json.dumps({"views layout": 1, "source": h5_name, "N": N, "D": D,
                             "series": [[n, list(f["particles"][n].shape[2:]), f["particles"][n].dtype.str]
                                        for n in series]})
-    mode = "a"
-    if os.path.exists(views_path):
-        try:
-            with h5py.File(views_path, "r") as g:
-                if g.attrs.get("signature") != signature:
-                    mode = "w"
-        except OSError:  # not an HDF5 file (or a truncated one): rebuild it
-            mode = "w"
-    with h5py.File(views_path, mode) as g:
+    live = _views_held(views_path, signature)
+    if live is not None and live >= T:
+        return
+    first, second = views_copies(views_path)
+    target = second if same_file(first, views_path) else first
+    held = _views_held(target, signature)
+    # the copy lags the views file (by the last update): copying the views file over it costs
+    # about as much as making 1/200 of its views again, so it is copied unless it lags by less
+    if live is not None and (held is None or 200 * (live - held) > live):
+        copy_into_place(views_path, target)
+        held = live
+    try:
+        g = h5py.File(target, "a" if held is not None else "w")
+    except OSError:  # held open by a reader since it was the views file: a new copy
+        remove(target)
+        if live is not None:
+            copy_into_place(views_path, target)
+        g = h5py.File(target, "a" if live is not None else "w")
+    with g:
         if g.attrs.get("signature") != signature:
             for key in list(g.keys()):
                 del g[key]
+            for key in list(g.attrs.keys()):
+                del g.attrs[key]
             g.create_dataset("index", data=np.arange(N, dtype=np.int64).reshape(N, 1))
             g.attrs["signature"] = signature
             g.attrs["frames"] = 0
@@ -97,6 +173,7 @@ def _write_frame_views(views_path: str, h5_name: str, f: h5py.File, series: list
                     layout[:, 0] = source[t, :, 0]
                     _replace_view(g, f"points/{t:06d}", layout)
         g.attrs["frames"] = max(done, T)
+    link_into_place(target, views_path)
 
 
 def write_xdmf(h5_path: str, f: h5py.File) -> None:

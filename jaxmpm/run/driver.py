@@ -6,6 +6,7 @@ progress bar.  ``Simulation.run`` and ``Simulation.rollout`` call these."""
 from __future__ import annotations
 
 import math
+import os
 
 import equinox as eqx
 import jax
@@ -173,11 +174,12 @@ def run(
     :func:`rollout`); neither changes the forward results.
 
     Chunks are sized by wall time (about :data:`CHUNK_SECONDS`); ``frames_per_chunk`` caps them.
-    SIGINT (Ctrl-C) or SIGTERM stops a chunked run at the next chunk boundary: the frames so far
-    and the state reached stay in the writer's file and :class:`RunInterrupted` is raised;
-    :func:`jaxmpm.resume` continues it.  ``start_step`` (resume) is the step of the run's first
-    frame when ``state`` is part-way through it.  Before anything runs, the step count and the
-    memory the saved frames need are checked (:mod:`jaxmpm.core.limits`).
+    A writer's file receives every chunk's frames with the state reached, so that whatever stops
+    the run, even a kill, :func:`jaxmpm.resume` continues it from its last chunk.  SIGINT (Ctrl-C)
+    or SIGTERM stops a chunked run at the next chunk boundary and raises :class:`RunInterrupted`.
+    ``start_step`` (resume) is the step of the run's first frame when ``state`` is part-way
+    through it.  Before anything runs, the step count and the memory the saved frames need are
+    checked (:mod:`jaxmpm.core.limits`).
     """
     check(isinstance(steps, (int, np.integer)) and steps >= 0, f"run: steps = {steps!r} must be a non-negative integer")
     check(isinstance(save_every, (int, np.integer)) and save_every >= 1,
@@ -227,7 +229,8 @@ def _require_frame_memory(sim, state, frames, save_particles, in_memory):
     concatenated history) plus the state and its step temporaries, before the run starts."""
     state_bytes = sum(a.size * a.dtype.itemsize for a in jax.tree_util.tree_leaves(state) if hasattr(a, "size"))
     frame_bytes = _frame_bytes(sim, state, save_particles)
-    held = 2 * (frames + 1) * frame_bytes if in_memory else min(frames + 1, 2) * frame_bytes + _CHUNK_BYTES
+    # a writer holds up to two chunks of frames (the file's two copies lag one publication apart)
+    held = 2 * (frames + 1) * frame_bytes if in_memory else min(frames + 1, 3) * frame_bytes + 2 * _CHUNK_BYTES
     fix = ("save fewer frames (frames=/--frames, a larger save_every), save_particles=False, or write "
            "to a file (writer=jm.H5Writer(...), the CLI's --out)") if in_memory else "use fewer particles"
     require_memory(f"this run ({frames + 1} frames of {frame_bytes:,} bytes, {int(state.x.shape[0]):,} particles)",
@@ -280,9 +283,29 @@ class _StopOnSignal:
 
 
 #: wall time a chunk of the chunked runner aims at: the longest wait for Ctrl-C, the progress
-#: bar's refresh; ``_CHUNK_BYTES`` caps the frames one chunk buffers on the device
+#: bar's refresh, and (with a writer) how often the file is brought up to date; the environment
+#: variable ``JAXMPM_CHUNK_SECONDS`` overrides it.  ``_CHUNK_BYTES`` caps the frames one chunk
+#: buffers on the device
 CHUNK_SECONDS = 2.0
 _CHUNK_BYTES = 16 * 2**20
+#: the state goes with every chunk's frames, unless saving it takes more than ``_STATE_SECONDS``
+#: and more than ``_STATE_SHARE`` of the run's time (a very large state): then with fewer of them
+_STATE_SHARE = 0.05
+_STATE_SECONDS = 0.05
+
+
+def _chunk_seconds() -> float:
+    """:data:`CHUNK_SECONDS`, or ``$JAXMPM_CHUNK_SECONDS`` where it is set."""
+    value = os.environ.get("JAXMPM_CHUNK_SECONDS", "").strip()
+    if not value:
+        return CHUNK_SECONDS
+    try:
+        seconds = float(value)
+    except ValueError:
+        seconds = math.nan
+    check(math.isfinite(seconds) and seconds > 0,
+          f"JAXMPM_CHUNK_SECONDS = {value!r} must be a positive number of seconds (unset: {CHUNK_SECONDS:g})")
+    return seconds
 
 
 def _run_chunked(sim, state, dt, frames, save_every, save_particles, check_stability, progress, writer,
@@ -292,9 +315,12 @@ def _run_chunked(sim, state, dt, frames, save_every, save_particles, check_stabi
     chunk recompiles, and the arithmetic is that of an uninterrupted run whatever the chunking.
 
     ``start_step`` (resume) is the step of the run's initial frame: ``state`` may be anywhere in
-    the schedule of ``frames`` frames of ``save_every`` steps from there.  On SIGINT/SIGTERM the
-    loop stops at the next chunk boundary, the writer stores the state reached, and
-    :class:`RunInterrupted` is raised."""
+    the schedule of ``frames`` frames of ``save_every`` steps from there.  With a writer, the
+    initial frame goes to the file with the initial state before the first step, and every chunk's
+    frames with the state reached after it, in one publication each (``writer.batch()``; the file
+    survives a kill at any moment, see :class:`jaxmpm.H5Writer`), so the file can be continued
+    (:func:`jaxmpm.resume`) from its last chunk whatever stops the run.  On SIGINT/SIGTERM the loop
+    stops at the next chunk boundary and :class:`RunInterrupted` is raised."""
     import time
 
     _segment_length(save_every, checkpoint, frames)  # validated; the chunked runner is forward only
@@ -303,6 +329,7 @@ def _run_chunked(sim, state, dt, frames, save_every, save_particles, check_stabi
     total = frames * save_every
     check(0 <= done_steps <= total, f"resume: the state is at step {int(state.step)}, outside the run's "
                                     f"steps {start_step}..{start_step + total}")
+    seconds = _chunk_seconds()
     frame_bytes = _frame_bytes(sim, state, save_particles)
     buffer_frames = max(1, min(frames, frames_per_chunk or frames, _CHUNK_BYTES // max(1, frame_bytes)))
     rate = None  # steps per second, measured on the chunks after the first (which compiles)
@@ -312,14 +339,21 @@ def _run_chunked(sim, state, dt, frames, save_every, save_particles, check_stabi
 
         bar = tqdm(total=total, initial=done_steps, unit="step", desc="jaxmpm")
     pieces = []
-    keep = writer.append if writer is not None else pieces.append
+    if writer is not None:
+        state_bytes = sum(a.size * a.dtype.itemsize for a in jax.tree_util.tree_leaves(state) if hasattr(a, "size"))
+        publisher = _Publisher(writer, dict(start_step=start_step, steps=total, save_every=save_every), state_bytes)
     none = Failure(jnp.array(-1, jnp.int32), jnp.array(0, jnp.int32), jnp.array(-1, jnp.int32))
     try:
         with _StopOnSignal() as stop:
             if done_steps == 0 and (writer is None or writer.frames == 0):
-                keep(jax.tree_util.tree_map(lambda a: a[None], _jit_frame(sim, state, save_particles)))
+                first = jax.tree_util.tree_map(lambda a: a[None], _jit_frame(sim, state, save_particles))
+                if writer is None:
+                    pieces.append(first)
+                else:  # before the first step: from here on the file can be continued
+                    publisher.publish(first, state)
             while done_steps < total:
-                n_frames, per_frame = _chunk(done_steps, total, save_every, rate, buffer_frames, frames_per_chunk)
+                n_frames, per_frame = _chunk(done_steps, total, save_every, rate, buffer_frames, frames_per_chunk,
+                                             seconds)
                 tic = time.perf_counter()
                 new_state, failure, buffer = _advance(sim, state, none, dt, jnp.asarray(n_frames, jnp.int32),
                                                       jnp.asarray(per_frame, jnp.int32), buffer_frames,
@@ -329,10 +363,16 @@ def _run_chunked(sim, state, dt, frames, save_every, save_particles, check_stabi
                 steps_run = n_frames * per_frame
                 kept = n_frames if (done_steps + steps_run) % save_every == 0 else 0  # whole frames only
                 bad_step = int(failure.step)
-                if bad_step >= 0 and check_stability:  # the frames strictly before the failing step
+                failed = bad_step >= 0 and check_stability
+                if failed:  # the frames strictly before the failing step
                     kept = min(kept, max(0, (bad_step - int(state.step) - 1) // per_frame))
-                if kept:
-                    keep(jax.tree_util.tree_map(lambda a: jnp.asarray(a[:kept]), buffer))
+                frames_kept = jax.tree_util.tree_map(lambda a: jnp.asarray(a[:kept]), buffer) if kept else None
+                if writer is None:
+                    if kept:
+                        pieces.append(frames_kept)
+                else:  # one publication: the chunk's frames and the state reached (not a failed chunk's)
+                    publisher.publish(frames_kept, None if failed else new_state,
+                                      due=stop.requested is not None or done_steps + steps_run == total)
                 if bar is not None:
                     bar.update(steps_run)
                 if check_stability:
@@ -342,12 +382,10 @@ def _run_chunked(sim, state, dt, frames, save_every, save_particles, check_stabi
                 rate = _measured_rate(rate, steps_run, elapsed)
                 if stop.requested is not None and done_steps < total:
                     if writer is not None:
-                        writer.write_state(state, start_step=start_step, steps=total, save_every=save_every)
+                        publisher.publish(None, state, due=True)  # saved already, unless the signal came late
                         raise RunInterrupted(state, writer.frames, stop.requested)
                     history = jax.tree_util.tree_map(lambda *a: jnp.concatenate(a), *pieces)
                     raise RunInterrupted(state, len(history), stop.requested, history)
-        if writer is not None:
-            writer.write_state(state, start_step=start_step, steps=total, save_every=save_every)
     finally:
         if bar is not None:
             bar.close()
@@ -359,10 +397,43 @@ def _run_chunked(sim, state, dt, frames, save_every, save_particles, check_stabi
     return state, history
 
 
-def _chunk(done_steps, total, save_every, rate, buffer_frames, frames_per_chunk):
-    """(frames, steps per frame) of the next chunk: about CHUNK_SECONDS of work at ``rate``
+class _Publisher:
+    """Publishes a chunked run's frames and state with its writer (one ``writer.batch()`` each).
+    The state goes with every chunk's frames unless saving it has taken more than
+    :data:`_STATE_SECONDS` and more than :data:`_STATE_SHARE` of the run's time (then as often as
+    that allows), and always when ``due`` (the run's end, a signal); a chunk without it leaves
+    frames that :func:`jaxmpm.resume` computes again from the state before them."""
+
+    def __init__(self, writer, schedule, state_bytes: int):
+        import time
+
+        self.writer, self.schedule, self.state_bytes, self.clock = writer, schedule, state_bytes, time.perf_counter
+        self.step = None  # the step of the state last saved
+        self.cost = 0.0  # seconds its saving took (its share of the publication, by bytes)
+        self.when = self.clock()
+
+    def publish(self, frames, state, due: bool = False) -> None:
+        """``frames`` (a History, or None) and ``state`` (None: no state to save) in one publication."""
+        now = self.clock()
+        with_state = state is not None and int(state.step) != self.step and (
+            due or self.step is None or self.cost <= _STATE_SECONDS or (now - self.when) * _STATE_SHARE >= self.cost)
+        if frames is None and not with_state:
+            return
+        with self.writer.batch():
+            if frames is not None:
+                self.writer.append(frames)
+            if with_state:
+                self.writer.write_state(state, **self.schedule)
+        if with_state:
+            frame_bytes = 0 if frames is None else sum(a.nbytes for a in jax.tree_util.tree_leaves(frames))
+            self.step, self.when = int(state.step), self.clock()
+            self.cost = (self.when - now) * self.state_bytes / max(1, self.state_bytes + frame_bytes)
+
+
+def _chunk(done_steps, total, save_every, rate, buffer_frames, frames_per_chunk, seconds=CHUNK_SECONDS):
+    """(frames, steps per frame) of the next chunk: about ``seconds`` of work at ``rate``
     steps/s (one step while the rate is unknown), ending on a frame boundary where it can."""
-    budget = 1 if rate is None else max(1, int(rate * CHUNK_SECONDS))
+    budget = 1 if rate is None else max(1, int(rate * seconds))
     into_frame = done_steps % save_every
     if frames_per_chunk is not None and into_frame == 0:
         return min(frames_per_chunk, buffer_frames, (total - done_steps) // save_every), save_every

@@ -34,6 +34,7 @@ from .run.ensemble import ensemble
 from .model.simulation import Simulation
 from .model.step import folds_force, g2p, grid_phases, grid_solve, p2g
 from .io.hdf5 import H5Writer, load_h5, save_h5
+from .io.plot import animate, plot_frames
 from .resume import resume
 from .scenes import SCENES, scene
 
@@ -57,5 +58,5 @@ __all__ = [
     "Traction", "Reaction", "Mirror", "compilation_cache",
     "ElasticMaterial", "InelasticMaterial", "Increment", "ParticleDamping", "Contraction", "Weighted", "Gradient",
     "Divergence", "Affine", "Hoop", "PerSlot", "Kernel", "register_kernel", "series", "exchange_series",
-    "grid_phases", "Mesh", "Polygon", "point_cloud",
+    "grid_phases", "Mesh", "Polygon", "point_cloud", "animate", "plot_frames",
 ]

@@ -2,10 +2,11 @@
 
 ``jaxmpm scenes`` lists the scenes with their options and defaults; ``jaxmpm run SCENE [options]
 --out FILE.h5`` runs one with a progress bar, writes HDF5 (plus an XDMF sidecar) as it goes
-(:class:`jaxmpm.H5Writer`) and prints a summary; ``jaxmpm resume FILE.h5`` continues a run that
-Ctrl-C or SIGTERM stopped.  Input errors (bad values, a run too large for the machine) and
-instabilities print one line and exit with status 2; an interrupted run exits with 130 (SIGINT)
-or 143 (SIGTERM) after saving its frames and state.
+(:class:`jaxmpm.H5Writer`: with every chunk's frames and state, replaced by rename so that a kill
+at any moment leaves a complete file) and prints a summary; ``jaxmpm resume FILE.h5`` continues a
+run that Ctrl-C, SIGTERM or a kill stopped.  Input errors (bad values, a run too large for the
+machine) and instabilities print one line and exit with status 2; an interrupted run exits with
+130 (SIGINT) or 143 (SIGTERM) after saving its frames and state.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ import math
 import sys
 import time
 
+from .io.plot import PLOT_COMMANDS, add_plot_commands, run_plot_command
 from .scenes.command import SCENE_OPTIONS, build_setup, setup_from_options  # noqa: F401  (re-exported)
 
 EXIT_ERROR = 2
@@ -71,7 +73,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="jaxmpm",
         description="Differentiable Material Point Method in JAX: run the benchmark scenes.",
     )
-    sub = parser.add_subparsers(dest="command", metavar="{scenes,run,resume}")
+    sub = parser.add_subparsers(dest="command", metavar="{scenes,run,resume,plot,animate}")
     sub.required = True
     sub.add_parser("scenes", help="list the scenes, their options and defaults",
                    description="List the scenes: a one-line description, then each one's options and defaults.")
@@ -138,12 +140,13 @@ def build_parser() -> argparse.ArgumentParser:
     resume = sub.add_parser(
         "resume",
         help="continue an interrupted run",
-        description="Continue the run stored in FILE.h5 (stopped by Ctrl-C or SIGTERM) to its end, appending "
-        "to the same file; the result equals the uninterrupted run.",
+        description="Continue the run stored in FILE.h5 (stopped by Ctrl-C, SIGTERM or a kill) from its last "
+        "saved chunk to its end, appending to the same file; the result equals the uninterrupted run.",
     )
     resume.add_argument("file", metavar="FILE.h5", help="the --out file of an interrupted `jaxmpm run`")
     resume.add_argument("--no-progress", action="store_true", help="no progress bar")
     resume.add_argument("--cache", action="store_true", help=CACHE_HELP)
+    add_plot_commands(sub)
     return parser
 
 
@@ -155,6 +158,8 @@ def main(argv=None) -> int:
         return list_scenes()
     if args.command == "resume":
         return resume_run(args)
+    if args.command in PLOT_COMMANDS:
+        return run_plot_command(args)
     return run_scene(args)
 
 
@@ -193,7 +198,10 @@ def run_scene(args) -> int:
     from jaxmpm.core.errors import check
 
     if os.path.exists(args.out) and not args.force:
-        fail(f"--out {args.out} exists; pass --force to overwrite it, or choose another file")
+        saved = saved_state(args.out)
+        unfinished = (f" (it holds an unfinished run, continued by `jaxmpm resume {args.out}`)"
+                      if saved and not saved["complete"] else "")
+        fail(f"--out {args.out} exists{unfinished}; pass --force to overwrite it, or choose another file")
     try:
         setup = build_setup(args)
         if args.max_steps is not None:
@@ -225,6 +233,21 @@ def resume_run(args) -> int:
         fail(str(err))
     return run_setup(setup, argparse.Namespace(out=args.file, no_progress=args.no_progress, cache=args.cache), options,
                      resume=True)
+
+
+def saved_state(path) -> dict | None:
+    """``{"frames", "step", "complete"}`` of the state saved in a run's file, or None (no file, no
+    state, not readable)."""
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as f:
+            if "state/step" not in f:
+                return None
+            return {"frames": int(f["time"].shape[0]) if "time" in f else 0, "step": int(f["state/step"][()]),
+                    "complete": bool(f["state"].attrs.get("complete", False))}
+    except (OSError, KeyError, ValueError):
+        return None
 
 
 def options_of(args) -> dict:
@@ -278,9 +301,8 @@ def run_setup(setup, args, options: dict, resume: bool = False) -> int:
             final = jm.resume(args.out, setup, progress=not args.no_progress)
         else:
             with jm.H5Writer(args.out, sim, state, dt=setup.dt, scene=setup.name, params=setup.params,
-                             ppc=setup.params.get("ppc")) as writer:
-                writer.file.attrs["command"] = json.dumps(options)  # for `jaxmpm resume`
-                final, _ = setup.run(progress=not args.no_progress, writer=writer)
+                             ppc=setup.params.get("ppc"), attrs={"command": json.dumps(options)}) as writer:
+                final, _ = setup.run(progress=not args.no_progress, writer=writer)  # `command`: for resume
         jax.block_until_ready(final)
     except jm.InstabilityError as err:
         when = f" (t = {err.time:.6g})" if err.time is not None else ""
@@ -298,8 +320,12 @@ def run_setup(setup, args, options: dict, resume: bool = False) -> int:
               f"continue with `jaxmpm resume {args.out}`", file=sys.stderr)
         raise SystemExit(EXIT_SIGNAL.get(err.signal, 130)) from None
     except KeyboardInterrupt:  # before the run's first chunk, or a second Ctrl-C
-        print(f"jaxmpm: interrupted; the frames so far were kept in {args.out} (no state to resume from)",
-              file=sys.stderr)
+        saved = saved_state(args.out)
+        if saved is None:
+            print("jaxmpm: interrupted before the run's first frame was saved; start it again", file=sys.stderr)
+        else:
+            print(f"jaxmpm: interrupted; {args.out} keeps {saved['frames']} frame{'' if saved['frames'] == 1 else 's'} "
+                  f"and the state of step {saved['step']}; continue with `jaxmpm resume {args.out}`", file=sys.stderr)
         raise SystemExit(130) from None
     files = [args.out] + [p for p in xdmf_paths(args.out) if os.path.exists(p)]
     wall = time.perf_counter() - start

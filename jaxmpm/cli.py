@@ -153,7 +153,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     """Entry point of the ``jaxmpm`` console script; returns 0, or exits with status 2 on an error
     (130/143 when a signal interrupts a run)."""
-    args = build_parser().parse_args(argv)
+    args = build_parser().parse_args(_negative_values_joined(sys.argv[1:] if argv is None else list(argv)))
     if args.command == "scenes":
         return list_scenes()
     if args.command == "resume":
@@ -161,6 +161,27 @@ def main(argv=None) -> int:
     if args.command in PLOT_COMMANDS:
         return run_plot_command(args)
     return run_scene(args)
+
+
+def _negative_values_joined(argv: list) -> list:
+    """``--dt -1e-3`` as ``--dt=-1e-3``: argparse takes a value that starts with "-" and is not a plain
+    integer or decimal (an exponent) for an option, and says "expected one argument"; joined, the
+    value reaches the option's own check, which says what is wrong with it."""
+    out = []
+    for token in argv:
+        if out and out[-1].startswith("--") and "=" not in out[-1] and token.startswith("-") and _is_number(token):
+            out[-1] = f"{out[-1]}={token}"
+        else:
+            out.append(token)
+    return out
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
 
 
 def list_scenes() -> int:

@@ -75,3 +75,24 @@ def test_terms_simulation_adds_itself_replace_its_own():
     assert [float(t.grid) for t in damped.terms if isinstance(t, jm.Damping)] == [0.1]
     with pytest.raises(jm.InputError, match="terms holds a jm.Damping and damping= gives another"):
         jm.Simulation(terms=(jm.Damping(grid=0.1),), damping=jm.Damping(particle=0.2), **kwargs)
+
+
+def test_load_h5_on_a_missing_or_truncated_file(tmp_path):
+    path = tmp_path / "run.h5"
+    with pytest.raises(jm.InputError, match="does not exist"):
+        jm.load_h5(path)
+    path.write_bytes(b"\x89HDF\r\n\x1a\n" + b"\0" * 200)  # an HDF5 signature, then nothing: truncated
+    with pytest.raises(jm.InputError, match="is not a readable HDF5 file"):
+        jm.load_h5(path)
+
+
+def test_negative_numbers_reach_the_options_own_check(tmp_path, capsys):
+    """`--cfl -0.5`: argparse alone says "expected one argument" (an exponent or a negative value
+    looks like an option to it); the value now reaches the scene's check, which names it."""
+    from cases import run_cli
+
+    assert run_cli(["run", "bar", "--cfl", "-0.5", "--out", str(tmp_path / "x.h5")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "cfl = -0.5 must be positive" in err[0]
+    assert run_cli(["run", "bar", "--t-end", "-1e-3", "--out", str(tmp_path / "x.h5")]) == 2
+    assert "t_end" in capsys.readouterr().err and not (tmp_path / "x.h5").exists()

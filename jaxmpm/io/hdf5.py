@@ -471,9 +471,20 @@ class Results(dict):
 
 
 def load_h5(path) -> Results:
-    """Read a jaxmpm HDF5 file: ``res["particles/x"]``, ``res.attrs["scheme"]``, ``res.params`` ..."""
+    """Read a jaxmpm HDF5 file: ``res["particles/x"]``, ``res.attrs["scheme"]``, ``res.params`` ...
+    A path that does not exist, or a file HDF5 cannot open (truncated, not HDF5), is an InputError."""
+    from ..core.errors import check
+
     out = Results()
-    with h5py.File(path, "r") as f:
+    check(os.path.isfile(path), f"load_h5: {os.fspath(path)!r} does not exist (or is not a file); give the path of a "
+                                "jaxmpm HDF5 file (`jaxmpm run ... --out FILE.h5`, jm.save_h5, jm.H5Writer)")
+    try:
+        f = h5py.File(path, "r")
+    except OSError as err:
+        check(False, f"load_h5: {os.fspath(path)!r} is not a readable HDF5 file ({str(err).splitlines()[0][:120]}); "
+                     "it may be truncated or not HDF5 -- a run's file stays readable after any stop, so check the "
+                     "path, or rerun the run")
+    with f:
         def visit(name, obj):  # /state is restart data (read_state, jaxmpm.resume), not results
             if isinstance(obj, h5py.Dataset) and not name.startswith("state/"):
                 out[name] = obj[()]

@@ -453,24 +453,31 @@ def nairn_version(binary: str) -> str:
     return f"{version}, commit {commit}" if commit else version
 
 
+def execute_nairnmpm(name: str, xml: str, workdir: str, binary: str | None, timeout: float) -> str:
+    """Write ``xml`` to ``workdir/<name>.xml`` and run NairnMPM (``binary`` or ``$NAIRN_BIN``) on it,
+    one thread, its output kept in ``<name>.out``; returns the binary, raises when it fails."""
+    binary = binary or os.environ.get("NAIRN_BIN")
+    if not binary:
+        raise RuntimeError("run_nairnmpm: set $NAIRN_BIN to a NairnMPM executable")
+    os.makedirs(workdir, exist_ok=True)
+    path = os.path.join(workdir, f"{name}.xml")
+    with open(path, "w") as f:
+        f.write(xml)
+    proc = subprocess.run([binary, "-np", "1", path], capture_output=True, text=True, timeout=timeout, cwd=workdir)
+    with open(os.path.join(workdir, f"{name}.out"), "w") as f:
+        f.write(proc.stdout + proc.stderr)
+    if proc.returncode != 0 or "ABNORMAL TERMINATION" in proc.stdout:
+        raise RuntimeError(f"NairnMPM failed on {name} (exit {proc.returncode}):\n{proc.stdout[-3000:]}"
+                           f"\n{proc.stderr[-3000:]}")
+    return binary
+
+
 def run_nairnmpm(case: Case, workdir: str, binary: str | None = None, timeout: float = 600.0) -> dict:
     """Run NairnMPM (``binary`` or ``$NAIRN_BIN``) on the case's input in ``workdir``, one thread;
     returns the steps 1..N: step, time, px, kinetic, strain (NairnMPM's per-strip values),
     v_cm = px / M, the archive's text of each quantity, the input and the version."""
-    binary = binary or os.environ.get("NAIRN_BIN")
-    if not binary:
-        raise RuntimeError("run_nairnmpm: set $NAIRN_BIN to a NairnMPM executable")
     xml = nairnmpm_input(case)
-    os.makedirs(workdir, exist_ok=True)
-    path = os.path.join(workdir, f"{case.name}.xml")
-    with open(path, "w") as f:
-        f.write(xml)
-    proc = subprocess.run([binary, "-np", "1", path], capture_output=True, text=True, timeout=timeout, cwd=workdir)
-    with open(os.path.join(workdir, f"{case.name}.out"), "w") as f:
-        f.write(proc.stdout + proc.stderr)
-    if proc.returncode != 0 or "ABNORMAL TERMINATION" in proc.stdout:
-        raise RuntimeError(f"NairnMPM failed on {case.name} (exit {proc.returncode}):\n{proc.stdout[-3000:]}"
-                           f"\n{proc.stderr[-3000:]}")
+    binary = execute_nairnmpm(case.name, xml, workdir, binary, timeout)
     arch = parse_global(os.path.join(workdir, "bar.global"))
     step = arch[ARCHIVE_TYPES["step"]].astype(np.int64)
     if not np.array_equal(step, np.arange(1, case.steps + 1)):

@@ -90,7 +90,6 @@ import dataclasses
 import math
 import os
 import struct
-import subprocess
 import tempfile
 import time
 from xml.sax.saxutils import escape
@@ -110,6 +109,7 @@ from experiments.nairnmpm import (  # noqa: E402
     _encode,
     _num,
     archive_unit,
+    execute_nairnmpm,
     nairn_version,
     parse_global,
 )
@@ -415,20 +415,8 @@ def run_nairnmpm(case: Case2D, workdir: str, binary: str | None = None, timeout:
     """Run NairnMPM on the case's input in ``workdir``, one thread: its archived steps 1..N of the
     quantities (floats and the archive's text), the particles' final positions and velocities in
     jaxmpm's order (matched by their initial positions), the input and the version."""
-    binary = binary or os.environ.get("NAIRN_BIN")
-    if not binary:
-        raise RuntimeError("run_nairnmpm: set $NAIRN_BIN to a NairnMPM executable")
     xml = nairnmpm_input(case)
-    os.makedirs(workdir, exist_ok=True)
-    path = os.path.join(workdir, f"{case.name}.xml")
-    with open(path, "w") as f:
-        f.write(xml)
-    proc = subprocess.run([binary, "-np", "1", path], capture_output=True, text=True, timeout=timeout, cwd=workdir)
-    with open(os.path.join(workdir, f"{case.name}.out"), "w") as f:
-        f.write(proc.stdout + proc.stderr)
-    if proc.returncode != 0 or "ABNORMAL TERMINATION" in proc.stdout:
-        raise RuntimeError(f"NairnMPM failed on {case.name} (exit {proc.returncode}):\n{proc.stdout[-3000:]}"
-                           f"\n{proc.stderr[-3000:]}")
+    binary = execute_nairnmpm(case.name, xml, workdir, binary, timeout)
     arch = parse_global(os.path.join(workdir, f"{ROOT}.global"))
     # a material's column is "<type> mat <n>", n NairnMPM's number of the material (names are numbered in
     # the order the input first mentions them: disk1, named by the archive's first matname, is 1)

@@ -351,7 +351,7 @@ class Simulation(eqx.Module):
         if particles.mass is None:
             if volume.dtype != x.dtype:  # in the positions' precision (state_positions)
                 volume = volume.astype(x.dtype)
-            mass = self.material.density.astype(x.dtype) * volume
+            mass = jnp.asarray(self.material.density, x.dtype) * volume  # a plain float density too
         else:
             mass = jnp.asarray(particles.mass)
             mc, vc, rc = concrete(mass), concrete(volume), concrete(self.material.density)

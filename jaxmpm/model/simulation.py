@@ -80,11 +80,15 @@ class Simulation(eqx.Module):
     ``conventions`` picks whose rules the step follows where MPM codes differ: "jaxmpm" (default)
     or "nairnmpm", NairnMPM 19.0's (J. A. Nairn's code, the seeds' reference implementation):
     the reaction force on constrained nodes (``constrained_force="reaction"``), XPIC's series start
-    (``XPIC(boundary="unconstrained_start")``) and the XPIC/PIC position update
-    (``position="PV_tilde"``); the scheme given is returned in those options
-    (:meth:`jaxmpm.Scheme.in_conventions`).  ``constrained_force`` alone: "zero" (v = g, a = 0
-    on constrained components) or "reaction" (v = p/m, the force the reaction m (g - p/m)/dt);
-    None takes the convention's."""
+    (``XPIC(boundary="unconstrained_start")``), the XPIC/PIC position update
+    (``position="PV_tilde"``), the grid damping's velocity (``damping_velocity="updated"``) and
+    contact's gradients, separation update and series (``jm.Contact(gradient="volume",
+    separation_update="extrapolated", series="incremental")``); the scheme and terms given are
+    returned in those options (:meth:`jaxmpm.Scheme.in_conventions`, ``Term.in_conventions``;
+    README "Agreement with NairnMPM").  ``constrained_force`` alone: "zero" (v = g, a = 0 on
+    constrained components) or "reaction" (v = p/m, the force the reaction m (g - p/m)/dt); None
+    takes the convention's.  A StressDivergence, BodyForce or Damping in ``terms`` replaces the one
+    Simulation adds."""
 
     grid: Grid
     shape: ShapeFunction

@@ -397,18 +397,24 @@ def nairnmpm_input(case: Case, root: str = "bar") -> str:
             "    </BCShape>",
         ]
     lines.append("  </GridBCs>")
-    if scheme_name != "flip":
-        parameter = "FMPMOrder" if scheme_name == "fmpm" else "XPICOrder"
-        lines += [
-            "  <CustomTasks>",
+    lines += periodic_xpic_task(case.scheme)
+    lines.append("</JANFEAInput>")
+    return "\n".join(lines) + "\n"
+
+
+def periodic_xpic_task(scheme: str) -> list:
+    """The XML lines of NairnMPM's ``PeriodicXPIC`` custom task, every step, for a scheme in
+    jaxmpm's command-line form: ``XPICOrder`` (PIC is 1) or ``FMPMOrder``; none for FLIP."""
+    scheme_name, _, order = scheme.partition(":")
+    if scheme_name == "flip":
+        return []
+    parameter = "FMPMOrder" if scheme_name == "fmpm" else "XPICOrder"
+    return ["  <CustomTasks>",
             '    <Schedule name="PeriodicXPIC">',
             f'      <Parameter name="{parameter}">{order or 1}</Parameter>',
             '      <Parameter name="periodicSteps">1</Parameter>',
             "    </Schedule>",
-            "  </CustomTasks>",
-        ]
-    lines.append("</JANFEAInput>")
-    return "\n".join(lines) + "\n"
+            "  </CustomTasks>"]
 
 
 def parse_global(path: str) -> dict:

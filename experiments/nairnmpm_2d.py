@@ -112,6 +112,7 @@ from experiments.nairnmpm import (  # noqa: E402
     execute_nairnmpm,
     nairn_version,
     parse_global,
+    periodic_xpic_task,
 )
 
 E, NU, RHO, SPEED, SPACING, DT = 1000.0, 0.3, 1000.0, 0.1, 0.05, 1e-3
@@ -372,16 +373,7 @@ def nairnmpm_input(case: Case2D) -> str:
     if case.contact != "none":
         coeff = case.friction if case.contact == "coulomb" else LAWS[case.contact]
         lines += ['  <Material Type="61" Name="contact">', f"    <coeff>{_num(coeff)}</coeff>", "  </Material>"]
-    if scheme_name != "flip":
-        parameter = "FMPMOrder" if scheme_name == "fmpm" else "XPICOrder"
-        lines += [
-            "  <CustomTasks>",
-            '    <Schedule name="PeriodicXPIC">',
-            f'      <Parameter name="{parameter}">{order or 1}</Parameter>',
-            '      <Parameter name="periodicSteps">1</Parameter>',
-            "    </Schedule>",
-            "  </CustomTasks>",
-        ]
+    lines += periodic_xpic_task(case.scheme)
     lines.append("</JANFEAInput>")
     return "\n".join(lines) + "\n"
 

@@ -24,27 +24,13 @@ import h5py
 import jax
 import numpy as np
 import pytest
+from cases import assert_same_files, h5_arrays
 
 import jaxmpm as jm
 from jaxmpm import cli
 from jaxmpm.io import hdf5
 
 BAR = dict(cells=8, t_end=2.0, frames=8)  # 64 steps, a frame every 8
-
-
-def h5_arrays(path) -> dict:
-    """Every dataset of a file (the /state group included), by path."""
-    out = {}
-    with h5py.File(path, "r") as f:
-        f.visititems(lambda name, obj: out.__setitem__(name, obj[()]) if isinstance(obj, h5py.Dataset) else None)
-    return out
-
-
-def assert_same_files(a, b):
-    x, y = h5_arrays(a), h5_arrays(b)
-    assert sorted(x) == sorted(y)
-    for name in x:
-        np.testing.assert_array_equal(y[name], x[name], err_msg=name)
 
 
 def frames(history, first, last):

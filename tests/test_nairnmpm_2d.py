@@ -16,9 +16,11 @@ jaxmpm runs the same case with :class:`jaxmpm.IncrementalElastic` (and :class:`j
 where the codes' rules agree, equals NairnMPM at every archived step within half a unit in the 7th
 significant digit of the archived value (times 1.001 for float64 round-off; values that are
 round-off in both codes within 1e-12 of p0 or E0) and its final particles within 1e-12 h and
-1e-12 v0 (they agree to ~5e-14).  The cases whose rules differ (``Case2D.differs``; the rule,
-its source lines and a scratch confirmation in experiments/results/nairnmpm_2d.md) are strict
-xfails: they must keep disagreeing until jaxmpm gets an option for NairnMPM's rule."""
+1e-12 v0 (they agree to ~5e-14).  The one case whose rule differs (``Case2D.differs``: NairnMPM's
+Coulomb stick/slide test where the tangential change is round-off, 1.06-1.16 units of the archive's
+last digit; the rule and its source lines in experiments/results/nairnmpm_2d.md) is a strict xfail:
+its comparison must keep failing, so a change to either rule there shows.  jaxmpm keeps its own test
+(|Dp_t| against mu |Dp_n|) there: NairnMPM's slide along a grid axis comes from its round-off."""
 
 import jax
 import numpy as np

@@ -126,8 +126,9 @@ class Particles(eqx.Module):
         positive_int("jm.Particles", "ppc", self.ppc, fix="particles per cell per axis (jm.fill sets it)")
         for name, value, rule in (("x", self.x, FINITE), ("v", self.v, FINITE), ("volume", self.volume, POSITIVE),
                                   ("mass", self.mass, POSITIVE)):
-            if value is not None and concrete(value) is not None:
-                rule.check("jm.Particles", name, concrete(value))
+            values = None if value is None else concrete(value)
+            if values is not None:
+                rule.check("jm.Particles", name, values)
 
     @property
     def num(self) -> int:

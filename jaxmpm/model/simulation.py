@@ -43,6 +43,19 @@ KINEMATICS = ("linear", "exponential")
 CONVENTIONS = {"jaxmpm": {"constrained_force": "zero"}, "nairnmpm": {"constrained_force": "reaction"}}
 
 
+def resolve_conventions(conventions: str, constrained_force: str | None) -> str:
+    """The constrained nodes' force of ``conventions`` (:data:`CONVENTIONS`), or ``constrained_force``
+    when given; both checked."""
+    check(conventions in CONVENTIONS, f"Simulation: conventions = {conventions!r}; choose 'jaxmpm' (the default) "
+                                      "or 'nairnmpm' (NairnMPM 19.0's rules where the codes differ)")
+    if constrained_force is None:
+        constrained_force = CONVENTIONS[conventions]["constrained_force"]
+    check(constrained_force in CONSTRAINED_FORCES,
+          f"Simulation: constrained_force = {constrained_force!r}; choose 'zero' (v = g, a = 0 on constrained "
+          "nodes) or 'reaction' (v = p/m and the reaction force, NairnMPM's rule)")
+    return constrained_force
+
+
 def state_positions(particles: Particles):
     """The positions in the state's precision, by one rule: the precision of ``particles.x``
     (integer positions take the default float: float64 under ``jax_enable_x64``, else float32);
@@ -134,13 +147,7 @@ class Simulation(eqx.Module):
             scheme = scheme_from_name(scheme)
         check(isinstance(scheme, Scheme),
               f"Simulation: unknown scheme {scheme!r}; use a jm.Scheme or one of {SCHEMES.specs()}")
-        check(conventions in CONVENTIONS, f"Simulation: conventions = {conventions!r}; choose 'jaxmpm' (the default) "
-                                          "or 'nairnmpm' (NairnMPM 19.0's rules where the codes differ)")
-        if constrained_force is None:
-            constrained_force = CONVENTIONS[conventions]["constrained_force"]
-        check(constrained_force in CONSTRAINED_FORCES,
-              f"Simulation: constrained_force = {constrained_force!r}; choose 'zero' (v = g, a = 0 on constrained "
-              "nodes) or 'reaction' (v = p/m and the reaction force, NairnMPM's rule)")
+        constrained_force = resolve_conventions(conventions, constrained_force)
         scheme = scheme.in_conventions(conventions)
         check(isinstance(material, Material),
               f"Simulation: material must be a jm.Material ({', '.join(MATERIALS.names())}), "
@@ -248,10 +255,7 @@ class Simulation(eqx.Module):
         """A copy of a model built in jaxmpm's conventions that follows another code's rules where
         MPM codes differ (``conventions`` in the class docstring): ``Simulation(..., conventions=c)``
         for a model already built (a scene's ``setup.sim``; the CLI's ``--conventions``)."""
-        check(conventions in CONVENTIONS, f"Simulation: conventions = {conventions!r}; choose 'jaxmpm' (the "
-                                          "default) or 'nairnmpm' (NairnMPM 19.0's rules where the codes differ)")
-        force = CONVENTIONS[conventions]["constrained_force"] if constrained_force is None else constrained_force
-        check(force in CONSTRAINED_FORCES, f"Simulation: constrained_force = {force!r}; choose 'zero' or 'reaction'")
+        force = resolve_conventions(conventions, constrained_force)
         new = self._with_static(conventions=conventions, constrained_force=force)
         object.__setattr__(new, "scheme", self.scheme.in_conventions(conventions))
         object.__setattr__(new, "terms", tuple(t.in_conventions(conventions) for t in self.terms))

@@ -4,7 +4,8 @@ FLIP, PIC and their blend, XPIC(m), FMPM(k), APIC and TPIC as pure, jit-able, di
 """
 
 from .core.version import __version__  # noqa: F401
-from .core.errors import InputError, InstabilityError
+from .core.docstrings import document_init as _document_init
+from .core.errors import InputError, InstabilityError, ParticlesLeftGrid
 from .core.registry import (MATERIALS, SCHEMES, SHAPES, TERMS, Parameter, register_material, register_scheme,
                             register_shape, register_term, scheme_from_name, shape_from_name)
 from .core.params import PARAMETERS, get_params, set_params
@@ -36,7 +37,7 @@ from .model.step import folds_force, g2p, grid_phases, grid_solve, p2g
 from .io.hdf5 import H5Writer, load_h5, save_h5
 from .io.plot import animate, plot_frames
 from .resume import resume
-from .scenes import SCENES, scene
+from .scenes import SCENES, register_scene, scene
 
 
 __all__ = [
@@ -45,6 +46,7 @@ __all__ = [
     "register_shape", "register_term", "scheme_from_name", "shape_from_name",
     "Ball", "BodyForce", "Box", "Constraint", "Contact", "CubicBSpline", "Damping", "Disk", "FLIP", "FMPM", "Fixed",
     "Grid", "GridFields", "GridSolution", "H5Writer", "History", "InputError", "InstabilityError", "Linear",
+    "ParticlesLeftGrid",
     "LinearElastic",
     "Material", "NeoHookean", "NodeSet", "PIC", "ParticleField", "ParticleUpdate", "Particles", "Prescribed",
     "QuadraticBSpline", "Region", "Ring", "RunInterrupted", "SCENES", "Scheme", "ShapeFunction", "Simulation", "Slip",
@@ -52,7 +54,7 @@ __all__ = [
     "AxisymmetricStencil",
     "Transfer", "UGIMP", "XPIC", "angular_momentum", "fill", "folds_force", "g2p", "gather", "grid_solve",
     "kinetic_energy", "linear_momentum", "load_h5", "resume", "mass_matrix_series", "p2g", "save_h5", "scatter",
-    "scene", "stable_dt", "strain_energy", "with_fields", "with_scheme_state",
+    "register_scene", "scene", "stable_dt", "strain_energy", "with_fields", "with_scheme_state",
     "APIC", "RPIC", "TPIC", "with_velocity_gradient", "Wall", "NoStress", "VolumetricFluid",
     "Diffusion", "Dirichlet", "Heat", "Neumann", "Transport", "HypoElastic", "IncrementalElastic", "ParticleForce",
     "Traction", "Reaction", "Mirror", "compilation_cache",
@@ -60,3 +62,10 @@ __all__ = [
     "Divergence", "Affine", "Hoop", "PerSlot", "Kernel", "register_kernel", "series", "exchange_series",
     "grid_phases", "Mesh", "Polygon", "point_cloud", "animate", "plot_frames",
 ]
+
+# help(jm.Grid.__init__) and call tips show the Args of the class docstring (an equinox module's
+# generated __init__ has no docstring of its own)
+for _public in map(globals().get, __all__):
+    if isinstance(_public, type):
+        _document_init(_public)
+del _public

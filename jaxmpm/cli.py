@@ -4,9 +4,11 @@
 --out FILE.h5`` runs one with a progress bar, writes HDF5 (plus an XDMF sidecar) as it goes
 (:class:`jaxmpm.H5Writer`: with every chunk's frames and state, replaced by rename so that a kill
 at any moment leaves a complete file) and prints a summary; ``jaxmpm resume FILE.h5`` continues a
-run that Ctrl-C, SIGTERM or a kill stopped.  Input errors (bad values, a run too large for the
-machine) and instabilities print one line and exit with status 2; an interrupted run exits with
-130 (SIGINT) or 143 (SIGTERM) after saving its frames and state.
+run that Ctrl-C, SIGTERM or a kill stopped.  SCENE is a registered scene (``jm.register_scene``, the
+entry points of the group ``jaxmpm.scenes``) or a Python file whose function ``scene`` builds it;
+``jaxmpm run SCENE --help`` lists the options SCENE takes, with its defaults.  Input errors (bad
+values, a run too large for the machine) and instabilities print one line and exit with status 2;
+an interrupted run exits with 130 (SIGINT) or 143 (SIGTERM) after saving its frames and state.
 """
 
 from __future__ import annotations
@@ -18,9 +20,10 @@ import sys
 import time
 
 from .io.plot import PLOT_COMMANDS, add_plot_commands, run_plot_command
-from .scenes.command import SCENE_OPTIONS, build_setup, setup_from_options  # noqa: F401  (re-exported)
+from .scenes.command import SCENE_OPTIONS, build_setup, setup_from_options, stored_options  # noqa: F401  (re-exported)
 
 EXIT_ERROR = 2
+_IMPORTED = time.perf_counter()  # the origin of seconds_since_start where /proc is missing
 EXIT_SIGNAL = {"SIGINT": 130, "SIGTERM": 143}
 CACHE_HELP = ("keep compiled programs on disk (jm.compilation_cache: $JAXMPM_CACHE_DIR, else ~/.cache/jaxmpm/xla), "
               "so that the same command run again skips most of XLA's compilation")
@@ -39,27 +42,92 @@ class _OneLineErrors(argparse.ArgumentParser):
 def _scene_defaults() -> dict:
     """{scene: {keyword: default}} from the builders' signatures and the scenes' part defaults."""
     from jaxmpm.scenes import SCENES
+
+    return {name: _builder_defaults(name, builder) for name, (builder, _) in SCENES.items()}
+
+
+def _builder_defaults(name: str, builder) -> dict:
+    """{keyword: default} of one scene's builder, its parts as the command line spells them."""
     from jaxmpm.scenes._common import PART_DEFAULTS
 
-    table = {}
-    for name, (builder, _) in SCENES.items():
-        params = inspect.signature(builder).parameters
-        table[name] = {k: PART_DEFAULTS.get(name, {}).get(k, p.default) for k, p in params.items()}
-    return table
+    params = inspect.signature(builder).parameters
+    return {k: PART_DEFAULTS.get(name, {}).get(k, p.default) for k, p in params.items()
+            if p.kind is not inspect.Parameter.VAR_KEYWORD}
 
 
 def _defaults(keyword: str) -> str:
-    """"(default: bar 16, mms 16; other scenes do not take it)" for a scene keyword."""
-    by_scene = {scene: d[keyword] for scene, d in _scene_defaults().items() if keyword in d}
+    """"(default: bar 16, mms 16; other scenes do not take it)" for a scene keyword, or for an option
+    ("--alpha-g")."""
+    option = keyword if keyword.startswith("--") else next(o for o, k in SCENE_OPTIONS.items() if k == keyword)
+    table = _scene_defaults()
+    by_scene = {scene: text for scene, d in table.items() if (text := option_default(scene, option, d)) is not None}
     if not by_scene:
         return ""
-    shown = ", ".join(f"{scene} {_show(value)}" for scene, value in by_scene.items())
-    others = "" if len(by_scene) == len(_scene_defaults()) else "; other scenes do not take it"
+    shown = ", ".join(f"{scene} {text}" for scene, text in by_scene.items())
+    others = "" if len(by_scene) == len(table) else "; other scenes do not take it"
     return f"(default: {shown}{others})"
 
 
+def option_default(scene: str, option: str, defaults: dict) -> str | None:
+    """How ``jaxmpm scenes`` and ``jaxmpm run SCENE --help`` print the default of ``option`` for
+    ``scene`` (``defaults``: its builder's, :func:`_builder_defaults`): the value as the option is
+    spelled, or what the builder derives it from ("from cfl", "one period"); None where the scene
+    does not take the option, or where the option's help states its default itself (--beta,
+    --damping-approach, --dtype, --transport-xpic)."""
+    from jaxmpm.scenes._common import DERIVED_DEFAULTS
+
+    derived = DERIVED_DEFAULTS.get(scene, {})
+    if option in ("--alpha-g", "--alpha-p"):  # the rates of the scene's damping
+        if "damping" not in defaults:
+            return None
+        rate = option[2:].replace("-", "_")
+        damping = defaults["damping"]
+        if rate in derived or damping is None or damping is False:
+            return derived.get(rate, "0")
+        return _show(float(getattr(damping, "grid" if rate == "alpha_g" else "particle")))  # a jm.Damping default
+    keyword = SCENE_OPTIONS.get(option)
+    if keyword not in defaults or option in ("--beta", "--damping-approach", "--dtype", "--transport-xpic"):
+        return None
+    value = defaults[keyword]
+    if value is None:
+        return derived.get(keyword, "from cfl" if keyword == "dt" and "cfl" in defaults else "set by the scene")
+    return _show(value)
+
+
 def _show(value) -> str:
-    return "derived" if value is None else f"{value:g}" if isinstance(value, float) else str(value)
+    """A default as the option is spelled: 0.1, 1e+08, flip, 0,-9.8 (a vector)."""
+    if isinstance(value, (tuple, list)):
+        return ",".join(_show(v) for v in value)
+    return f"{value:g}" if isinstance(value, float) else str(value)
+
+
+def _rate_defaults(option: str) -> str:
+    """"(default 0; cylinder the breathing mode's frequency)": a damping rate, 0 but where a scene damps."""
+    others = {scene: text for scene, d in _scene_defaults().items()
+              if (text := option_default(scene, option, d)) not in (None, "0")}
+    return "(default 0" + "".join(f"; {scene} {text}" for scene, text in others.items()) + ")"
+
+
+def _vector(text: str):
+    """``--gravity`` as given: G (one number, the scene points it) or GX,GY[,GZ] (a vector)."""
+    try:
+        values = tuple(float(part) for part in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not G or GX,GY[,GZ] (numbers separated by commas)") from None
+    if len(values) > 3:
+        raise argparse.ArgumentTypeError(f"{text!r} has {len(values)} components; give G or GX,GY[,GZ]")
+    return values[0] if len(values) == 1 else values
+
+
+def version_text() -> str:
+    """"jaxmpm 0.1.0 (jax 0.4.38, Python 3.11.9)": what ``jaxmpm --version`` prints."""
+    import platform
+
+    import jax
+
+    from jaxmpm.core.version import __version__
+
+    return f"jaxmpm {__version__} (jax {jax.__version__}, Python {platform.python_version()})"
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -67,12 +135,14 @@ def build_parser() -> argparse.ArgumentParser:
     from jaxmpm.core.registry import SCHEMES, SHAPES
     from jaxmpm.physics.damping import DAMPING_APPROACHES
     from jaxmpm.scenes import SCENES
-    from jaxmpm.scenes._common import CONTACT_OPTIONS
+    from jaxmpm.scenes._common import CONTACT_OPTIONS, FIELD_DEFAULTS
 
     parser = _OneLineErrors(
         prog="jaxmpm",
         description="Differentiable Material Point Method in JAX: run the benchmark scenes.",
     )
+    parser.add_argument("--version", action="version", version=version_text(),
+                        help="print the versions of jaxmpm and of jax, and exit")
     sub = parser.add_subparsers(dest="command", metavar="{scenes,run,resume,plot,animate}")
     sub.required = True
     sub.add_parser("scenes", help="list the scenes, their options and defaults",
@@ -81,19 +151,21 @@ def build_parser() -> argparse.ArgumentParser:
         "run",
         help="run a scene and write HDF5",
         description="Run SCENE with a progress bar, writing HDF5 (plus an XDMF sidecar) as it goes. "
-        "Options left out keep the scene's defaults (see `jaxmpm scenes`).",
+        "Options left out keep the scene's defaults (see `jaxmpm scenes`); `jaxmpm run SCENE --help` lists "
+        "the options SCENE takes, with its defaults.",
     )
     run.add_argument("scene", metavar="SCENE",
-                     help=f"scene name: {', '.join(SCENES)} (see `jaxmpm scenes` for each one's options and defaults)")
+                     help=f"scene name: {', '.join(SCENES)} (see `jaxmpm scenes` for each one's options and "
+                          "defaults), or a Python file my_scene.py whose function `scene` builds the scene")
     run.add_argument("--scheme", default=None, metavar=SCHEMES.specs().replace(" ", ""),
                      help="velocity update " + _defaults("scheme"))
     run.add_argument("--beta", type=float, default=None, metavar="B",
                      help="FLIP fraction of flip/xpic/fmpm (default: 1 for flip, 0 for xpic and fmpm); "
                           "alone it means --scheme flip")
     run.add_argument("--alpha-g", type=float, default=None, metavar="A",
-                     help="grid damping alpha_g in 1/time (default 0)")
+                     help="grid damping alpha_g in 1/time " + _rate_defaults("--alpha-g"))
     run.add_argument("--alpha-p", type=float, default=None, metavar="A",
-                     help="particle damping alpha_p in 1/time (default 0)")
+                     help="particle damping alpha_p in 1/time " + _rate_defaults("--alpha-p"))
     run.add_argument("--damping-approach", default=None, choices=list(DAMPING_APPROACHES),
                      help="how grid damping acts (001 §5.1.2-5.2.2; jm.Damping's approach): on the particle update "
                           "(velocity, the default), on the grid momentum extrapolated as momentum (momentum), "
@@ -125,16 +197,37 @@ def build_parser() -> argparse.ArgumentParser:
                      help="diffusivity D >= 0 of a diffusion scene " + _defaults("diffusivity"))
     run.add_argument("--transport-xpic", type=int, default=None, metavar="M",
                      help="update the transported field by XPIC(M) (000 §3.6) instead of FLIP; 1 is PIC")
+    run.add_argument("--E", type=float, default=None, metavar="E",
+                     help="Young's modulus E > 0 (mpm88: the fluid's stiffness, tau = E (J - 1)) " + _defaults("E"))
+    run.add_argument("--nu", type=float, default=None, metavar="NU",
+                     help="Poisson's ratio nu in (-1, 0.5) " + _defaults("nu"))
+    run.add_argument("--density", type=float, default=None, metavar="RHO",
+                     help="mass density rho > 0 " + _defaults("density"))
+    run.add_argument("--heat-capacity", type=float, default=None, metavar="C",
+                     help="heat capacity per unit mass c > 0 " + _defaults("heat_capacity"))
+    run.add_argument("--expansion", type=float, default=None, metavar="A",
+                     help="thermal expansion coefficient alpha_T " + _defaults("expansion"))
+    run.add_argument("--gravity", type=_vector, default=None, metavar="G|GX,GY[,GZ]",
+                     help="gravity: its magnitude G, pointed by the scene (mpm88: down; slide: tilted by --theta), "
+                          "or the vector GX,GY[,GZ] where the scene takes one (mpm88, scene files) "
+                          + _defaults("gravity"))
+    run.add_argument("--theta", type=float, default=None, metavar="DEG",
+                     help="tilt of gravity in degrees, [0, 90): the slope of slide's incline " + _defaults("theta"))
     run.add_argument("--conventions", default=None, choices=["jaxmpm", "nairnmpm"],
                      help="whose rules where MPM codes differ: jaxmpm (default) or nairnmpm (NairnMPM 19.0: "
                           "the reaction force on fixed nodes, XPIC's series start, the XPIC/PIC position update, "
                           "the grid damping's velocity)")
     run.add_argument("--dtype", default="f64", choices=["f32", "f64"], help="float precision (default f64)")
+    run.add_argument("--fields", default=None, metavar="NAME,...",
+                     help="per-particle fields saved in every frame besides x and v, comma-separated: stress, "
+                          "pressure, J, F (and a material's saved state), or none (default: "
+                          + ", ".join(f"{scene} {','.join(names)}" for scene, names in FIELD_DEFAULTS.items())
+                          + "; other scenes none)")
     run.add_argument("--max-steps", type=int, default=None, metavar="N",
                      help="refuse a run of more than N steps (default: the step counter's limit 2^31 - 1)")
     run.add_argument("--out", required=True, metavar="FILE.h5",
                      help="HDF5 output file (an XDMF sidecar goes beside it)")
-    run.add_argument("--force", action="store_true", help="overwrite --out if it exists")
+    run.add_argument("--force", action="store_true", help="overwrite --out and its XDMF sidecar if they exist")
     run.add_argument("--no-progress", action="store_true", help="no progress bar")
     run.add_argument("--cache", action="store_true", help=CACHE_HELP)
     resume = sub.add_parser(
@@ -153,7 +246,16 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     """Entry point of the ``jaxmpm`` console script; returns 0, or exits with status 2 on an error
     (130/143 when a signal interrupts a run)."""
-    args = build_parser().parse_args(_negative_values_joined(sys.argv[1:] if argv is None else list(argv)))
+    argv = _negative_values_joined(sys.argv[1:] if argv is None else list(argv))
+    if argv[:1] in (["scenes"], ["run"]):  # the scenes of installed packages, which these list
+        from .scenes import load_scene_entry_points
+
+        load_scene_entry_points()
+    parser = build_parser()
+    scene = scene_asking_for_help(parser, argv)
+    if scene is not None:
+        return scene_help(parser, scene)
+    args = parser.parse_args(argv)
     if args.command == "scenes":
         return list_scenes()
     if args.command == "resume":
@@ -177,25 +279,97 @@ def _negative_values_joined(argv: list) -> list:
 
 
 def _is_number(text: str) -> bool:
+    """A number, or numbers separated by commas (a vector: --gravity -9.8,0)."""
     try:
-        float(text)
+        [float(part) for part in text.split(",")]
     except ValueError:
         return False
     return True
 
 
+def _subparser(parser, command: str) -> argparse.ArgumentParser:
+    return next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices[command]
+
+
+def scene_asking_for_help(parser, argv: list) -> str | None:
+    """SCENE of ``jaxmpm run ... SCENE ... --help`` (the first word that is not an option or an
+    option's value), else None (``jaxmpm run --help`` keeps argparse's help of every option)."""
+    if argv[:1] != ["run"] or not {"-h", "--help"} & set(argv[1:]):
+        return None
+    run = _subparser(parser, "run")
+    tokens = iter(argv[1:])
+    for token in tokens:
+        if token == "--":
+            return next(tokens, None)
+        if not token.startswith("-"):
+            return token
+        name = token.split("=", 1)[0]
+        matches = {a for o, a in run._option_string_actions.items() if o == name} or \
+            {a for o, a in run._option_string_actions.items() if o.startswith(name)}  # argparse's abbreviations
+        if "=" not in token and len(matches) == 1 and next(iter(matches)).nargs != 0:
+            next(tokens, None)  # the option's value
+    return None
+
+
+def scene_help(parser, scene: str) -> int:
+    """``jaxmpm run SCENE --help``: the options SCENE takes, with SCENE's own defaults as values,
+    then the run options (those of every scene)."""
+    from jaxmpm.core.errors import InputError
+    from jaxmpm.scenes._common import FIELD_DEFAULTS
+    from jaxmpm.scenes.command import accepted_keywords, scene_builder
+
+    try:
+        builder, description, scene_file = scene_builder(scene)
+    except InputError as err:
+        fail(str(err))
+    keywords, takes_any = accepted_keywords(builder)
+    defaults = _builder_defaults(scene, builder)
+    run = _subparser(parser, "run")
+    run.description = (f"Run {scene}: {description.rstrip('.')}.  Writes HDF5 (plus an XDMF sidecar) as it goes; "
+                       f"options left out keep {scene}'s defaults, shown below.")
+    own = run.add_argument_group(f"options of {scene}")
+    general = run.add_argument_group("run options")
+    for action in list(run._optionals._group_actions):
+        option = next((o for o in action.option_strings if o in SCENE_OPTIONS), None)
+        run._optionals._group_actions.remove(action)
+        if option is None:  # -h, --out, --max-steps, ...: every scene's
+            if action.dest == "fields":  # the list of every scene's defaults -> this scene's
+                own_fields = ",".join(FIELD_DEFAULTS.get(scene, ())) or "none"
+                action.help = f"{action.help[:action.help.rfind(' (default')]} (default {own_fields})"
+            general._group_actions.append(action)
+            continue
+        keyword = SCENE_OPTIONS[option]
+        if keyword not in keywords and not takes_any and option != "--dtype":
+            action.help = argparse.SUPPRESS  # an option another scene takes
+            continue
+        text = option_default(scene, option, defaults)
+        action.help = action.help or ""
+        cut = action.help.rfind(" (default")
+        if (text is not None or keyword not in keywords) and cut >= 0 and action.help.endswith(")"):
+            action.help = action.help[:cut]  # the defaults of every scene
+        if text is not None:
+            action.help = f"{action.help.rstrip()} (default {text})"
+        own._group_actions.append(action)
+    for action in run._positionals._group_actions:
+        if action.dest == "scene":
+            action.help = f"{scene}: {description}"
+    run.print_help()
+    return 0
+
+
 def list_scenes() -> int:
     """Each scene's description, then its options (as ``jaxmpm run`` spells them) and defaults."""
-    from .scenes import SCENES
+    from .scenes import ENTRY_POINT_ERRORS, SCENES
 
     defaults = _scene_defaults()
     width = max(len(name) for name in SCENES)
     for name, (_, description) in SCENES.items():
         print(f"{name:<{width}}  {description}")
-        options = [f"{option} {_show(defaults[name][keyword])}" for option, keyword in SCENE_OPTIONS.items()
-                   if keyword in defaults[name]
-                   and option not in ("--beta", "--alpha-g", "--alpha-p", "--dtype", "--transport-xpic")]
+        options = [f"{option} {text}" for option in SCENE_OPTIONS
+                   if (text := option_default(name, option, defaults[name])) is not None]
         print(f"{'':<{width}}    " + ", ".join(options))
+    for message in ENTRY_POINT_ERRORS.values():  # an installed package's scene that could not be added
+        print(f"jaxmpm: warning: {message}", file=sys.stderr)
     return 0
 
 
@@ -217,12 +391,18 @@ def run_scene(args) -> int:
     _with_x64(args.dtype)
     import jaxmpm as jm
     from jaxmpm.core.errors import check
+    from jaxmpm.io.xdmf import xdmf_paths
 
     if os.path.exists(args.out) and not args.force:
         saved = saved_state(args.out)
         unfinished = (f" (it holds an unfinished run, continued by `jaxmpm resume {args.out}`)"
                       if saved and not saved["complete"] else "")
         fail(f"--out {args.out} exists{unfinished}; pass --force to overwrite it, or choose another file")
+    sidecars = [p for p in xdmf_paths(args.out) if os.path.exists(p)]
+    if sidecars and not args.force:  # the XDMF sidecar written beside --out: another run's, replaced too
+        fail(f"--out {args.out}: {' and '.join(sidecars)} {'exists' if len(sidecars) == 1 else 'exist'} (the XDMF "
+             "sidecar of an earlier run, which this run would replace); pass --force to overwrite, or choose "
+             "another file")
     try:
         setup = build_setup(args)
         if args.max_steps is not None:
@@ -230,11 +410,26 @@ def run_scene(args) -> int:
             check(setup.steps <= args.max_steps,
                   f"the run needs {setup.steps} steps, more than --max-steps {args.max_steps}; "
                   "shorten --t-end or use a larger --dt/--cfl")
+        args.fields = ",".join(frame_fields(args, setup)) or "none"  # stored in the command: resume keeps them
     except jm.InputError as err:
         fail(str(err))
     except MemoryError:
         fail(f"scene {args.scene!r} does not fit in memory; use a coarser --spacing/--cells or fewer --ppc")
-    return run_setup(setup, args, options_of(args))
+    return run_setup(setup, args, stored_options(options_of(args), setup))
+
+
+def frame_fields(args, setup) -> tuple:
+    """The per-frame fields of ``jaxmpm run`` (jaxmpm.model.frame_fields), checked: ``--fields``, else
+    the scene's default (``FIELD_DEFAULTS``)."""
+    from jaxmpm.scenes._common import FIELD_DEFAULTS
+
+    names = FIELD_DEFAULTS.get(setup.name, ()) if args.fields is None else fields_option(args.fields)
+    return setup.sim.check_frame_fields(setup.state, names, "--fields (comma-separated names, or none)")
+
+
+def fields_option(text: str) -> tuple:
+    """The names of a ``--fields`` value: "stress,J" -> ("stress", "J"); "none" -> ()."""
+    return () if text.strip().lower() == "none" else tuple(name.strip() for name in text.split(","))
 
 
 def resume_run(args) -> int:
@@ -282,12 +477,61 @@ def totals(sim, state) -> dict:
     return {name: float(value) for term in sim.terms for name, value in term.totals(sim, state).items()}
 
 
-def energy_and_momentum(sim, state):
-    """(kinetic + strain energy, linear momentum) of a state."""
+def energy_rows(sim, initial, final) -> list:
+    """The summary's energy lines: the total K + U + V_g at the start and the end (with their ratio),
+    then each part.  V_g, the potential energy of the particles in the model's gravity g
+    (``sim.diagnostics``' ``gravitational``, -sum_p M_p g . X_p), is counted from the start,
+    V_g = -sum_p M_p g . (X_p - X_p(0)), so that it starts at 0 whatever the origin.  A body force
+    b(x, t) has no potential: its work is in no part."""
     import numpy as np
 
-    d = sim.diagnostics(state)
-    return float(d["kinetic"] + d["strain"]), np.asarray(d["momentum"], dtype=float)
+    d0, d1 = sim.diagnostics(initial), sim.diagnostics(final)
+    parts = {"kinetic K": (float(d0["kinetic"]), float(d1["kinetic"])),
+             "strain U": (float(d0["strain"]), float(d1["strain"])),
+             "gravitational V_g": (0.0, float(d1["gravitational"] - d0["gravitational"]))}
+    e0, e1 = (sum(part[i] for part in parts.values()) for i in (0, 1))
+    gravity = any(float(g) != 0 for g in np.asarray(sim.gravity).ravel())
+    field = "; the body force b(x, t) has no potential and is not counted" if sim.body_force is not None else ""
+    rows = [("energy K+U+V_g", f"initial {e0:.6g}, final {e1:.6g}" + ("" if e0 == 0 else f", ratio {e1 / e0:.6f}"))]
+    for key, (start, end) in parts.items():
+        value = f"initial {start:.6g}, final {end:.6g}"
+        if key.startswith("gravitational"):
+            value = (f"{value} (-sum m g.(x - x0): from the start)" if gravity else "0 (no gravity)") + field
+        rows.append(("  " + key, value))
+    return rows
+
+
+def seconds_since_start() -> float:
+    """Seconds since this process started (Linux: its start time in /proc/self/stat against
+    /proc/uptime), else since :mod:`jaxmpm.cli` was imported: the wall time a user waited,
+    Python's and JAX's start-up included."""
+    import os
+
+    try:
+        with open("/proc/self/stat") as f:
+            after_name = f.read().rsplit(")", 1)[1].split()  # from field 3 on; the name may hold spaces
+        with open("/proc/uptime") as f:
+            uptime = float(f.read().split()[0])
+        age = uptime - int(after_name[19]) / os.sysconf("SC_CLK_TCK")  # field 22: starttime, clock ticks
+    except (OSError, ValueError, IndexError):
+        age = -1.0
+    return age if age >= 0 else time.perf_counter() - _IMPORTED
+
+
+def time_rows(timings: dict, particles: int, steps: int, resume: bool) -> list:
+    """The summary's time lines: the wall time since the process started and its parts, the
+    compilation and the run apart, and particle-steps/s over the run alone."""
+    wall = seconds_since_start()
+    compile_s, run_s = timings.get("compile", 0.0), timings.get("run", 0.0)
+    resumed = f" ({steps} steps resumed)" if resume else ""
+    return [
+        ("wall time", f"{wall:.3f} s since the process started (start-up and set-up "
+                      f"{max(0.0, wall - compile_s - run_s):.3f} s, compile {compile_s:.3f} s, run {run_s:.3f} s)"),
+        ("compile time", f"{compile_s:.3f} s (the step loop, before the first step)"),
+        ("run time", f"{run_s:.3f} s ({steps} steps, writing included)"),
+        ("particle-steps/s", (f"{particles * steps / run_s:.4g} (over the run time){resumed}" if steps and run_s > 0
+                              else "n/a (no steps run)")),
+    ]
 
 
 def run_setup(setup, args, options: dict, resume: bool = False) -> int:
@@ -309,22 +553,30 @@ def run_setup(setup, args, options: dict, resume: bool = False) -> int:
             fail(str(err))
     sim, state = setup.sim, setup.state
     n = int(state.x.shape[0])
-    e0, p0 = energy_and_momentum(sim, state)
+    p0 = np.asarray(sim.diagnostics(state)["momentum"], dtype=float)
     first_step = int(state.step)
     if resume:
         import h5py
 
         with h5py.File(args.out, "r") as f:
             first_step = int(f["state/step"][()]) if "state/step" in f else first_step
-    start = time.perf_counter()
+    timings = {}  # compile and run seconds (jm.run's timings)
     try:
         if resume:
-            final = jm.resume(args.out, setup, progress=not args.no_progress)
+            final = jm.resume(args.out, setup, progress=not args.no_progress, timings=timings)
         else:
             with jm.H5Writer(args.out, sim, state, dt=setup.dt, scene=setup.name, params=setup.params,
-                             ppc=setup.params.get("ppc"), attrs={"command": json.dumps(options)}) as writer:
-                final, _ = setup.run(progress=not args.no_progress, writer=writer)  # `command`: for resume
+                             ppc=setup.params.get("ppc"), attrs={"command": json.dumps(options)},
+                             fields=fields_option(options.get("fields", "none")),
+                             overwrite=args.force) as writer:
+                final, _ = setup.run(progress=not args.no_progress, writer=writer,  # `command`: for resume
+                                     timings=timings)
         jax.block_until_ready(final)
+    except jm.ParticlesLeftGrid as err:  # the grid is too small: not an instability
+        when = f" (t = {err.time:.6g})" if err.time is not None else ""
+        fail(f"particles left the grid at step {err.step}{when}: {err.detail}; the scene's grid is too small for "
+             f"this long a run (not a numerical instability): shorten --t-end; the frames before it were kept in "
+             f"{args.out}")
     except jm.InstabilityError as err:
         when = f" (t = {err.time:.6g})" if err.time is not None else ""
         fail(f"run went unstable at step {err.step}{when}: {err.cause}; "
@@ -349,15 +601,14 @@ def run_setup(setup, args, options: dict, resume: bool = False) -> int:
                   f"and the state of step {saved['step']}; continue with `jaxmpm resume {args.out}`", file=sys.stderr)
         raise SystemExit(130) from None
     files = [args.out] + [p for p in xdmf_paths(args.out) if os.path.exists(p)]
-    wall = time.perf_counter() - start
-    e1, p1 = energy_and_momentum(sim, final)
+    p1 = np.asarray(sim.diagnostics(final)["momentum"], dtype=float)
     scheme = sim.scheme
     name = type(scheme).__name__
     order = getattr(scheme, "order", None)
     label = f"{name}({order})" if name in ("XPIC", "FMPM") else name
     if hasattr(scheme, "beta"):
         label += f", beta = {float(np.asarray(scheme.beta)):g}"
-    ratio = e1 / e0 if e0 != 0 else math.nan
+    dissipated = float(final.dissipated)
     rows = [
         ("scene", setup.name),
         ("scheme", label),
@@ -366,13 +617,11 @@ def run_setup(setup, args, options: dict, resume: bool = False) -> int:
         ("particles", f"{n}"),
         ("steps", f"{setup.steps} (t_end = {setup.t_end:.6g})"),
         ("dt", f"{setup.dt:.6g}"),
-        ("wall time", f"{wall:.3f} s (incl. compilation)"),
-        ("particle-steps/s", f"{n * (int(final.step) - first_step) / wall:.4g}"
-                             + (f" ({int(final.step) - first_step} steps resumed)" if resume else "")),
-        ("energy K+U", f"initial {e0:.6g}, final {e1:.6g}" + ("" if e0 == 0 else f", ratio {ratio:.6f}")),
+        *time_rows(timings, n, int(final.step) - first_step, resume),
+        *energy_rows(sim, state, final),
         *[(name.replace("_", " "), f"initial {value:.6g}, final {totals(sim, final)[name]:.6g}")
           for name, value in totals(sim, state).items()],
-        ("dissipated", f"{float(final.dissipated):.6g}"),
+        ("dissipated", f"n/a (not tracked by {name})" if math.isnan(dissipated) else f"{dissipated:.6g}"),
         ("|p - p0|", f"{float(np.linalg.norm(p1 - p0)):.3e} (change of linear momentum)"),
         ("output", ", ".join(files)),
     ]

@@ -44,12 +44,14 @@ def restart_command(info: dict, path) -> str:
     options = json.loads(info["command"])
     words = ["jaxmpm", "run", str(options.get("scene", "SCENE"))]
     for key, value in options.items():
-        if key != "scene":
-            words += [f"--{key.replace('_', '-')}", str(value)]
+        if key not in ("scene", "scene_sha256"):  # a scene file's digest: not an option
+            text = ",".join(map(str, value)) if isinstance(value, list) else str(value)  # --gravity GX,GY
+            words += [f"--{key.replace('_', '-')}", text]
     return "start it again: `" + shlex.join(words + ["--out", os.fspath(path), "--force"]) + "`"
 
 
-def resume(path, model=None, state=None, *, progress: bool = False, check_stability: bool = True):
+def resume(path, model=None, state=None, *, progress: bool = False, check_stability: bool = True,
+           timings: dict | None = None):
     """Continue the run stored in ``path`` to its end, appending its frames to ``path``; returns
     the final state.
 
@@ -61,7 +63,24 @@ def resume(path, model=None, state=None, *, progress: bool = False, check_stabil
     wrote with the run's schedule (``steps=``, ``save_every=``).  The run continues from the
     state saved last; frames saved after it (by a chunk whose state was not saved) are computed
     again, to the same bits.  A run that already reached its end returns its final state and
-    runs nothing."""
+    runs nothing.
+
+    Args:
+        path: the HDF5 file of the run; the new frames are appended to it.
+        model: the :class:`jaxmpm.scenes.Setup` that made the run, or its
+            :class:`jaxmpm.Simulation` (then give ``state``); None (the default): rebuilt from the
+            options ``jaxmpm run`` stored in the file.
+        state: with a Simulation, the run's initial :class:`jaxmpm.State` (its structure only).
+        progress: show a progress bar (default False).
+        check_stability: raise :class:`jaxmpm.InstabilityError` at the first bad step (default
+            True).
+        timings: a dict to fill with the seconds spent compiling (``compile``) and running
+            (``run``) and the ``steps`` run, as :func:`jaxmpm.run.driver.run` does; None (the
+            default).
+
+    Returns:
+        The final :class:`jaxmpm.State`.
+    """
     from .io.hdf5 import H5Writer, read_state
 
     info = run_info(path)
@@ -88,5 +107,5 @@ def resume(path, model=None, state=None, *, progress: bool = False, check_stabil
                                          f"modified after its run stopped; {again}")
         writer.truncate(expected)  # frames saved after the state: computed again
         final, _ = sim.run(loaded, dt, steps, save_every, writer=writer, start_step=start, progress=progress,
-                           check_stability=check_stability)
+                           check_stability=check_stability, timings=timings)
     return final

@@ -13,6 +13,8 @@ import re
 import subprocess
 import sys
 
+import equinox as eqx
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from cases import run_cli
@@ -105,11 +107,25 @@ def test_run_bar_writes_hdf5_and_summary(tmp_path, capsys):
     assert float(summary_value(out, "dt")) == DT
     # every file written: the HDF5 file and the XDMF sidecar with its per-frame views
     assert summary_value(out, "output") == f"{path}, {path.with_suffix('.xdmf')}, {path.with_suffix('.xdmf.h5')}"
-    energy = re.fullmatch(r"initial (\S+), final (\S+), ratio (\S+)", summary_value(out, "energy K+U"))
+    energy = re.fullmatch(r"initial (\S+), final (\S+), ratio (\S+)", summary_value(out, "energy K+U+V_g"))
     e0, e1, ratio = map(float, energy.groups())
     assert e0 == pytest.approx(total[0], rel=1e-5) and e1 == pytest.approx(total[-1], rel=1e-5)
     assert ratio == pytest.approx(total[-1] / total[0], abs=1e-6)
+    for key, series in (("kinetic K", res["energy/kinetic"]), ("strain U", res["energy/strain"])):  # the parts
+        start, end = map(float, re.fullmatch(r"initial (\S+), final (\S+)", summary_value(out, key)).groups())
+        assert start == pytest.approx(series[0], rel=1e-5, abs=1e-300) and end == pytest.approx(series[-1], rel=1e-5)
+    assert summary_value(out, "gravitational V_g") == "0 (no gravity)"
     assert float(summary_value(out, "dissipated")) == pytest.approx(res["energy/dissipated"][-1], rel=1e-5, abs=1e-300)
+    # the times: compilation and run apart, the wall time from the process's start, the rate over the run alone
+    compile_s = float(summary_value(out, "compile time").split()[0])
+    run_s, steps = re.fullmatch(r"(\S+) s \((\d+) steps, writing included\)", summary_value(out, "run time")).groups()
+    wall = re.fullmatch(r"(\S+) s since the process started \(start-up and set-up \S+ s, compile (\S+) s, "
+                        r"run (\S+) s\)", summary_value(out, "wall time"))
+    assert compile_s > 0 and float(run_s) > 0 and steps == "128"
+    assert float(wall[1]) >= compile_s + float(run_s) and (float(wall[2]), float(wall[3])) == (compile_s, float(run_s))
+    rate = float(summary_value(out, "particle-steps/s").removesuffix(" (over the run time)"))
+    slowest, fastest = (n * 128 / (float(run_s) + d) for d in (5e-4, -5e-4))  # the run time to 3 decimals
+    assert slowest * (1 - 5e-4) <= rate <= fastest * (1 + 5e-4)  # and the rate to 4 digits
 
 
 @pytest.mark.slow
@@ -247,3 +263,105 @@ def test_damping_approach_needs_a_grid_rate_and_reaches_the_model(tmp_path, caps
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--damping-approach force" in err[0] and "--alpha-g" in err[0]
     assert not path.exists()
+
+
+@pytest.mark.slow
+def test_apic_dissipation_is_not_tracked_and_an_earlier_run_is_not_overwritten(tmp_path, capsys):
+    """APIC reports its dissipation as NaN (the budget does not close with the affine part; jaxmpm/
+    schemes/affine.py): the summary says n/a.  --out, and the XDMF sidecar of an earlier run beside
+    it, are replaced only with --force."""
+    path = tmp_path / "apic.h5"
+    argv = ["run", "bar", *SHORT, "--scheme", "apic", "--out", str(path), "--no-progress"]
+    assert run_cli(argv) == 0
+    assert summary_value(capsys.readouterr().out, "dissipated") == "n/a (not tracked by APIC)"
+    dissipated = jm.load_h5(path)["energy/dissipated"]
+    assert dissipated[0] == 0 and np.isnan(dissipated[1:]).all()  # from the first step on
+    assert run_cli(argv) == 2
+    assert capsys.readouterr().err == (f"jaxmpm: error: --out {path} exists; pass --force to overwrite it, or "
+                                       "choose another file\n")
+    path.unlink()  # the earlier run's sidecar stays
+    assert run_cli(argv) == 2
+    assert capsys.readouterr().err == (
+        f"jaxmpm: error: --out {path}: {path.with_suffix('.xdmf')} and {path.with_suffix('.xdmf.h5')} exist (the "
+        "XDMF sidecar of an earlier run, which this run would replace); pass --force to overwrite, or choose "
+        "another file\n")
+    assert not path.exists()
+    assert run_cli([*argv, "--force"]) == 0 and jm.load_h5(path)["time"].shape == (9,)
+
+
+@pytest.mark.slow
+def test_slide_summary_counts_gravity_and_its_total_is_conserved(tmp_path, capsys):
+    """The frictionless slide trades the block's gravitational potential for kinetic energy: the
+    summary's V_g is -sum m g.(x - x0) of the file's first and last frames, and K + U + V_g, 0 at
+    the start, stays within 0.5 % of the energy exchanged (it read 0 -> 23.8 as K + U)."""
+    path = tmp_path / "slide.h5"
+    assert run_cli(["run", "slide", "--contact", "frictionless", "--out", str(path), "--no-progress"]) == 0
+    out = capsys.readouterr().out
+    res = jm.load_h5(path)
+    theta = math.radians(30.0)
+    g = 9.8 * np.array([math.sin(theta), -math.cos(theta)])
+    drop = -np.sum(res["particles/mass"] * ((res["particles/x"][-1] - res["particles/x"][0]) @ g))
+    gravitational = re.fullmatch(r"initial 0, final (\S+) \(-sum m g\.\(x - x0\): from the start\)",
+                                 summary_value(out, "gravitational V_g"))
+    assert float(gravitational[1]) == pytest.approx(drop, rel=1e-5) and drop < -20
+    kinetic = float(summary_value(out, "kinetic K").split("final ")[1])
+    assert kinetic == pytest.approx(res["energy/kinetic"][-1], rel=1e-5)
+    total = re.fullmatch(r"initial 0, final (\S+)", summary_value(out, "energy K+U+V_g"))
+    assert abs(float(total[1])) < 5e-3 * abs(drop)
+
+
+@pytest.mark.slow
+def test_particles_leaving_the_grid_are_not_called_an_instability(tmp_path, capsys):
+    """disks past t = 6.8 (h = 0.1): the rebounding disks reach the edge of the scene's grid.  One
+    line says where, and what to do; the frames before it stay in the file."""
+    path = tmp_path / "disks.h5"
+    argv = ["run", "disks", "--spacing", "0.1", "--dt", "0.01", "--t-end", "10", "--frames", "10", "--out", str(path),
+            "--no-progress"]
+    assert run_cli(argv) == 2
+    err = capsys.readouterr().err
+    assert re.fullmatch(
+        r"jaxmpm: error: particles left the grid at step (\d+) \(t = (\S+)\): particle \d+ at x = \(\S+, \S+\), "
+        r"where its shape function reaches past the grid's nodes; the grid spans \(-0\.3, -0\.3\) \.\. \(1\.3, 1\.3\); "
+        r"the scene's grid is too small for this long a run \(not a numerical instability\): shorten --t-end; the "
+        rf"frames before it were kept in {re.escape(str(path))}\n", err), err
+    assert "unstable" not in err
+    step = int(re.search(r"at step (\d+)", err)[1])
+    time = jm.load_h5(path)["time"]
+    assert time[-1] < step * 0.01 and len(time) == step // 100 + 1  # a frame every 100 steps, up to the failure
+
+
+def test_wall_time_counts_from_the_process_start():
+    """The summary's wall time is the process's age (Linux: /proc), not the time since jaxmpm.cli
+    was imported: at least that long, and less than a day."""
+    import time
+
+    import jaxmpm.cli as cli
+
+    assert time.perf_counter() - cli._IMPORTED - 0.02 <= cli.seconds_since_start() < 86400
+
+
+def test_energy_parts_count_gravity_from_the_start():
+    """sim.diagnostics' ``gravitational`` is -sum m g.x (zero at the origin); the summary counts it
+    from the start, so a body lifted by dx against g = (0, -2) reads V_g = +sum m 2 dx, and K+U+V_g
+    is their sum.  No gravity: V_g is 0; a body force b(x, t) has no potential, and the line says so."""
+    from jaxmpm.cli import energy_rows
+
+    grid = jm.Grid((0.0, 0.0), (4.0, 4.0), (4, 4))
+    material = jm.LinearElastic(E=1.0, nu=0.0, density=2.0)
+    sim = jm.Simulation(grid, "linear", material, "flip", gravity=(0.0, -2.0))
+    state = sim.init(jm.fill(grid, jm.Box((1.0, 1.0), (2.0, 2.0)), ppc=2, velocity=(0.5, 0.0)))
+    mass = np.asarray(state.mass)
+    assert float(sim.diagnostics(state)["gravitational"]) == pytest.approx(np.sum(mass * 2.0 * state.x[:, 1]))
+    lifted = eqx.tree_at(lambda s: s.x, state, state.x + jnp.array([[0.25, 0.5]]))
+    rows = dict(energy_rows(sim, state, lifted))
+    kinetic = 0.5 * np.sum(mass) * 0.25
+    assert rows["  gravitational V_g"] == (f"initial 0, final {np.sum(mass) * 2.0 * 0.5:.6g} "
+                                           "(-sum m g.(x - x0): from the start)")
+    assert rows["  kinetic K"] == f"initial {kinetic:.6g}, final {kinetic:.6g}"
+    assert rows["energy K+U+V_g"] == (f"initial {kinetic:.6g}, final {kinetic + np.sum(mass):.6g}, "
+                                      f"ratio {(kinetic + np.sum(mass)) / kinetic:.6f}")
+    plain = jm.Simulation(grid, "linear", material, "flip")
+    assert dict(energy_rows(plain, state, lifted))["  gravitational V_g"] == "0 (no gravity)"
+    pushed = jm.Simulation(grid, "linear", material, "flip", body_force=lambda x, t: jnp.ones_like(x))
+    assert dict(energy_rows(pushed, state, lifted))["  gravitational V_g"] == (
+        "0 (no gravity); the body force b(x, t) has no potential and is not counted")

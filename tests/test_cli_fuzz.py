@@ -27,6 +27,8 @@ OPTIONS = {
     "--max-steps": NUMBERS, "--scheme": SCHEMES, "--shape": ["linear", "ugimp", "quadratic", "cubic", "hat"],
     "--update": ["USL", "USF", "MUSL", "usl"], "--dtype": ["f32", "f64", "f16"],
     "--contact": ["none", "stick", "frictionless", "coulomb", "glue", ""], "--friction": NUMBERS,
+    "--E": NUMBERS, "--nu": NUMBERS + ["0.3", "-0.5", "0.49"], "--density": NUMBERS, "--theta": NUMBERS,
+    "--gravity": NUMBERS + ["0,-9.8", "-1,0", "1,2,3", "1,2,3,4", ",", "1,nan", "0,1e300"],
 }
 SCENES = [*jm.SCENES, "nope"]
 

@@ -152,7 +152,7 @@ def test_leftovers_of_a_killed_writer_and_a_second_writer(tmp_path, bar):
     with jm.H5Writer(path, setup.sim, setup.state, mode="a") as writer:
         assert writer.frames == len(history)
         with pytest.raises(jm.InputError, match="already open in an H5Writer of this process"):
-            jm.H5Writer(path, setup.sim, setup.state)
+            jm.H5Writer(path, setup.sim, setup.state, overwrite=True)  # consent to replace it is not enough
     assert sorted(os.listdir(tmp_path)) == ["run.h5", "run.xdmf", "run.xdmf.h5"]
 
 

@@ -83,6 +83,54 @@ def test_scheme_and_shape_strings_that_exist_are_accepted():
     assert isinstance(sim.shape, jm.QuadraticBSpline)
 
 
+def _raises(error):
+    raise error
+
+
+# sim.init(particles, fields={"temperature": value}) for 8 particles: value -> the words of the one-line error
+BAD_FIELDS = {
+    "too few values": (np.ones(3), r"fields\['temperature'\] has shape \(3,\); give an array of shape \(8,\)"),
+    "one column too many": (np.ones((8, 2)), r"has shape \(8, 2\); give an array of shape \(8,\)"),
+    "NaN": (np.r_[np.ones(5), np.nan, 1.0, 1.0], r"holds 1 NaN or infinite value\(s\) \(first at index \(5,\)\)"),
+    "infinite number": (np.inf, r"holds 1 NaN or infinite value\(s\); give finite numbers"),
+    "text": ("hot", r"fields\['temperature'\] = 'hot': give real numbers"),
+    "text array": (np.array(["a"] * 8), r"has dtype <U1; give real numbers"),
+    "complex": (np.ones(8) + 1j, r"has dtype complex128; give real numbers"),
+    "None": (None, r"fields\['temperature'\] = None: give real numbers"),
+    "dict": ({"T": 1.0}, r"= \{'T': 1.0\}: give real numbers"),
+    "ragged list": ([[1.0], [1.0, 2.0]], r"has dtype object; give real numbers"),
+    "function that raises": (lambda x: _raises(KeyError("T0")),
+                             r"fields\['temperature'\]: calling it on the positions x, shape \(8, 1\), raised "
+                             r"KeyError: 'T0'; give f\(x\) -> an array of shape \(8,\)"),
+    "function of the wrong shape": (lambda x: np.ones(3), r"fields\['temperature'\]\(x\) has shape \(3,\)"),
+    "function returning NaN": (lambda x: np.full(len(x), np.nan), r"\(x\) holds 8 NaN or infinite value"),
+}
+
+
+@pytest.mark.parametrize("value, message", list(BAD_FIELDS.values()), ids=list(BAD_FIELDS))
+def test_init_fields_are_checked_in_one_line_naming_the_field(value, message):
+    sim = small_simulation(terms=[jm.Heat(conductivity=1.0)])
+    particles = jm.fill(sim.grid, jm.Box((4.0,), (8.0,)), ppc=2)
+    with pytest.raises(jm.InputError, match=message) as info:
+        sim.init(particles, fields={"temperature": value})
+    assert str(info.value).startswith("Simulation.init: fields['temperature']") and "\n" not in str(info.value)
+
+
+def test_init_fields_take_numbers_arrays_and_functions_of_the_positions():
+    """What fields= accepts: one number, one value per particle, or f(x) of the (N, D) positions;
+    a fields= that is not a dict, and a field no term declares, are named too."""
+    sim = small_simulation(terms=[jm.Heat(conductivity=1.0)])
+    particles = jm.fill(sim.grid, jm.Box((4.0,), (8.0,)), ppc=2)
+    x = np.asarray(particles.x)[:, 0]
+    for value, expected in ((300, np.full(8, 300.0)), (list(x), x), (lambda x: 2 * x[:, 0], 2 * x)):
+        np.testing.assert_array_equal(sim.init(particles, fields={"temperature": value}).fields["temperature"],
+                                      expected)
+    with pytest.raises(jm.InputError, match=r"fields = \[300\] must be a dict \{name: value\}"):
+        sim.init(particles, fields=[300])
+    with pytest.raises(jm.InputError, match=r"fields \['heat'\] are not declared .* \(declared: \['temperature'\]\)"):
+        sim.init(particles, fields={"heat": 300})
+
+
 @pytest.mark.parametrize("shape, x", [(jm.Linear(), -0.5), (jm.Linear(), 16.0), (jm.QuadraticBSpline(), 0.2),
                                       (jm.CubicBSpline(), 15.5)])
 def test_init_rejects_particles_outside_the_grid(shape, x):
@@ -196,6 +244,10 @@ def test_particles_leaving_the_grid_are_detected_at_the_exact_step():
             sim.run(state, jnp.asarray(DT_MOVING), STEPS, 1)
     assert_names_step_and_cause(info.value, expected, "left the grid")
     assert info.value.time == pytest.approx(expected * DT_MOVING, rel=1e-12)
+    # its own kind: the grid is too small, not a numerical instability; a lax.scan rollout goes on past
+    # the step, so the position there is unknown
+    assert isinstance(info.value, jm.ParticlesLeftGrid) and "not a numerical instability" in str(info.value)
+    assert info.value.position is None and (info.value.lower, info.value.upper) == ((0.0,), (16.0,))
 
 
 @pytest.mark.parametrize("lower, expected", [(8.0, 15), (8.5, 13)])
@@ -211,6 +263,12 @@ def test_chunked_writer_keeps_the_frames_before_the_failure(tmp_path, lower, exp
         with pytest.raises(jm.InstabilityError) as info:
             sim.run(state, jnp.asarray(DT_MOVING), 4 * STEPS, 1, writer=writer, frames_per_chunk=STEPS)
     assert_names_step_and_cause(info.value, expected, "left the grid")
+    # the chunked runner stops at the failing step: the particle's position there, past the last node
+    err = info.value
+    assert isinstance(err, jm.ParticlesLeftGrid) and err.particle == int(np.argmax(np.asarray(state.x)[:, 0]))
+    assert err.position[0] == pytest.approx(float(state.x[err.particle, 0]) + SPEED * DT_MOVING * expected,
+                                            rel=1e-12) and err.position[0] >= 16.0
+    assert f"at x = ({err.position[0]:.6g})" in err.detail and "the grid spans (0) .. (16)" in err.detail
     res = jm.load_h5(path)
     kept = np.arange(expected)  # steps 0, 1, ..., expected - 1
     np.testing.assert_allclose(res["time"], kept * DT_MOVING, rtol=1e-13, atol=1e-15)

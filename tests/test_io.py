@@ -209,3 +209,29 @@ def test_layout_in_3d_float32(tmp_path):
     assert_xdmf_matches(path, res)
     geometry = parse_xdmf(path).find("Domain/Grid/Grid/Geometry")
     assert geometry.get("GeometryType") == "XYZ"
+
+
+def test_no_write_replaces_a_file_without_consent(tmp_path, bar_run):
+    """save_h5 and H5Writer refuse an existing file, or the XDMF sidecar an earlier run left beside
+    the name, unless overwrite=True; the refused file is left as it was."""
+    import re
+
+    setup, history = bar_run
+    path = tmp_path / "bar.h5"
+    xdmf, views = path.with_suffix(".xdmf"), path.with_suffix(".xdmf.h5")
+    save_bar(path, setup, history)
+    before = path.read_bytes()
+    with pytest.raises(jm.InputError, match=re.escape(f"save_h5: {path}, {xdmf} and {views} exist; pass "
+                                                      "overwrite=True to replace them, or choose another path")):
+        save_bar(path, setup, history)
+    assert path.read_bytes() == before
+    path.unlink()  # the sidecar stays: another run's views
+    with pytest.raises(jm.InputError, match=re.escape(f"H5Writer: {xdmf} and {views} exist (the XDMF sidecar of an "
+                                                      "earlier run); pass overwrite=True")):
+        jm.H5Writer(path, setup.sim, setup.state)
+    assert not path.exists() and not path.with_suffix(".h5.lock").exists()
+    jm.H5Writer(path, setup.sim, setup.state, xdmf=False).close()  # writes no sidecar: none is in the way
+    with pytest.raises(jm.InputError, match=re.escape(f"H5Writer: {path} exists;")):
+        jm.H5Writer(path, setup.sim, setup.state, xdmf=False)
+    jm.save_h5(path, setup.sim, history, state=setup.state, dt=setup.dt, overwrite=True)
+    assert_layout(jm.load_h5(path), history, setup.state)

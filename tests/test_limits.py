@@ -5,6 +5,10 @@ refuses to overwrite --out without --force."""
 
 from __future__ import annotations
 
+import re
+
+import jax
+import numpy as np
 import pytest
 from cases import run_cli
 
@@ -76,3 +80,61 @@ def test_out_is_not_overwritten_without_force(tmp_path, capsys):
     assert run_cli(["run", "bar", "--t-end", "0.1", "--frames", "1", "--out", str(out), "--no-progress",
                     "--force"]) == 0
     assert jm.load_h5(out)["time"].shape == (2,)
+
+
+def _moving_body():
+    from cases import small_simulation
+
+    sim = small_simulation()
+    return sim, sim.init(jm.fill(sim.grid, jm.Box((4.0,), (8.0,)), ppc=2, velocity=0.1))
+
+
+@pytest.mark.slow
+def test_compiling_first_keeps_the_results_bit_for_bit():
+    """The chunked run (compiled by a call that runs no frame, then chunks of 1 and 8 steps) ends
+    where the unchunked rollout does, to the bit, frames included."""
+    sim, state = _moving_body()
+    final, history = sim.run(state, 0.1, 64, 1, progress=True, frames_per_chunk=8)
+    unchunked, frames = sim.run(state, 0.1, 64, 1)
+    for a, b in zip(jax.tree_util.tree_leaves((final, history)), jax.tree_util.tree_leaves((unchunked, frames))):
+        np.testing.assert_array_equal(a, b)
+
+
+def _estimate_lines(err: str) -> list:
+    return [line for line in err.replace("\r", "\n").splitlines() if line.startswith("jaxmpm: this run needs")]
+
+
+def test_a_long_run_says_how_long_and_compiles_before_its_clock_starts(monkeypatch, capsys):
+    """A chunked run compiles its loop before the first step: meanwhile the bar reads "compiling" and
+    shows no rate or ETA, and ``timings`` gets the compilation and the run apart.  Once two chunks
+    have measured the rate, a run whose rest needs more than $JAXMPM_LONG_RUN_SECONDS (1 h unset)
+    says so in one line on stderr."""
+    sim, state = _moving_body()
+    monkeypatch.setenv("JAXMPM_LONG_RUN_SECONDS", "1e-9")
+    timings = {}
+    final, history = sim.run(state, 0.1, 64, 1, progress=True, frames_per_chunk=8, timings=timings)
+    err = capsys.readouterr().err
+    renders = [line for line in err.split("\r") if line.strip()]
+    assert renders[0].startswith("jaxmpm (compiling):") and "0/64 [00:00<?, ?step/s]" in renders[0]
+    assert all("<?" in line for line in renders if "compiling" in line)  # no ETA while compiling
+    assert "jaxmpm: 100%" in renders[-1] and "64/64" in renders[-1]
+    assert timings["steps"] == 64 and timings["compile"] > 0 and timings["run"] > 0
+    (line,) = _estimate_lines(err)  # after two chunks of 8 steps: 48 left
+    rate = re.fullmatch(r"jaxmpm: this run needs about \S+ (?:s|min|h|days) more \(48 steps at (\S+) steps/s\); "
+                        r"Ctrl-C stops it and keeps the frames", line)
+    assert rate and float(rate[1]) > 0
+
+    monkeypatch.delenv("JAXMPM_LONG_RUN_SECONDS")  # 1 h: this run says nothing
+    sim.run(state, 0.1, 64, 1, progress=True, frames_per_chunk=8)
+    assert _estimate_lines(capsys.readouterr().err) == []
+    monkeypatch.setenv("JAXMPM_LONG_RUN_SECONDS", "soon")
+    with pytest.raises(jm.InputError, match=r"JAXMPM_LONG_RUN_SECONDS = 'soon' must be a number of seconds >= 0"):
+        sim.run(state, 0.1, 64, 1, progress=True)
+
+
+def test_durations_and_counts_read_as_people_say_them():
+    from jaxmpm.run.driver import _count, duration
+
+    assert [duration(s) for s in (0.004, 45, 12 * 60, 37 * 3600, 3.5 * 86400)] == [
+        "0.004 s", "45 s", "12 min", "37 h", "3.5 days"]
+    assert [_count(n) for n in (1.2e9, 9100, 48, 640)] == ["1.2e9", "9.1e3", "48", "6.4e2"]

@@ -96,3 +96,16 @@ def test_negative_numbers_reach_the_options_own_check(tmp_path, capsys):
     assert len(err) == 1 and "cfl = -0.5 must be positive" in err[0]
     assert run_cli(["run", "bar", "--t-end", "-1e-3", "--out", str(tmp_path / "x.h5")]) == 2
     assert "t_end" in capsys.readouterr().err and not (tmp_path / "x.h5").exists()
+
+
+@pytest.mark.parametrize("gravity, message", [
+    (9.81, r"gravity must be a vector of the grid's D components.*got shape \(\)"),
+    ("down", "gravity must be a number, got 'down'"),
+    ((0.0, float("nan")), r"gravity = \(0.0, nan\) must be a finite number"),
+])
+def test_body_force_checks_its_gravity(gravity, message):
+    """A BodyForce given directly (terms=...) checks gravity as Simulation(gravity=...) does, instead of
+    failing inside the run (a tuple had no .astype, a scalar broke the gravitational potential)."""
+    with pytest.raises(jm.InputError, match=message):
+        jm.BodyForce(gravity)
+    assert jm.BodyForce((0, -10)).gravity.dtype.kind == "f"

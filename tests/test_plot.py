@@ -236,3 +236,29 @@ def test_commands(runs, tmp_path, capsys):
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and err.startswith("jaxmpm: error: "), err
         assert __import__("re").search(message, err), (message, err)
+
+
+def test_an_existing_image_is_replaced_only_with_consent(runs, tmp_path, capsys):
+    """`jaxmpm plot` and `animate` refuse an output file that exists (the default one beside FILE.h5
+    included) unless --force; plot_frames and animate likewise unless overwrite=True."""
+    parser = _parser()
+    source = tmp_path / "run.h5"
+    source.write_bytes(open(runs["bar"], "rb").read())
+    image, movie = tmp_path / "run.png", tmp_path / "run.gif"
+    image.write_bytes(b"precious")
+    movie.write_bytes(b"precious")
+    for argv, out in ((["plot", str(source), "--dpi", "30"], image), (["animate", str(source), "--dpi", "30"], movie)):
+        with pytest.raises(SystemExit) as stop:
+            plot_module.run_plot_command(parser.parse_args(argv))
+        assert stop.value.code == 2 and out.read_bytes() == b"precious"
+        err = capsys.readouterr().err
+        assert err == f"jaxmpm: error: --out {out} exists; pass --force to replace it, or choose another file\n"
+    assert plot_module.run_plot_command(parser.parse_args(["plot", str(source), "--dpi", "30", "--force"])) == 0
+    assert _png(image).shape[0] > 10
+    with pytest.raises(jm.InputError, match=r"out='.*run\.png' exists; pass overwrite=True to replace it"):
+        jm.plot_frames(runs["bar"], out=image, dpi=30)
+    with pytest.raises(jm.InputError, match=r"out='.*run\.gif' exists; pass overwrite=True to replace it"):
+        jm.animate(runs["bar"], movie, dpi=30)
+    assert movie.read_bytes() == b"precious"
+    jm.animate(runs["bar"], movie, dpi=30, overwrite=True)
+    assert iio.imread(movie, index=None).shape[0] == 3

@@ -1,4 +1,5 @@
-"""Every ```python block of README.md runs on its own (a fresh interpreter, nothing from the other
+"""Every ```python block of README.md (and of the docs pages the README's long sections moved to,
+``DOC_PAGES``) runs on its own (a fresh interpreter, nothing from the other
 blocks) at a reduced size: the explicit substitutions below shrink step counts and end times, and
 each must match the README exactly as often as stated, so the test fails when the README drifts."""
 
@@ -13,6 +14,9 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
+#: the docs pages whose python blocks were README blocks (the other docs pages' examples run in their own tests:
+#: docs/extending.md in tests/test_extending.py)
+DOC_PAGES = [ROOT / "docs" / "contact.md", ROOT / "docs" / "transport.md"]
 FENCE = re.compile(r"^```\s*(\w*)\s*$")
 
 
@@ -42,7 +46,12 @@ BLOCKS = {
                                             "final, hist = sim.run(state, 1e-3, 10, 5)", 1)]),
     "Transport (heat conduction and diffusion)": Block([("sim.run(state, dt, 800, 80)", "sim.run(state, dt, 8, 4)",
                                                          1)]),
-    "Command line": Block([('jm.scene("bar", t_end=4.0, frames=20)', 'jm.scene("bar", t_end=0.5, frames=2)', 1)]),
+    "Materials, fluids, boundary conditions": Block([("steps=1200, save_every=60", "steps=20, save_every=10", 1)]),
+    "Your own scene": Block([("E=E, dtype=dtype)\n",  # the file's scene, built and run
+                              "E=E, dtype=dtype)\n\n\nscene(cells=8, t_end=0.5, frames=2).run()\n", 1)]),
+    "Outputs: HDF5, XDMF, pictures": Block([("t_end=2.0, frames=4", "t_end=0.5, frames=2", 1)]),
+    "Interrupt and resume": Block([('jm.scene("bar", t_end=4.0, frames=20)', 'jm.scene("bar", t_end=0.5, frames=2)',
+                                    1)]),
     "Extending jaxmpm": Block(
         [('scheme="newpic:0.3")', 'scheme="newpic:0.3", t_end=0.5, frames=2); setup.run()', 1)],  # run the new scheme
     ),
@@ -82,7 +91,7 @@ def run_alone(code: str, cwd: Path) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-c", code], cwd=cwd, env=env, capture_output=True, text=True, timeout=300)
 
 
-README_BLOCKS = python_blocks(README.read_text())
+README_BLOCKS = [block for page in [README, *DOC_PAGES] for block in python_blocks(page.read_text())]
 
 
 def test_every_block_is_known():

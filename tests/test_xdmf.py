@@ -126,11 +126,13 @@ def test_fields_of_every_rank_are_point_data(tmp_path, sim2d):
 
 
 def test_sidecar_of_another_run_is_rebuilt(tmp_path, sim2d):
-    """The same file name written again with another particle count: the views follow the new file."""
+    """The same file name written again (overwrite=True) with another particle count: the views follow
+    the new file."""
     path = tmp_path / "again.h5"
     jm.save_h5(path, sim2d, synthetic_history(4, 7, 2), state=synthetic_state(7, 2), dt=0.1)
     assert_meshio_reads(path)
-    jm.save_h5(path, sim2d, synthetic_history(3, 5, 2, seed=3), state=synthetic_state(5, 2, seed=4), dt=0.1)
+    jm.save_h5(path, sim2d, synthetic_history(3, 5, 2, seed=3), state=synthetic_state(5, 2, seed=4), dt=0.1,
+               overwrite=True)
     _, frames = assert_meshio_reads(path)
     assert len(frames) == 3
 

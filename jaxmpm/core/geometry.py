@@ -294,13 +294,20 @@ def _inside(x: np.ndarray, crossings: Callable, lo: np.ndarray, hi: np.ndarray) 
 class Mesh(Region):
     """The inside of a closed triangle surface, for 3D grids: ``jm.fill(grid, jm.Mesh("part.stl"), ppc=2)``.
 
-    ``source``: an STL, OBJ or PLY file (read by trimesh, duplicate vertices merged), a
-    ``trimesh.Trimesh`` (or any object with ``vertices`` and ``faces``) or ``(vertices (V, 3),
-    faces (F, 3))``.  The surface must be closed (watertight: every edge shared by an even number
-    of triangles); its orientation does not matter (inside: an odd number of crossings).  The
-    vertices are placed at ``rotate @ (scale * x) + translate``: ``scale`` one factor or one per
-    axis, ``rotate`` a 3x3 rotation matrix (or None), ``translate`` a 3-vector.  ``volume``: the
-    enclosed volume (for a consistently oriented surface)."""
+    The surface must be closed (watertight: every edge shared by an even number of triangles);
+    its orientation does not matter (inside: an odd number of crossings).  The vertices are
+    placed at ``rotate @ (scale * x) + translate``.  ``volume``: the enclosed volume (for a
+    consistently oriented surface).
+
+    Args:
+        source: an STL, OBJ or PLY file (read by trimesh, duplicate vertices merged), a
+            ``trimesh.Trimesh`` (or any object with ``vertices`` and ``faces``) or ``(vertices
+            (V, 3), faces (F, 3))``.
+        scale: a positive factor, or one per axis (default 1.0; a mesh in mm on a grid in m:
+            ``scale=1e-3``).
+        rotate: a 3x3 rotation matrix (orthogonal: stretch with ``scale``), or None (the default).
+        translate: the shift after scaling and rotating, a 3-vector or one number (default 0.0).
+    """
 
     vertices: np.ndarray
     faces: np.ndarray
@@ -346,11 +353,15 @@ class Mesh(Region):
 class Polygon(Region):
     """The inside of closed polygons, for 2D grids (plane and axisymmetric r-z problems).
 
-    ``source``: the vertices of one loop, (N, 2) in order (closed: the last joins the first), a
-    list of loops (inside: an odd number of crossings, so a loop inside another is a hole), or a
-    flat triangle mesh (an STL, OBJ or PLY file or a ``trimesh.Trimesh`` with every z equal), whose
-    boundary edges bound the region.  ``scale``, ``rotate`` (2x2) and ``translate`` as for
-    :class:`Mesh`."""
+    Args:
+        source: the vertices of one loop, (N, 2) in order (closed: the last joins the first), a
+            list of loops (inside: an odd number of crossings, so a loop inside another is a
+            hole), or a flat triangle mesh (an STL, OBJ or PLY file or a ``trimesh.Trimesh`` with
+            every z equal), whose boundary edges bound the region.
+        scale: a positive factor, or one per axis (default 1.0).
+        rotate: a 2x2 rotation matrix, or None (the default).
+        translate: the shift after scaling and rotating, a 2-vector or one number (default 0.0).
+    """
 
     segments: np.ndarray
     name: str = eqx.field(static=True)
@@ -465,14 +476,24 @@ def point_cloud(points, volume=None, *, velocity=0.0, density: float | None = No
                 grid: Grid | None = None, ppc: int = 1) -> Particles:
     """Particles at given points with given volumes (a scanned or meshed body, another code's particles).
 
-    ``points``: (N, D) positions, or a CSV file (whitespace-separated for other suffixes) whose
-    header names the columns x, y[, z] and volume, optionally vx, vy[, vz] and mass.  ``volume``:
-    one number or (N,) (required unless the file has it); ``velocity``: one number, one per axis,
-    (N, D) or a function f(x) -> (N, D); ``density`` (mass = density * volume) or ``mass`` (N,),
-    else the material's density sets the masses.  ``grid``: checks the points lie on it and takes
-    its axisymmetric flag (then volume and mass are per radian, V = A r).  ``ppc`` only matters to
-    UGIMP, whose particle size is h / (2 ppc).  The same as ``jm.Particles(x=..., v=..., volume=...,
-    mass=..., ppc=...)``, checked."""
+    The same as ``jm.Particles(x=..., v=..., volume=..., mass=..., ppc=...)``, checked.  Without
+    ``density`` and ``mass`` the material's density sets the masses.
+
+    Args:
+        points: (N, D) positions (D = 1, 2 or 3), or a CSV file (whitespace-separated for other
+            suffixes) whose header names the columns x, y[, z] and volume, optionally vx, vy[, vz]
+            and mass.
+        volume: the particle volumes, positive: one number or (N,); required unless the file has
+            the column.
+        velocity: one number, one per axis, (N, D) or a function f(x) -> (N, D); default 0.0.
+        density: mass = density * volume (one number or (N,), positive); not with ``mass``.
+        mass: the particle masses, one number or (N,), positive; not with ``density``.
+        grid: a :class:`jaxmpm.Grid` the points must lie on; its axisymmetric flag is taken
+            (then volume and mass are per radian, V = A r, and the points must lie at r > 0).
+            None (the default): no check, plane geometry.
+        ppc: particles per cell per axis (default 1); only UGIMP reads it, its particle size is
+            h / (2 ppc).
+    """
     owner = "point_cloud"
     if isinstance(points, (str, os.PathLike)):
         table = _read_points(points)

@@ -23,10 +23,9 @@ def _as_tuple(value, name: str, owner: str = "Grid") -> tuple:
 
 
 class Grid(eqx.Module):
-    """Uniform background grid.
-
-    ``Grid(lower=(0.0,), upper=(25.0,), cells=(16,))``: ``lower``/``upper`` are the corner
-    coordinates, ``cells`` the number of cells per axis (1, 2 or 3 axes).
+    """Uniform background grid: ``Grid(lower=(0.0,), upper=(25.0,), cells=(16,))``.  All its data
+    are static (they fix array shapes); nodes are numbered in C order over ``cells + 1`` nodes per
+    axis.  :meth:`covering` builds the smallest grid of a given cell size around a box.
 
     ``axisymmetric=True`` (2D only) makes the grid the r-z half-plane of a body of revolution
     (001 §7): axis x is the radius r, axis y the axial coordinate z.  Particle masses and volumes
@@ -34,6 +33,13 @@ class Grid(eqx.Module):
     112 and 115 with the hoop shape function T_ip of eq. 116, the internal force carries the hoop
     term -V0_p tau_thth T_ip e_r (001 eq. 120) and F is 3x3 in (r, z, theta) order, F_thth the hoop
     stretch (updated with the hoop rate v_r/r = sum_i v_ri T_ip, 001 eq. 113).
+
+    Args:
+        lower: the lower corner, one finite coordinate per axis (1, 2 or 3 axes).
+        upper: the upper corner, each coordinate greater than ``lower``'s.
+        cells: the number of cells per axis, positive integers; the cell size is
+            (upper - lower) / cells.
+        axisymmetric: True for an r-z grid of a body of revolution (2D only; default False).
     """
 
     lower: tuple = eqx.field(static=True)

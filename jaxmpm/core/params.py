@@ -78,7 +78,14 @@ def _where(sim, name):
 
 
 def get_params(sim, *names) -> dict:
-    """{name: value} for the named parameters."""
+    """{name: value} for the named parameters: ``get_params(sim, "beta", "E")``.
+
+    Args:
+        sim: the :class:`jaxmpm.Simulation` to read.
+        *names: parameter names, bare (``"E"``) or scoped (``"material.E"``, ``"contact.friction"``);
+            :data:`jaxmpm.PARAMETERS` lists them.  A term's parameter reads as its neutral default
+            when the model has no such term (damping in a model built with ``damping=False``).
+    """
     out = {}
     for n in names:
         s = _with_owner(sim, n)
@@ -101,8 +108,15 @@ def check_value(sim, name, value, owner: str = "set_params", label: str | None =
 
 
 def set_params(sim, **values):
-    """A copy of ``sim`` with the named parameters replaced (values may be traced).  Concrete
-    values are checked against the parameter's valid range (nu in (-1, 0.5), beta in [0, 1], ...)."""
+    """A copy of ``sim`` with the named parameters replaced: ``set_params(sim, beta=0.5, E=2e6)``.
+
+    Args:
+        sim: the :class:`jaxmpm.Simulation` to copy.
+        **values: ``name=value`` for each parameter, by bare or scoped name (scoped ones through
+            ``**{"contact.friction": 0.3}``).  Values may be traced (``jax.grad``, ``jax.vmap``);
+            concrete ones are checked against the parameter's valid range (nu in (-1, 0.5), beta
+            in [0, 1], ...).  A term the model lacks is added at its neutral default first.
+    """
     import equinox as eqx
 
     for name, value in values.items():

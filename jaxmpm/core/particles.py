@@ -28,6 +28,13 @@ class Region(eqx.Module):
 
 
 class Box(Region):
+    """The points with lower <= x < upper along every axis (a segment, rectangle or box).
+
+    Args:
+        lower: the lower corner, one finite coordinate per axis.
+        upper: the upper corner, each coordinate greater than ``lower``'s.
+    """
+
     lower: tuple = eqx.field(static=True)
     upper: tuple = eqx.field(static=True)
 
@@ -47,7 +54,12 @@ class Box(Region):
 
 
 class Ball(Region):
-    """Points within ``radius`` of ``center`` (a disk in 2D, a ball in 3D)."""
+    """Points within ``radius`` of ``center``: |x - center| < radius (a disk in 2D, a ball in 3D).
+
+    Args:
+        center: the centre, one finite coordinate per axis.
+        radius: the radius, positive.
+    """
 
     center: tuple = eqx.field(static=True)
     radius: float = eqx.field(static=True)
@@ -65,11 +77,22 @@ class Ball(Region):
 
 
 class Disk(Ball):
-    """A 2D disk (same as :class:`Ball`)."""
+    """A 2D disk (the same as :class:`Ball`): |x - center| < radius.
+
+    Args:
+        center: the centre, (x, y).
+        radius: the radius, positive.
+    """
 
 
 class Ring(Region):
-    """Annulus inner <= |x - center| < outer."""
+    """Annulus inner <= |x - center| < outer (a hollow ball in 3D).
+
+    Args:
+        center: the centre, one finite coordinate per axis.
+        inner: the inner radius, >= 0 (0: a full disk).
+        outer: the outer radius, greater than ``inner``.
+    """
 
     center: tuple = eqx.field(static=True)
     inner: float = eqx.field(static=True)
@@ -91,10 +114,21 @@ class Ring(Region):
 
 
 class Particles(eqx.Module):
-    """Material points: positions ``x`` (N, D), velocities ``v`` (N, D), reference volumes
-    ``volume`` (N,), masses ``mass`` (N,) or None (then the material's density sets them) and the
-    number of particles per cell per axis ``ppc``.  ``axisymmetric``: x = (r, z) on an axisymmetric
-    grid, ``volume`` and ``mass`` per radian (001 §7: V_p = A_p r_p, m_p = rho A_p r_p)."""
+    """Material points: what :func:`jaxmpm.fill` returns and :meth:`jaxmpm.Simulation.init` turns
+    into a :class:`jaxmpm.State` (or built by hand from arrays).  Every array is checked where it
+    enters, each error naming the argument.
+
+    Args:
+        x: positions, shape (N, D) with D = 1, 2 or 3 and N >= 1; finite.
+        v: velocities, shape (N, D); finite (zeros for a body at rest).
+        volume: reference volumes V_p, shape (N,); positive.
+        mass: masses m_p, shape (N,), positive; None (the default): the material's density sets
+            them, m_p = rho V_p.
+        ppc: particles per cell per axis (a positive integer, default 1; :func:`jaxmpm.fill`
+            sets it); :class:`jaxmpm.UGIMP` checks it against its own ``ppc``.
+        axisymmetric: True when x = (r, z) on an axisymmetric grid; ``volume`` and ``mass`` are then
+            per radian (001 §7: V_p = A_p r_p, m_p = rho A_p r_p).  Default False.
+    """
 
     x: jnp.ndarray
     v: jnp.ndarray
@@ -156,11 +190,23 @@ def fill(
     """Place ``ppc`` particles per cell per axis, on a regular lattice aligned with the grid cells,
     at the lattice points inside ``region`` (a :class:`Region` or a callable mask ``f(x) -> bool``).
 
-    Each particle gets volume h^D / ppc^D and, if ``density`` is given, mass density * volume;
-    ``velocity`` is a constant (scalar or D-vector) or a function of position ``f(x) -> (N, D)``.
+    Each particle gets volume h^D / ppc^D and, if ``density`` is given, mass density * volume.
     On an axisymmetric grid (``Grid(..., axisymmetric=True)``) volume and mass are per radian:
     V_p = A_p r_p, A_p = h_r h_z / ppc^2 the particle's area in the r-z plane (001 eq. 111), and
     the region must lie at r > 0.
+
+    Args:
+        grid: the :class:`Grid` whose cells the lattice follows.
+        region: a :class:`Region` (Box, Ball, Disk, Ring, Polygon, Mesh) or a callable mask
+            ``f(x) -> bool`` of the lattice points x (N, D).
+        ppc: particles per cell per axis, a positive integer (default 2).
+        density: the mass density, positive (one number or one per particle); None (the
+            default) leaves the masses to the material's density (:meth:`Simulation.init`).
+        velocity: the initial velocity: one number, a D-vector, (N, D), or a function of
+            position ``f(x) -> (N, D)``; default 0.0.
+
+    Returns:
+        The :class:`Particles` at the lattice points inside ``region``.
     """
     check(isinstance(grid, Grid), f"fill: grid must be a jm.Grid, got {type(grid).__name__}")
     ppc = positive_int("fill", "ppc", ppc, fix="particles per cell per axis")

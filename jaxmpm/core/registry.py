@@ -22,15 +22,22 @@ from .validate import as_range
 
 @dataclasses.dataclass(frozen=True)
 class Parameter:
-    """A float parameter of a registered part: ``name`` (the keyword of :func:`jaxmpm.set_params`;
-    scoped by its part, ``"contact.friction"``, where two parts of a model share it), ``get(part)``
-    the array leaf it names, a one-line
-    ``doc``, the calibration ``bounds`` (None, ``"positive"`` or ``(lower, upper)``) and the
-    validity range ``valid`` that :func:`jaxmpm.set_params` and :func:`jaxmpm.ensemble` check
-    concrete values against: a ``jaxmpm.core.validate.Range``, ``"finite"`` (the default),
-    ``"positive"``, ``"non-negative"``, a closed ``(lower, upper)`` or None (no check).  The two
-    differ where calibration needs an open interval inside a closed valid one (beta: bounds
-    (0, 1) for the logit transform, valid [0, 1]; damping: bounds "positive", valid >= 0)."""
+    """A float parameter of a registered part (``register_scheme(..., parameters=[...])``).
+    ``bounds`` and ``valid`` differ where calibration needs an open interval inside a closed valid
+    one (beta: bounds (0, 1) for the logit transform, valid [0, 1]; damping: bounds "positive",
+    valid >= 0).
+
+    Args:
+        name: the keyword of :func:`jaxmpm.set_params`, an identifier; scoped by its part
+            (``"contact.friction"``) where two parts of a model share it.
+        get: ``get(part) -> leaf``: the array leaf of the part it names (``lambda s: s.beta``).
+        doc: a one-line description (the CLI's help, :data:`jaxmpm.PARAMETERS`).
+        bounds: the calibration bounds: None (unbounded, the default), ``"positive"`` or
+            ``(lower, upper)``.
+        valid: the range :func:`jaxmpm.set_params` and :func:`jaxmpm.ensemble` check concrete
+            values against: a ``jaxmpm.core.validate.Range``, ``"finite"`` (the default),
+            ``"positive"``, ``"non-negative"``, a closed ``(lower, upper)`` or None (no check).
+    """
 
     name: str
     get: Callable[[Any], Any]
@@ -150,32 +157,87 @@ REGISTRIES = {"scheme": SCHEMES, "shape": SHAPES, "material": MATERIALS, "term":
 
 
 def register_scheme(name, cls, **kwargs):
-    """Register a particle-update scheme (see :class:`Registry.register`)."""
+    """Register a particle-update scheme: the CLI, :func:`scheme_from_name`, :func:`jaxmpm.set_params`
+    and the HDF5 attributes then know it (docs/extending.md).
+
+    Args:
+        name: the scheme's name, a lower-case word without ':' (the CLI's ``--scheme name``).
+        cls: the :class:`jaxmpm.Scheme` subclass.
+        **kwargs: ``parse`` (``parse(argument, beta=...) -> scheme`` of the command-line form
+            ``name:argument``; None: ``cls(beta=...)``), ``spec`` (that form as the help shows it,
+            e.g. ``"xpic:M"``; default ``name``), ``parameters`` (the :class:`Parameter` of its
+            float leaves) and ``doc`` (one line; default the first line of the class docstring).
+
+    Returns:
+        ``cls``.
+    """
     return SCHEMES.register(name, cls, **kwargs)
 
 
 def register_shape(name, cls, **kwargs):
-    """Register a shape function."""
+    """Register a shape function (``Simulation(shape="name")``, the CLI's ``--shape``).
+
+    Args:
+        name: the shape's name, a lower-case word without ':'.
+        cls: the :class:`jaxmpm.ShapeFunction` subclass.
+        **kwargs: ``parse``, ``spec``, ``parameters`` and ``doc``, as for :func:`register_scheme`
+            (``parse(argument, **options)``; None: ``cls(**options)``).
+
+    Returns:
+        ``cls``.
+    """
     return SHAPES.register(name, cls, **kwargs)
 
 
 def register_material(name, cls, **kwargs):
-    """Register a material."""
+    """Register a material (the CLI's ``--material``, :func:`jaxmpm.set_params` of its constants).
+
+    Args:
+        name: the material's name, a lower-case word without ':'.
+        cls: the :class:`jaxmpm.Material` subclass.
+        **kwargs: ``parse``, ``spec``, ``parameters`` (e.g. E, nu, density) and ``doc``, as for
+            :func:`register_scheme`.
+
+    Returns:
+        ``cls``.
+    """
     return MATERIALS.register(name, cls, **kwargs)
 
 
 def register_term(name, cls, **kwargs):
-    """Register a physics term."""
+    """Register a physics term; its parameters are then scoped by ``name`` (``"damping.alpha_g"``).
+
+    Args:
+        name: the term's name, a lower-case word without ':'.
+        cls: the :class:`jaxmpm.Term` subclass.
+        **kwargs: ``parse``, ``spec``, ``parameters`` and ``doc``, as for :func:`register_scheme`.
+
+    Returns:
+        ``cls``.
+    """
     return TERMS.register(name, cls, **kwargs)
 
 
 def scheme_from_name(spec: str, beta: float | None = None):
-    """A scheme from its command-line form (``flip``, ``xpic:5``, ...; :data:`SCHEMES`)."""
+    """A scheme from its command-line form (``flip``, ``xpic:5``, ...; :data:`SCHEMES`).
+
+    Args:
+        spec: ``name`` or ``name:argument``: flip, pic, blend:B, xpic:M, fmpm:K, apic, tpic, rpic
+            (``SCHEMES.specs()`` lists the registered ones).
+        beta: the FLIP fraction in [0, 1] for the schemes that take one; None (the default):
+            the scheme's own (flip 1, blend 0.99, xpic and fmpm 0); pic, apic, tpic and rpic take none.
+    """
     return SCHEMES.parse(spec, beta=beta)
 
 
 def shape_from_name(spec: str, **kwargs):
-    """A shape function from its name (``linear``, ``ugimp``, ``quadratic``, ``cubic``)."""
+    """A shape function from its name (``linear``, ``ugimp``, ``quadratic``, ``cubic``).
+
+    Args:
+        spec: the registered name (``SHAPES.names()``), with ``:argument`` where the shape
+            takes one.
+        **kwargs: the shape's options, e.g. ``ppc=2`` for ``ugimp``.
+    """
     return SHAPES.parse(spec, **kwargs)
 
 

@@ -17,8 +17,29 @@ import jax.numpy as jnp
 
 
 class State(eqx.Module):
-    """Particle state (see the module docstring).  A pytree: ``jax.grad``, ``jax.vmap`` and
-    ``lax.scan`` carry it whole."""
+    """Particle state: a core every model has, plus the state each part of the model owns.  A
+    pytree: ``jax.grad``, ``jax.vmap`` and ``lax.scan`` carry it whole.  :meth:`Simulation.init`
+    builds it; :meth:`Simulation.step` returns the next one.
+
+    Args:
+        x: positions X_p, (N, D).
+        v: velocities V_p, (N, D).
+        F: deformation gradients F_p, (N, D, D); (N, 3, 3) in (r, z, theta) on an axisymmetric
+            grid.
+        mass: masses M_p, (N,).
+        volume0: reference volumes V0_p, (N,); the current volume is V0_p det F_p (``volume``).
+        time: the simulated time, a scalar.
+        step: the number of steps taken, an int32 scalar.
+        dissipated: the cumulative energy the scheme and damping dissipated, a scalar.
+        scheme_state: the scheme's per-particle state (APIC's B_p, TPIC's grad v_p), or None
+            (the default) for the others (:meth:`Scheme.initial_state`).
+        material_state: the material's per-particle state (e.g. the stress of HypoElastic and
+            IncrementalElastic), or None (the default) for the elastic materials
+            (:meth:`Material.initial_state`).
+        fields: ``{name: (N, ...)}``, the per-particle fields the physics terms declare
+            (:class:`jaxmpm.ParticleField`); runs save them per frame and HDF5 writes each as
+            ``/particles/<name>``.  Default ``{}``.
+    """
 
     x: jnp.ndarray
     v: jnp.ndarray
@@ -44,10 +65,20 @@ class State(eqx.Module):
 
 
 def with_scheme_state(state: State, value) -> State:
-    """``state`` with its scheme state replaced (e.g. APIC's B_p)."""
+    """``state`` with its scheme state replaced (e.g. APIC's B_p).
+
+    Args:
+        state: the :class:`State` to copy.
+        value: the new ``scheme_state`` (a pytree, or None).
+    """
     return eqx.tree_at(lambda s: s.scheme_state, state, value, is_leaf=lambda x: x is None)
 
 
 def with_fields(state: State, **fields) -> State:
-    """``state`` with the named per-particle fields replaced or added."""
+    """``state`` with the named per-particle fields replaced or added.
+
+    Args:
+        state: the :class:`State` to copy.
+        **fields: ``name=array`` (N, ...) for each field.
+    """
     return eqx.tree_at(lambda s: s.fields, state, {**state.fields, **fields})

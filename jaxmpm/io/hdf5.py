@@ -6,7 +6,9 @@ in place).
 /time (T,)   /particles/x (T,N,D)  /particles/v (T,N,D)  /particles/mass (N,)  /particles/volume0 (N,)
 /energy/kinetic (T,)  /energy/strain (T,)  /energy/dissipated (T,)
 /momentum/linear (T,D)  /momentum/angular (T,1 or 3)
-/particles/<name> (T,N,...)   every saved per-particle field a physics term declares
+/particles/<name> (T,N,...)   every saved per-particle field a physics term declares, and each field
+                              the run chose (H5Writer's fields=: stress (T,N,d,d), pressure (T,N),
+                              J (T,N), F (T,N,d,d); jaxmpm.model.frame_fields)
 /particles/material (N,)      multimaterial mode: the material id of each particle (int32)
 /materials/<name> (T,M[,D])   multimaterial mode: kinetic, strain, momentum, contact_force per material
 /totals/<name> (T,)           the terms' totals: thermal_energy (jm.Heat), solute (jm.Diffusion)
@@ -18,7 +20,8 @@ attributes on /: scene, scheme, order, beta, alpha_g, alpha_p, damping approach,
                  (jaxmpm/nairnmpm), constrained force (zero/reaction), position and series boundary
                  (the XPIC family's and FMPM's options; "" for other schemes), dt, cells, ppc,
                  dtype, jaxmpm version, scene parameters (JSON), and every other float
-                 parameter the model's registered parts declare (E, nu, density, ...)
+                 parameter the model's registered parts declare (E, nu, density, ...);
+                 fields (the chosen fields, comma-separated: "stress,J"; "" for none)
 ```
 A new field or parameter needs no edit here: the writer follows ``History.fields`` and the
 registry.  The sidecar is two files next to ``FILE.h5``: ``FILE.xdmf`` and ``FILE.xdmf.h5`` (per-frame
@@ -34,7 +37,16 @@ import os
 import h5py
 import numpy as np
 
-from .xdmf import copy_into_place, link_into_place, remove, same_file, views_copies, write_xdmf, xdmf_paths
+from .xdmf import (
+    copy_into_place,
+    link_into_place,
+    remove,
+    same_file,
+    stored_fields,
+    views_copies,
+    write_xdmf,
+    xdmf_paths,
+)
 
 _SERIES = {
     "time": "time",
@@ -106,18 +118,50 @@ class H5Writer:
     links are not available, the copy is copied to ``FILE.h5`` instead (the same guarantee, a full
     copy per publication).  ``FILE.h5.lock`` (``flock``) keeps a second writer of the same path out.
 
-    ``mode="w"`` creates ``path``, publishing its header at once (an existing file is replaced
-    then); ``mode="a"`` continues a file this writer made (:func:`jaxmpm.resume`).  ``attrs`` are
-    root attributes added to the header (the CLI's ``command``)."""
+    ``mode="w"`` creates ``path``, publishing its header at once; it refuses (InputError) to replace
+    an existing ``path`` or XDMF sidecar unless ``overwrite=True``.  ``mode="a"`` continues a file
+    this writer made (:func:`jaxmpm.resume`).  ``attrs`` are root attributes added to the header
+    (the CLI's ``command``).
+
+    ``fields``: the per-particle fields a run with this writer saves in every frame besides x, v
+    and the terms' fields, by name -- ``("stress", "pressure", "J", "F")`` and the material's
+    saved state (:mod:`jaxmpm.model.frame_fields`); each is ``/particles/<name>`` (T, N, ...),
+    the names are the root attribute ``fields``.  ``sim.run(..., writer=writer)`` computes them.
+    Default: none (mode "w"), the file's own (mode "a": a resumed run goes on with them).
+
+    Args:
+        path: the HDF5 file, ``FILE.h5``.
+        sim: the :class:`jaxmpm.Simulation` of the run (the root attributes: scheme, shape,
+            grid, parameters, ...).
+        state: the run's :class:`jaxmpm.State` (the particles' mass and volume0, the sizes).
+        dt: the time step, stored as the attribute ``dt``; None (the default): NaN.
+        scene: the scene's name (the attribute ``scene``); None (the default): "".
+        params: the scene's options, stored as JSON (``scene parameters``); None (the default).
+        ppc: particles per cell per axis (the attribute ``ppc``); None (the default): the shape's
+            own (UGIMP), else 0.
+        xdmf: also write the XDMF sidecar ``FILE.xdmf`` for ParaView/VisIt (default True).
+        mode: "w" (default) creates ``path``; "a" continues a file this writer made.
+        attrs: more root attributes for the header; None (the default).
+        fields: the per-frame fields by name (above); None (the default).
+        overwrite: mode "w": replace an existing ``path`` or sidecar (default False: an
+            InputError).
+    """
 
     def __init__(self, path, sim, state, dt=None, scene: str | None = None, params: dict | None = None,
-                 ppc=None, xdmf: bool = True, mode: str = "w", attrs: dict | None = None):
+                 ppc=None, xdmf: bool = True, mode: str = "w", attrs: dict | None = None, fields=None,
+                 overwrite: bool = False):
         from ..core.errors import check
 
         check(mode in ("w", "a"), f"H5Writer: mode = {mode!r}; use 'w' (create) or 'a' (append)")
+        if mode == "w":
+            refuse_overwrite("H5Writer", path, xdmf, overwrite)
         self.path = os.fspath(path)
         self.xdmf = xdmf
         self.n, self.dim = np.asarray(state.x).shape
+        self.fields = sim.check_frame_fields(state, fields, "H5Writer: fields") if fields else ()
+        if mode == "a":
+            check(os.path.exists(self.path), f"H5Writer: {self.path} does not exist; mode='a' appends to a run's file")
+            self._continue_fields(fields is not None)
         self.frames = 0
         self._log = []  # operations not yet in both copies: ("frames", {path: array}), ("state", ...), ("truncate", T)
         self._applied = [0, 0]  # per copy, how much of the log it holds (None: unknown, copied from FILE.h5 again)
@@ -126,8 +170,6 @@ class H5Writer:
         self._links = True  # hard links work here (else each publication copies)
         self._closed = True
         self._lock = None
-        if mode == "a":
-            check(os.path.exists(self.path), f"H5Writer: {self.path} does not exist; mode='a' appends to a run's file")
         self._lock = _take_lock(self.path)
         self._closed = False
         try:
@@ -135,7 +177,8 @@ class H5Writer:
             if mode == "a":
                 self._open_existing()
             else:
-                self._create(run_attributes(sim, dt, scene, params, ppc) | dict(attrs or {}), state)
+                self._create(run_attributes(sim, dt, scene, params, ppc) | dict(attrs or {})
+                             | {"fields": ",".join(self.fields)}, state)
         except BaseException:
             self._closed = True
             _release_lock(self._lock, self.path)
@@ -143,6 +186,18 @@ class H5Writer:
 
     def _copy_path(self, index: int) -> str:
         return working_paths(self.path)[index]
+
+    def _continue_fields(self, given: bool) -> None:
+        """mode "a": the fields the file's run saves (its ``fields`` attribute), which ``fields=``,
+        when given, must repeat."""
+        from ..core.errors import check
+
+        with h5py.File(self.path, "r") as f:
+            stored = stored_fields(f.attrs)
+        check(not given or self.fields == stored,
+              f"H5Writer: fields = {self.fields!r} but {self.path} saves {stored!r} in every frame; a continued "
+              "run keeps its file's fields (leave fields= out)")
+        self.fields = stored
 
     def _create(self, attrs, state) -> None:
         attrs["dtype"] = str(np.asarray(state.x).dtype)
@@ -282,6 +337,24 @@ class H5Writer:
             pass
 
 
+def refuse_overwrite(owner: str, path, xdmf: bool = True, overwrite: bool = False) -> None:
+    """An InputError when writing ``path`` would replace an existing file -- ``path`` itself or, with
+    ``xdmf``, its XDMF sidecar (``FILE.xdmf``, ``FILE.xdmf.h5``) -- unless ``overwrite``: no run's
+    results are lost without consent.  (A killed writer's working copies and lock are not results:
+    the next writer removes them.)"""
+    from ..core.errors import check
+
+    check(isinstance(overwrite, bool), f"{owner}: overwrite = {overwrite!r} must be True (replace an existing "
+                                       "file) or False (refuse to)")
+    path = os.fspath(path)
+    existing = [p for p in (path,) + (xdmf_paths(path) if xdmf else ()) if os.path.exists(p)]
+    check(overwrite or not existing,
+          f"{owner}: {' and '.join([', '.join(existing[:-1])] * (len(existing) > 1) + existing[-1:])} "
+          f"{'exists' if len(existing) == 1 else 'exist'}"
+          f"{'' if path in existing else ' (the XDMF sidecar of an earlier run)'}; pass overwrite=True to "
+          f"replace {'it' if len(existing) == 1 else 'them'}, or choose another path")
+
+
 def working_paths(path) -> tuple[str, ...]:
     """The files an :class:`H5Writer` keeps beside ``path`` while it writes: its two copies
     (``FILE.h5.0.tmp``, ``FILE.h5.1.tmp``), those of the XDMF views file (``FILE.xdmf.h5.0.tmp``,
@@ -384,15 +457,37 @@ def _write_state(f: h5py.File, leaves, attrs: dict) -> None:
 
 
 def save_h5(path, sim, history, state=None, dt=None, scene: str | None = None, params: dict | None = None,
-            ppc=None, *, steps: int | None = None, save_every: int | None = None, start_step: int = 0) -> None:
+            ppc=None, *, steps: int | None = None, save_every: int | None = None, start_step: int = 0,
+            overwrite: bool = False) -> None:
     """Write a whole history at once.  ``state`` supplies particle mass and volume0 (the initial or
-    the final State).
+    the final State).  An existing ``path`` (or its XDMF sidecar) is an InputError unless
+    ``overwrite=True``.
 
     With the run's schedule -- ``steps`` and ``save_every`` as given to ``sim.run``, ``start_step``
     the step of the history's first frame (0 for a scene) -- ``state`` is the state the run
     reached (its final state, or ``RunInterrupted.state``); it is stored under ``/state`` and the
     file can be continued like a ``jaxmpm run`` file: ``jm.resume(path, setup)`` runs it to
-    ``steps`` in the same file (a finished run: returns ``state``)."""
+    ``steps`` in the same file (a finished run: returns ``state``).  The fields the run chose
+    (``sim.run(..., fields=...)``: stress, J, ...) are the file's ``fields``, as with
+    ``jm.H5Writer(..., fields=...)``; a resumed run goes on saving them.
+
+    Args:
+        path: the HDF5 file to write.
+        sim: the :class:`jaxmpm.Simulation` of the run (the root attributes: scheme, shape,
+            grid, parameters, ...).
+        history: the :class:`jaxmpm.History` of the run.
+        state: a :class:`jaxmpm.State` of the run (required): the initial or the final one, for
+            the particles' mass and volume0; with the schedule, the state the run reached.
+        dt: the time step (the attribute ``dt``); None (the default): NaN.
+        scene: the scene's name; None (the default).
+        params: the scene's options, stored as JSON; None (the default).
+        ppc: particles per cell per axis; None (the default): the shape's own.
+        steps: the run's steps as given to ``sim.run``, with ``save_every``: the file is
+            resumable; None (the default): not.
+        save_every: the run's steps between frames; None (the default).
+        start_step: the step of the history's first frame (default 0).
+        overwrite: replace an existing ``path`` or sidecar (default False: an InputError).
+    """
     from ..core.errors import check
 
     if state is None:
@@ -409,10 +504,23 @@ def save_h5(path, sim, history, state=None, dt=None, scene: str | None = None, p
               f"save_h5: the state is at step {int(state.step)}, where a run from step {start_step} saving every "
               f"{save_every} steps has {reached // save_every + 1 if reached >= 0 else 0} frames, but the history "
               f"holds {frames}; pass the state the run reached (its final state, or RunInterrupted.state)")
-    with H5Writer(path, sim, state, dt=dt, scene=scene, params=params, ppc=ppc) as w, w.batch():
+    refuse_overwrite("save_h5", path, True, overwrite)
+    with H5Writer(path, sim, state, dt=dt, scene=scene, params=params, ppc=ppc, overwrite=overwrite,
+                  fields=chosen_fields(history, sim, state)) as w, w.batch():
         w.append(history)
         if resumable:
             w.write_state(state, start_step, steps, save_every)
+
+
+def chosen_fields(history, sim, state) -> tuple:
+    """The per-frame fields a run chose (``sim.run(..., fields=...)``) among ``history.fields``:
+    those of :func:`jaxmpm.model.frame_fields.available` that no term declares."""
+    if not hasattr(sim, "check_frame_fields"):
+        return ()
+    from ..model.frame_fields import available
+
+    offered, terms = available(sim, state), {f.name for f in sim.particle_fields() if f.save}
+    return tuple(name for name in history.fields if name in offered and name not in terms)
 
 
 def _key_name(key) -> str:
@@ -464,15 +572,26 @@ def read_state(path, template, again: str = "start the run again"):
 
 
 class Results(dict):
-    """What :func:`load_h5` returns: arrays by their HDF5 path, plus ``attrs`` and ``params``."""
+    """What :func:`load_h5` returns: arrays by their HDF5 path, plus ``attrs``, ``params`` and
+    ``fields`` (the chosen per-frame fields the file saves, each ``res["particles/<name>"]``)."""
 
     attrs: dict
     params: dict
+    fields: tuple
 
 
 def load_h5(path) -> Results:
     """Read a jaxmpm HDF5 file: ``res["particles/x"]``, ``res.attrs["scheme"]``, ``res.params`` ...
-    A path that does not exist, or a file HDF5 cannot open (truncated, not HDF5), is an InputError."""
+    A path that does not exist, or a file HDF5 cannot open (truncated, not HDF5), is an InputError.
+
+    Args:
+        path: the file (``jaxmpm run ... --out FILE.h5``, :func:`save_h5`, :class:`H5Writer`).
+
+    Returns:
+        A ``Results`` dict of every dataset by its HDF5 path (``/state``, restart data, left
+        out), with ``attrs`` (the root attributes), ``params`` (the scene's options) and
+        ``fields`` (the per-frame fields the file saves).
+    """
     from ..core.errors import check
 
     out = Results()
@@ -493,6 +612,7 @@ def load_h5(path) -> Results:
         attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
     out.attrs = attrs
     out.params = json.loads(attrs.get("scene parameters", "{}") or "{}")
+    out.fields = stored_fields(attrs)
     return out
 
 

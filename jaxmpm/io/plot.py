@@ -4,8 +4,10 @@ commands built on them (:func:`add_plot_commands`, :func:`run_plot_command`).
 
 The particles are drawn as a scatter coloured by a field -- ``speed`` (|v|), a velocity component
 (``vx``, ``vy``, ``vz``), ``displacement`` (|x - x0|), ``material`` (multimaterial runs), or any
-per-particle dataset the file stores under ``/particles`` (``temperature``, ``mass``, the norm of a
-vector field such as ``contact_force`` or one of its components, ``contact_force_x``) -- inside the
+per-particle dataset the file stores under ``/particles`` (``temperature``, ``mass``, ``pressure``,
+``J``, the norm of a vector field such as ``contact_force`` or one of its components,
+``contact_force_x``, the norm of a tensor such as ``stress`` or one of its components, ``stress_xy``;
+on an axisymmetric grid in (r, z, theta): ``stress_rr``, ``stress_tt``) -- inside the
 grid box (``grid_lower``/``grid_upper``), with equal aspect and each frame's time in its title.
 Markers are equal-area discs of the particle spacing (the grid spacing over ``ppc``, else the
 particles' volume), so a body looks filled.  A 1D run is drawn as position against the field, a 3D
@@ -119,6 +121,15 @@ class _Run:
                             fields[f"{name}_{_AXIS_NAMES[k]}"] = (
                                 f"{name} ({_AXIS_NAMES[k]})", lambda i, path=path, k=k: self._frame(path, i)[:, k],
                                 False)
+                    elif len(shape) == 4 and shape[2] == shape[3] in (self.dim, self.dim + 1) and shape[2] <= 3:
+                        # a tensor (stress, F): each component, stress_xy; on an axisymmetric grid (d = D + 1)
+                        # in (r, z, theta), stress_tt the hoop stress
+                        axes = _AXIS_NAMES if shape[2] == self.dim else "rzt"
+                        for a in range(shape[2]):
+                            for b in range(shape[3]):
+                                fields[f"{name}_{axes[a]}{axes[b]}"] = (
+                                    f"{name} ({axes[a]}{axes[b]})",
+                                    lambda i, path=path, a=a, b=b: self._frame(path, i)[:, a, b], False)
         return fields
 
     @property
@@ -440,6 +451,14 @@ def _output(out, allowed, option: str, cli: bool) -> str:
     return out
 
 
+def _refuse_overwrite(out: str, overwrite, cli: bool) -> None:
+    """An existing ``out`` is replaced only with consent (``overwrite=True``, the CLI's ``--force``)."""
+    check(isinstance(overwrite, bool), f"{_say('overwrite', overwrite, cli)} must be True or False")
+    check(overwrite or not os.path.exists(out),
+          f"{_say('out', out, cli)} exists; pass {'--force' if cli else 'overwrite=True'} to replace it, or "
+          "choose another file")
+
+
 def _draw(run: _Run, frames, field, plane, figsize, dpi, cmap, clim, limit_frames, title, marker_scale):
     """A figure with one panel per frame and a shared colour bar."""
     limits = _limits(run, field, limit_frames, clim, run.cli)
@@ -469,22 +488,40 @@ def _draw(run: _Run, frames, field, plane, figsize, dpi, cmap, clim, limit_frame
 
 def plot_frames(path_or_result, frames=(0, -1), field: str = "speed", out=None, *, axes: str = "xy",
                 figsize=None, dpi: float = 100, cmap: str | None = None, clim=None, title: str | None = None,
-                marker_scale: float = 1.0, sim=None, state=None, _cli: bool = False):
+                marker_scale: float = 1.0, sim=None, state=None, overwrite: bool = False, _cli: bool = False):
     """Draw chosen frames of a run side by side; returns the matplotlib ``Figure``.
 
-    ``path_or_result``: a jaxmpm HDF5 file (``jaxmpm run --out``, :func:`jaxmpm.save_h5`), the
-    result of :func:`jaxmpm.load_h5`, or a :class:`jaxmpm.History` (then ``sim=`` gives the grid
-    box and spacing, ``state=`` the volumes and material ids).  ``frames``: indices, negative from
-    the end (default the first and the last), or ``"all"``.  ``field``: ``speed`` (|v|), ``vx``,
-    ``vy``, ``vz``, ``displacement``, ``material``, or a per-particle dataset of the run
-    (``temperature``, ``mass``, ``contact_force`` (its norm), ``contact_force_x``, ...); an unknown
-    name raises :class:`jaxmpm.InputError` listing the run's fields.  The colour limits are shared
-    by the panels (``clim=(low, high)`` fixes them).  ``axes``: the projection of a 3D run.
-    ``out``: also write the figure to this file (PNG, or JPG, PDF, SVG), ``figsize`` inches times
-    ``dpi`` pixels.  ``marker_scale`` scales the markers (1: discs of the particles' area).
+    The colour limits are shared by the panels.  The figure uses its own Agg canvas (no pyplot,
+    the backend is left alone); in a notebook it shows as the cell's value.
 
-    The figure uses its own Agg canvas (no pyplot, the backend is left alone); in a notebook it
-    shows as the cell's value."""
+    Args:
+        path_or_result: a jaxmpm HDF5 file (``jaxmpm run --out``, :func:`jaxmpm.save_h5`), the
+            result of :func:`jaxmpm.load_h5`, or a :class:`jaxmpm.History` (then ``sim`` and
+            ``state`` are needed).
+        frames: frame indices, negative from the end (default ``(0, -1)``: the first and the
+            last), or ``"all"``.
+        field: the colour: ``speed`` (|v|, the default), ``vx``, ``vy``, ``vz``,
+            ``displacement``, ``material``, or a per-particle dataset of the run
+            (``temperature``, ``mass``, ``contact_force`` (its norm), ``contact_force_x``,
+            ``pressure``, ``J``, ``stress`` (its norm), ``stress_xx``, ``stress_tt``
+            (axisymmetric hoop), ...); an unknown name raises :class:`jaxmpm.InputError`
+            listing the run's fields.
+        out: also write the figure to this file (PNG, or JPG, PDF, SVG); None (the default):
+            only return it.
+        axes: the projection of a 3D run: "xy" (default), "xz" or "yz".
+        figsize: the figure's size in inches, (width, height); None (the default): from the
+            panels and the grid box.
+        dpi: pixels per inch (default 100).
+        cmap: a matplotlib colormap name; None (the default): viridis (``material``: tab10 or
+            tab20).
+        clim: the colour limits ``(low, high)``; None (the default): the field's range over the
+            frames drawn.
+        title: the figure's title; None (the default): the scene and the scheme.
+        marker_scale: scales the markers (default 1: discs of the particles' area).
+        sim: with a History, the :class:`jaxmpm.Simulation` (the grid box and spacing).
+        state: with a History, a :class:`jaxmpm.State` (the volumes and material ids).
+        overwrite: replace an existing ``out`` (default False: an InputError).
+    """
     run = _open(path_or_result, sim, state, _cli)
     with run:
         field = run.check_field(field)
@@ -492,6 +529,7 @@ def plot_frames(path_or_result, frames=(0, -1), field: str = "speed", out=None, 
         chosen = run.frame_indices(frames)
         if out is not None:
             out = _output(out, IMAGE_EXTENSIONS, "out", _cli)
+            _refuse_overwrite(out, overwrite, _cli)
         fig, _ = _draw(run, chosen, field, plane, figsize, dpi, cmap, clim, chosen, title, marker_scale)
     if out is not None:
         fig.savefig(out, dpi=fig.dpi)
@@ -501,20 +539,42 @@ def plot_frames(path_or_result, frames=(0, -1), field: str = "speed", out=None, 
 def animate(path_or_result, out="run.gif", field: str = "speed", *, fps: float = 10, every: int = 1,
             axes: str = "xy", figsize=None, dpi: float = 100, cmap: str | None = None, clim=None,
             title: str | None = None, marker_scale: float = 1.0, sim=None, state=None, progress: bool = False,
-            _cli: bool = False) -> str:
+            overwrite: bool = False, _cli: bool = False) -> str:
     """Write every ``every``-th frame of a run as an animation; returns the path written.
 
     ``out`` ending in ``.gif`` is written with imageio and Pillow; ``.mp4`` needs imageio-ffmpeg
     (``pip install imageio-ffmpeg``).  The colour limits are the field's range over the whole run
     (or ``clim``) and the axes are the grid box, so the frames are comparable; each frame is
     ``figsize`` inches times ``dpi`` pixels.  The other arguments are those of
-    :func:`plot_frames`; ``progress`` shows a progress bar."""
+    :func:`plot_frames`; ``progress`` shows a progress bar; an existing ``out`` is replaced only with
+    ``overwrite=True``.
+
+    Args:
+        path_or_result: a jaxmpm HDF5 file, the result of :func:`jaxmpm.load_h5`, or a
+            :class:`jaxmpm.History` (then ``sim`` and ``state`` are needed).
+        out: the file to write, ``.gif`` (default "run.gif") or ``.mp4``.
+        field: the colour, as for :func:`plot_frames` (default ``speed``).
+        fps: frames per second, positive (default 10).
+        every: draw every ``every``-th frame, a positive integer (default 1).
+        axes: the projection of a 3D run: "xy" (default), "xz" or "yz".
+        figsize: each frame's size in inches; None (the default): from the grid box.
+        dpi: pixels per inch (default 100).
+        cmap: a matplotlib colormap name; None (the default): viridis.
+        clim: the colour limits ``(low, high)``; None (the default): the field's range over the
+            whole run.
+        title: the title; None (the default): the scene and the scheme.
+        marker_scale: scales the markers (default 1: discs of the particles' area).
+        sim: with a History, the :class:`jaxmpm.Simulation`.
+        state: with a History, a :class:`jaxmpm.State`.
+        progress: show a progress bar (default False).
+        overwrite: replace an existing ``out`` (default False: an InputError).
+    """
     return _animate(path_or_result, out, field, fps, every, axes, figsize, dpi, cmap, clim, title, marker_scale,
-                    sim, state, progress, _cli)[0]
+                    sim, state, progress, _cli, overwrite)[0]
 
 
 def _animate(path_or_result, out, field, fps, every, axes, figsize, dpi, cmap, clim, title, marker_scale, sim,
-             state, progress, _cli) -> tuple[str, int]:
+             state, progress, _cli, overwrite=False) -> tuple[str, int]:
     """:func:`animate`, returning the path written and the number of frames."""
     out = _output(out, MOVIE_EXTENSIONS, "out", _cli)
     mp4 = out.lower().endswith(".mp4")
@@ -529,6 +589,7 @@ def _animate(path_or_result, out, field, fps, every, axes, figsize, dpi, cmap, c
                                               "per second")
     check(isinstance(every, (int, np.integer)) and not isinstance(every, bool) and every >= 1,
           f"{_say('every', every, _cli)} must be a positive integer (1: every frame)")
+    _refuse_overwrite(out, overwrite, _cli)
     run = _open(path_or_result, sim, state, _cli)
     with run:
         field = run.check_field(field)
@@ -595,13 +656,15 @@ def add_plot_commands(subparsers) -> None:
         parser.add_argument("--field", default="speed", metavar="NAME",
                             help="colour the particles by: speed (default), vx, vy, vz, displacement, material "
                                  "(multimaterial runs), or a per-particle dataset of the file (temperature, "
-                                 "contact_force, contact_force_x, ...); an unknown name lists the file's fields")
+                                 "contact_force, contact_force_x, pressure, J, stress_xx, stress_tt, ...); an "
+                                 "unknown name lists the file's fields")
         parser.add_argument("--out", default=None, metavar=f"FILE.{kind}",
                             help=f"output file (default: FILE.{kind} beside FILE.h5)"
                                  + ("; .mp4 needs imageio-ffmpeg" if kind == "gif" else ""))
         parser.add_argument("--axes", default="xy", choices=["xy", "xz", "yz"],
                             help="the two axes a 3D run is projected on (default xy)")
         parser.add_argument("--dpi", type=float, default=100, metavar="N", help="pixels per inch (default 100)")
+        parser.add_argument("--force", action="store_true", help="replace the output file if it exists")
     animate_.add_argument("--fps", type=float, default=10, metavar="N", help="frames per second (default 10)")
     animate_.add_argument("--every", type=int, default=1, metavar="K", help="every K-th frame (default 1: all)")
     animate_.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -626,14 +689,14 @@ def run_plot_command(args) -> int:
         if args.command == "plot":
             out = args.out if args.out is not None else stem + ".png"
             fig = plot_frames(args.file, _parse_frames(args.frames), args.field, out, axes=args.axes, dpi=args.dpi,
-                              _cli=True)
+                              overwrite=args.force, _cli=True)
             width, height = (round(s * fig.dpi) for s in fig.get_size_inches())
             count = len(fig.axes) - 1  # the panels, and the colour bar
             print(f"wrote {out} ({width} x {height} pixels: {count} frame{'s' * (count != 1)} of {args.field})")
         else:
             out = args.out if args.out is not None else stem + ".gif"
             out, count = _animate(args.file, out, args.field, args.fps, args.every, args.axes, None, args.dpi, None,
-                                  None, None, 1.0, None, None, not args.no_progress, True)
+                                  None, None, 1.0, None, None, not args.no_progress, True, args.force)
             print(f"wrote {out} ({count} frame{'s' * (count != 1)} of {args.field}, {args.fps:g} per second)")
     except InputError as err:
         print(f"jaxmpm: error: {err}", file=sys.stderr)

@@ -96,8 +96,27 @@ def _frame_series(f: h5py.File, T: int, N: int) -> list[str]:
     return out
 
 
-def _view_shape(N: int, per: tuple) -> tuple:
-    """A frame's view of a (T, N, *per) dataset: (N,), (N, C), or (N, prod(per)) for a matrix."""
+def stored_fields(attrs) -> tuple:
+    """The per-frame fields a run chose (``jm.H5Writer(..., fields=...)``): the root attribute
+    ``fields`` of its file, comma-separated, as a tuple."""
+    value = attrs.get("fields", "")
+    value = value.decode() if isinstance(value, bytes) else str(value)
+    return tuple(name for name in value.split(",") if name)
+
+
+def _tensors(f: h5py.File, series: list[str]) -> set:
+    """The chosen fields (``stored_fields``) that are a d x d matrix per particle, d <= 3 (stress,
+    F): shown as 3 x 3 XDMF Tensors, zero-padded in 1D and 2D."""
+    chosen = set(stored_fields(f.attrs))
+    return {name for name in series if name in chosen and len(f["particles"][name].shape) == 4
+            and f["particles"][name].shape[2] == f["particles"][name].shape[3] <= 3}
+
+
+def _view_shape(N: int, per: tuple, tensor: bool = False) -> tuple:
+    """A frame's view of a (T, N, *per) dataset: (N,), (N, C), (N, prod(per)) for a matrix, or
+    (N, 9) for a ``tensor`` (3 x 3, row-major)."""
+    if tensor:
+        return (N, 9)
     return (N,) + per if len(per) <= 1 else (N, int(np.prod(per)))
 
 
@@ -120,17 +139,19 @@ def _write_frame_views(views_path: str, h5_name: str, f: h5py.File, series: list
     """Create (or extend) the views file: ``/index`` (N, 1) int64, the Polyvertex connectivity
     0..N-1, and for each frame t ``/particles/<name>/<t>`` (t as six digits), an HDF5 virtual
     dataset that is frame t of ``h5_name:/particles/<name>`` (no data is copied; a matrix per
-    particle is flattened to a row); in 1D also ``/points/<t>`` (N, 2), the position with a zero
-    second coordinate.  A views file whose particle count, dtypes or fields differ from ``f`` is
-    rebuilt; otherwise only the frames it lacks are added.
+    particle is flattened to a row; a chosen d x d field such as the stress, :func:`_tensors`, is
+    the row of its 3 x 3 padding, the components beyond d zero); in 1D also ``/points/<t>``
+    (N, 2), the position with a zero second coordinate.  A views file whose particle count,
+    dtypes or fields differ from ``f`` is rebuilt; otherwise only the frames it lacks are added.
 
     Like ``FILE.h5`` (:class:`jaxmpm.H5Writer`), the views file is never written in place: of its
     two copies (:func:`views_copies`), one is the views file itself (a second hard link) and the
     other, which lags one update behind, receives the frames it lacks and is then renamed over it,
     so that a kill leaves the old views or the new, never half of them."""
-    signature = json.dumps({"views layout": 1, "source": h5_name, "N": N, "D": D,
+    tensors = _tensors(f, series)
+    signature = json.dumps({"views layout": 2, "source": h5_name, "N": N, "D": D,
                             "series": [[n, list(f["particles"][n].shape[2:]), f["particles"][n].dtype.str]
-                                       for n in series]})
+                                       for n in series], "tensors": sorted(tensors)})
     live = _views_held(views_path, signature)
     if live is not None and live >= T:
         return
@@ -165,8 +186,13 @@ def _write_frame_views(views_path: str, h5_name: str, f: h5py.File, series: list
         for t in range(done, T):
             for name, per, dtype in meta:
                 source = h5py.VirtualSource(h5_name, f"particles/{name}", shape=(t + 1, N) + per, dtype=dtype)
-                layout = h5py.VirtualLayout(shape=_view_shape(N, per), dtype=dtype)
-                layout[...] = source[t]  # row-major: a matrix per particle becomes one row
+                layout = h5py.VirtualLayout(shape=_view_shape(N, per, name in tensors), dtype=dtype)
+                if name in tensors and per[0] < 3:  # component (i, j) of the 3 x 3 row; the rest is the fill, 0
+                    for i in range(per[0]):
+                        for j in range(per[1]):
+                            layout[:, 3 * i + j] = source[t, :, i, j]
+                else:
+                    layout[...] = source[t]  # row-major: a matrix per particle becomes one row
                 _replace_view(g, f"particles/{name}/{t:06d}", layout)
                 if name == "x" and D == 1:  # meshio reads only XY / XYZ geometry
                     layout = h5py.VirtualLayout(shape=(N, 2), dtype=dtype)
@@ -185,8 +211,11 @@ def write_xdmf(h5_path: str, f: h5py.File) -> None:
     ``/particles/x``, ``/particles/v`` and the saved fields are HDF5 virtual datasets in
     ``FILE.xdmf.h5`` (see :func:`_write_frame_views`), which map into ``FILE.h5`` and copy nothing.
     Point data per frame: ``position`` (meshio takes the points of the first frame only),
-    ``velocity``, ``mass``, ``volume0`` and every saved per-particle field.  1D positions are
-    written as XY points with y = 0."""
+    ``velocity``, ``mass``, ``volume0`` and every saved per-particle field: a scalar per particle
+    is a Scalar, a 2- or 3-vector a Vector, the chosen d x d fields (stress, F) a 3 x 3 Tensor (9
+    components, row-major; in 1D and 2D the components beyond d are 0, not the out-of-plane
+    stress), any other matrix a Matrix (its row-major row).  1D positions are written as XY points
+    with y = 0."""
     if "particles/x" not in f:
         return
     T, N, D = f["particles/x"].shape
@@ -212,11 +241,12 @@ def write_xdmf(h5_path: str, f: h5py.File) -> None:
                 "Tensor" if per == (3, 3) else "Matrix")
 
     labels = {"x": "position", "v": "velocity"}
+    tensors = _tensors(f, series)
     frame_items = []  # per series: (label, kind, DataItem with @T@ for the frame's group)
     for name in series:
         ds = f["particles"][name]
-        item = _xdmf_item(views_name, f"particles/{name}/@T@", _view_shape(N, ds.shape[2:]), ds.dtype)
-        frame_items.append((labels.get(name, name), kind_of(ds.shape[2:]), item))
+        item = _xdmf_item(views_name, f"particles/{name}/@T@", _view_shape(N, ds.shape[2:], name in tensors), ds.dtype)
+        frame_items.append((labels.get(name, name), "Tensor" if name in tensors else kind_of(ds.shape[2:]), item))
 
     constants = [(name, _xdmf_item(h5_name, f"particles/{name}", (N,), f["particles"][name].dtype))
                  for name in ("mass", "volume0", "material")

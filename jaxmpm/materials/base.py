@@ -61,10 +61,15 @@ def hooke(E, nu, strain):
 
 
 class Increment(eqx.Module):
-    """One strain update's deformation increment, handed to :meth:`Material.update_state`:
-    ``dF`` (N, D, D) the mechanical increment, F_mech_new = dF F_mech_old with the terms'
-    isotropic stretch removed (dF = (I + grad v dt) s_old / s_new, or exp(grad v dt) s_old / s_new,
-    001 eq. 26), ``F`` the particle's total F after it and ``dt`` the time it spans."""
+    """One strain update's deformation increment, handed to :meth:`Material.update_state`.
+
+    Args:
+        dF: the mechanical increment (N, D, D), F_mech_new = dF F_mech_old with the terms'
+            isotropic stretch removed (dF = (I + grad v dt) s_old / s_new, or exp(grad v dt)
+            s_old / s_new, 001 eq. 26).
+        F: the particle's total deformation gradient after the increment, (N, D, D).
+        dt: the time the increment spans.
+    """
 
     dF: jnp.ndarray
     F: jnp.ndarray
@@ -72,17 +77,44 @@ class Increment(eqx.Module):
 
 
 class Material(eqx.Module):
-    """The constitutive-model protocol (module docstring).  Subclass :class:`ElasticMaterial` or
-    :class:`InelasticMaterial`; register with :func:`jaxmpm.register_material`."""
+    """The constitutive-model protocol: :meth:`stress` ``(F, state) -> tau`` at P2G,
+    :meth:`update_state` after each strain update, :meth:`stored_energy_density` and
+    :meth:`wave_speed`.  Subclass :class:`ElasticMaterial` or :class:`InelasticMaterial`; register
+    with :func:`jaxmpm.register_material` (docs/extending.md).
+
+    Args:
+        density: the reference density rho_0, mass per reference volume (an array leaf, so
+            ``jax.grad`` reaches it); :meth:`jaxmpm.Simulation.init` sets the particle masses
+            rho_0 V0_p from it unless the particles carry their own.
+    """
 
     density: jnp.ndarray  # the reference density rho_0
 
     # 1D is uniaxial stress (wave speed sqrt(E / rho)); otherwise uniaxial strain in 1D
     uniaxial = False
+    # entries of the material's state (a dict, ``State.material_state``) a run can save per frame,
+    # chosen by name like "stress" or "J" (jm.H5Writer(fields=...), --fields): e.g. ("plastic_strain",)
+    saved_state = ()
 
     def initial_state(self, particles):
         """The material's per-particle state at the start (``State.material_state``); None for
         the elastic laws."""
+        return None
+
+    def state_fields(self, state) -> dict:
+        """The entries of ``state`` that :attr:`saved_state` names, ``{name: (N, ...)}``: the
+        per-frame fields the material offers besides the stress (jaxmpm.model.frame_fields)."""
+        if not isinstance(state, dict):
+            return {}
+        return {name: state[name] for name in self.saved_state if name in state}
+
+    def out_of_plane_stress(self, F, state):
+        """The Kirchhoff normal stress along each axis the model does not resolve, (N,) -- in 2D
+        tau_zz (plane strain), in 1D tau_yy = tau_zz -- or None where the law does not determine
+        it.  The pressure of a 1D or 2D frame is the mean of all three normal stresses when it is
+        known (jaxmpm.model.frame_fields).  Here: zero for a uniaxial-stress law in 1D, else None."""
+        if F.shape[-1] == 1 and self.uniaxial:
+            return jnp.zeros(F.shape[:-2], F.dtype)
         return None
 
     @abc.abstractmethod
@@ -145,7 +177,11 @@ class Material(eqx.Module):
 
 class ElasticMaterial(Material):
     """A law whose stress is a function of the deformation alone: define
-    :meth:`kirchhoff_stress` ``(F)`` and :meth:`energy_density` ``(F)``.  No state."""
+    :meth:`kirchhoff_stress` ``(F)`` and :meth:`energy_density` ``(F)``.  No state.
+
+    Args:
+        density: the reference density rho_0 (as for :class:`Material`).
+    """
 
     @abc.abstractmethod
     def kirchhoff_stress(self, F):
@@ -166,7 +202,11 @@ class InelasticMaterial(Material):
     """A history-dependent law: it owns its per-particle state (:meth:`initial_state`, e.g. an
     elastic F and plastic variables), integrates each strain :class:`Increment` in
     :meth:`update_state` (a return mapping, a rate update) and gives the stress and stored energy
-    of a state (:meth:`stress`, :meth:`stored_energy_density`, which may ignore ``F``)."""
+    of a state (:meth:`stress`, :meth:`stored_energy_density`, which may ignore ``F``).
+
+    Args:
+        density: the reference density rho_0 (as for :class:`Material`).
+    """
 
     @abc.abstractmethod
     def initial_state(self, particles):

@@ -15,7 +15,12 @@ class VolumetricFluid(ElasticMaterial):
     """The weakly compressible fluid of Taichi's mpm88: Kirchhoff stress tau = E (J - 1) I
     (mpm88: ``stress = -dt * 4 * E * p_vol * (J - 1) / dx**2``, i.e. V0 tau D^-1 with D = dx^2/4),
     J = det F.  Stored energy W(J) = E (J - 1 - ln J), so that tau = J W'(J) I; bulk modulus E,
-    wave speed sqrt(E / rho)."""
+    wave speed sqrt(E / rho).  After each step F is reset to J^(1/D) I (:meth:`keep_deformation`).
+
+    Args:
+        E: the bulk modulus, positive (stress units).
+        density: the reference density rho_0, positive; default 1.0.
+    """
 
     E: jnp.ndarray
 
@@ -30,6 +35,10 @@ class VolumetricFluid(ElasticMaterial):
     def energy_density(self, F):
         J = jnp.linalg.det(F)
         return self.E * (J - 1.0 - log_det(F))
+
+    def out_of_plane_stress(self, F, state):
+        """The stress is isotropic: tau_zz = E (J - 1) too."""
+        return self.E * (jnp.linalg.det(F) - 1.0)
 
     def keep_deformation(self, F):
         """F <- J^(1/D) I after each step (Taichi mpm99's fluid reset): the stress depends on J
@@ -48,7 +57,11 @@ class VolumetricFluid(ElasticMaterial):
 class NoStress(ElasticMaterial):
     """No stress at all: tau = 0, W = 0 (force-free particles, e.g. the ``spin`` scene's freely
     flying disk).  Only the density is needed; the wave speed is 0, so the stable time step is set
-    by the particle speed alone."""
+    by the particle speed alone.
+
+    Args:
+        density: the reference density rho_0, positive; default 1.0.
+    """
 
 
     def __init__(self, density=1.0):

@@ -25,7 +25,13 @@ class HypoElastic(InelasticMaterial):
     with ``Simulation(kinematics="exponential")`` (dF = exp(W dt) is a rotation), to O(dt^2) per
     step with the default dF = I + grad v dt.  :class:`LinearElastic`'s total strain sym F - I is
     not objective: a rotation by theta gives eps = (cos theta - 1) I.  For small strains the two
-    laws agree to O(eps^2)."""
+    laws agree to O(eps^2).
+
+    Args:
+        E: Young's modulus, positive (stress units).
+        nu: Poisson's ratio in (-1, 0.5); default 0.0 (unused in 1D, uniaxial stress).
+        density: the reference density rho_0, positive; default 1.0.
+    """
 
     E: jnp.ndarray
     nu: jnp.ndarray

@@ -78,7 +78,13 @@ class IncrementalElastic(InelasticMaterial):
     transport term's isotropic thermal stretch removed from dF (s_old / s_new), sym G is, to first
     order, the total strain increment less the residual (thermal) one, so w plays the part of
     NairnMPM's work less residual energy.  For small strains the law agrees with
-    :class:`LinearElastic` and :class:`HypoElastic` to O(eps^2)."""
+    :class:`LinearElastic` and :class:`HypoElastic` to O(eps^2).
+
+    Args:
+        E: Young's modulus, positive (stress units).
+        nu: Poisson's ratio in (-1, 0.5); default 0.0 (unused in 1D, uniaxial stress).
+        density: the reference density rho_0, positive; default 1.0.
+    """
 
     E: jnp.ndarray
     nu: jnp.ndarray
@@ -100,6 +106,10 @@ class IncrementalElastic(InelasticMaterial):
 
     def stress(self, F, state):
         return state["stress"]  # tau itself: NairnMPM's rho_0 * (stress per unit mass)
+
+    def out_of_plane_stress(self, F, state):
+        """In 2D the state's out-of-plane stress szz; 1D (uniaxial stress): 0."""
+        return state["szz"] if "szz" in state else super().out_of_plane_stress(F, state)
 
     def update_state(self, increment: Increment, state):
         dF = increment.dF

@@ -19,7 +19,14 @@ def log_det(F):
 class NeoHookean(ElasticMaterial):
     """Compressible neo-Hookean: tau = mu (F F^T - I) + lambda ln(J) I,
     W = mu/2 (tr(F^T F) - D) - mu ln J + lambda/2 (ln J)^2.
-    In 2D this is plane strain (F_zz = 1); in 1D, uniaxial strain."""
+    In 2D this is plane strain (F_zz = 1); in 1D, uniaxial strain.
+
+    Args:
+        E: Young's modulus, positive (stress units); with ``nu`` it sets the Lame constants
+            lambda and mu.
+        nu: Poisson's ratio in (-1, 0.5); default 0.3.
+        density: the reference density rho_0, positive; default 1.0.
+    """
 
     E: jnp.ndarray
     nu: jnp.ndarray
@@ -38,6 +45,12 @@ class NeoHookean(ElasticMaterial):
         lam, mu = lame(self.E, self.nu)
         lj = log_det(F)
         return 0.5 * mu * (jnp.sum(F * F, axis=(-1, -2)) - F.shape[-1]) - mu * lj + 0.5 * lam * lj**2
+
+    def out_of_plane_stress(self, F, state):
+        """An unresolved axis keeps its length (F_zz = 1: plane strain in 2D, uniaxial strain in
+        1D), so tau_zz = mu (1 - 1) + lambda ln J."""
+        lam, _ = lame(self.E, self.nu)
+        return lam * log_det(F)
 
 
 register_material("neohookean", NeoHookean, parameters=[E, NU, DENSITY])

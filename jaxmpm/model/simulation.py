@@ -20,7 +20,7 @@ from ..core.limits import require_memory
 from ..core.particles import Particles
 from ..core.registry import MATERIALS, SCHEMES, SHAPES, scheme_from_name, shape_from_name
 from ..core.state import State
-from ..core.validate import FINITE, concrete
+from ..core.validate import FINITE, concrete, show
 from ..core.warn import warn
 from ..materials.base import Material
 from ..physics.body_force import BodyForce
@@ -32,6 +32,7 @@ from ..run.driver import History, StableTimeStepWarning, rollout, run  # noqa: F
 from ..schemes.base import Scheme
 from ..transfer.backend import ADJOINTS, POLICIES, use_adjoint, use_policy
 from ..transfer.shapes import UGIMP, ShapeFunction, field_stencil
+from . import frame_fields
 from .step import step as _step
 
 UPDATES = {"USF": "USF", "USL": "USL", "USL-": "USL", "MUSL": "MUSL", "USL+": "MUSL",
@@ -98,10 +99,43 @@ class Simulation(eqx.Module):
     contact's gradients, separation update and series (``jm.Contact(gradient="volume",
     separation_update="extrapolated", series="incremental")``); the scheme and terms given are
     returned in those options (:meth:`jaxmpm.Scheme.in_conventions`, ``Term.in_conventions``;
-    README "Agreement with NairnMPM").  ``constrained_force`` alone: "zero" (v = g, a = 0 on
+    docs/nairnmpm.md).  ``constrained_force`` alone: "zero" (v = g, a = 0 on
     constrained components) or "reaction" (v = p/m, the force the reaction m (g - p/m)/dt); None
     takes the convention's.  A StressDivergence, BodyForce or Damping in ``terms`` replaces the one
-    Simulation adds."""
+    Simulation adds.
+
+    Args:
+        grid: the background :class:`jaxmpm.Grid`.
+        shape: the shape function: a :class:`jaxmpm.ShapeFunction` (``jm.Linear()``,
+            ``jm.UGIMP(ppc=2)``, ...) or its registered name ("linear", "ugimp", "quadratic",
+            "cubic").
+        material: the constitutive model, a :class:`jaxmpm.Material`.
+        scheme: the particle update: a :class:`jaxmpm.Scheme` (``jm.FLIP()``, ``jm.XPIC(order=5)``,
+            ...) or its command-line form ("flip", "pic", "blend:B", "xpic:M", "fmpm:K", "apic",
+            "tpic", "rpic").
+        damping: a :class:`jaxmpm.Damping`; None (the default): zero damping, still a
+            differentiable parameter; False: no damping term at all (nothing compiled for it).
+        update: when the stress is updated (003 §2.2): "USL" (default; also "USL-"), "USF",
+            "MUSL" (also "USL+"), "USAVG-" or "USAVG+".
+        boundary: the velocity conditions on the grid: a :class:`jaxmpm.Fixed`, :class:`jaxmpm.Slip`,
+            :class:`jaxmpm.Prescribed`, :class:`jaxmpm.Wall` or :class:`jaxmpm.Mirror`, a sequence
+            of them (later ones win where they overlap), or None (the default: none).
+        gravity: the uniform body acceleration, one number or D components (finite); None (the
+            default): zero.  A differentiable leaf (the parameter ``gravity``).
+        body_force: a callable b(x, t) -> (N, D), a body force per unit mass added to gravity;
+            None (the default): none.
+        terms: further physics terms (:class:`jaxmpm.Term`: jm.Contact, jm.Heat, jm.Traction,
+            ...), one or a sequence, stepped in this order after Simulation's own; default ().
+        backend: the fusion policy, "auto" (default), "cpu" or "gpu": speed only.
+        kinematics: the strain increment, "linear" (default, dF = I + grad v dt) or
+            "exponential" (dF = exp(grad v dt)).
+        adjoint: the reverse-mode derivative rules, "structured" (default) or "autodiff": speed
+            only.
+        conventions: whose rules the step follows where MPM codes differ, "jaxmpm" (default) or
+            "nairnmpm".
+        constrained_force: the constrained nodes' force, "zero" or "reaction"; None (the
+            default): the one ``conventions`` picks.
+    """
 
     grid: Grid
     shape: ShapeFunction
@@ -331,7 +365,11 @@ class Simulation(eqx.Module):
 
     def init(self, particles: Particles, fields: dict | None = None) -> State:
         """Initial state from :func:`jaxmpm.fill` output (or any :class:`Particles`); the fields
-        the terms declare start at their declared initial values unless ``fields`` gives them."""
+        the terms declare start at their declared initial values unless ``fields`` gives them:
+        ``{name: value}``, each value a number, one value per particle (N, *shape), one for all
+        (*shape), or ``f(x)`` returning one of those for the positions x (N, D); any other value
+        (text, complex or non-finite numbers, another shape, a function that raises) is an
+        InputError naming the field (:meth:`jaxmpm.ParticleField.initial_value`)."""
         check(isinstance(particles, Particles), "Simulation.init: pass the jm.Particles returned by jm.fill")
         x = state_positions(particles)
         d = self.grid.dim
@@ -370,11 +408,14 @@ class Simulation(eqx.Module):
         dtype = x.dtype
         n = x.shape[0]
         declared = {f.name: f for f in self.particle_fields()}
+        check(fields is None or isinstance(fields, dict),
+              f"Simulation.init: fields = {show(fields)} must be a dict {{name: value}} of the terms' particle "
+              f"fields (declared: {sorted(declared) or 'none'})")
         given = dict(fields or {})
-        unknown = sorted(set(given) - set(declared))
+        unknown = sorted(set(given) - set(declared), key=str)
         check(not unknown, f"Simulation.init: fields {unknown} are not declared by any term of this model "
                            f"(declared: {sorted(declared) or 'none'})")
-        values = {name: (jnp.broadcast_to(jnp.asarray(given[name], dtype), (n,) + f.shape_in(d)) if name in given
+        values = {name: (f.initial_value(x, given[name], f"Simulation.init: fields[{name!r}]") if name in given
                          else f.initial_value(x)) for name, f in declared.items()}
         for term in self.terms:
             term.check_fields(values)
@@ -458,6 +499,16 @@ class Simulation(eqx.Module):
         return code.astype(jnp.int32), jnp.argmax(bad).astype(jnp.int32)
 
     def diagnostics(self, state: State) -> dict:
+        """The energies and momenta of ``state``: ``kinetic`` K, ``strain`` U, ``gravitational`` V_g =
+        -sum_p M_p g . X_p (the gravity vector's potential, zero at the origin: only its change means
+        something; 0 without gravity, and a body force b(x, t) has none), the ``dissipated`` energy, the
+        linear and angular ``momentum``.  K + U + V_g is what a run under gravity conserves.  The saved
+        frames hold all but ``gravitational`` (:meth:`diagnostics_frame`)."""
+        body = self.term(BodyForce)
+        gravity = jnp.zeros(self.grid.dim, state.x.dtype) if body is None else body.gravity
+        return dict(self._frame_diagnostics(state), gravitational=diag.gravitational_potential(state, gravity))
+
+    def _frame_diagnostics(self, state: State) -> dict:
         return dict(
             kinetic=diag.kinetic_energy(state),
             strain=diag.strain_energy(state, self.material, self.elastic_deformation(state)),
@@ -466,27 +517,35 @@ class Simulation(eqx.Module):
             angular=self.scheme.angular_momentum(state),
         )
 
-    def diagnostics_frame(self, state: State, save_particles: bool) -> History:
+    def diagnostics_frame(self, state: State, save_particles: bool, fields: tuple = ()) -> History:
         """One saved frame of a run: time, diagnostics and (``save_particles``) the particle
-        positions, velocities and the saved fields the terms declare."""
+        positions, velocities, the saved fields the terms declare and the chosen ``fields``
+        (stress, pressure, J, F, ...: :mod:`jaxmpm.model.frame_fields`)."""
         saved = {f.name for f in self.particle_fields() if f.save}
         materials = self.velocity_fields
+        chosen = frame_fields.frame_fields(self, state, fields) if save_particles and fields else {}
         return History(
             time=state.time,
             x=state.x if save_particles else None,
             v=state.v if save_particles else None,
-            fields={k: v for k, v in state.fields.items() if k in saved} if save_particles else {},
+            fields={**{k: v for k, v in state.fields.items() if k in saved}, **chosen} if save_particles else {},
             by_material={} if materials == 1 else
             diag.by_material(state, self.material, self.field_index(state), materials),
             totals={name: value for term in self.terms for name, value in term.totals(self, state).items()},
-            **self.diagnostics(state),
+            **self._frame_diagnostics(state),
         )
+
+    def check_frame_fields(self, state: State, fields, where: str = "fields") -> tuple:
+        """``fields`` as a tuple, checked: names of the per-frame fields a run of this model from
+        ``state`` can save (:func:`jaxmpm.model.frame_fields.available`), each once; ``where``
+        names the argument in the messages."""
+        return frame_fields.chosen(self, state, fields, where)
 
     # ----------------------------------------------------- the driver's entry points
     def rollout(self, state: State, dt, frames: int, save_every: int = 1, save_particles: bool = True,
-                checkpoint=True, history_gradients: bool = True):
+                checkpoint=True, history_gradients: bool = True, fields: tuple = ()):
         """See :func:`jaxmpm.run.driver.rollout`."""
-        return rollout(self, state, dt, frames, save_every, save_particles, checkpoint, history_gradients)
+        return rollout(self, state, dt, frames, save_every, save_particles, checkpoint, history_gradients, fields)
 
     def run(self, state: State, dt, steps: int, save_every: int = 1, **options):
         """See :func:`jaxmpm.run.driver.run`."""

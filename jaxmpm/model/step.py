@@ -54,7 +54,11 @@ def folds_force(sim) -> bool:
     per stencil slot instead of 1 + 2D): when no part of the model needs v, a, p or f apart -- the
     scheme reads only v_tilde (APIC, TPIC, RPIC), no term declares those quantities among its
     ``grid_reads`` (damping reads v; contact and force damping read p and f) -- and the update is
-    USL or MUSL (USF needs v before the force)."""
+    USL or MUSL (USF needs v before the force).
+
+    Args:
+        sim: the :class:`jaxmpm.Simulation`.
+    """
     if sim.update not in ("USL", "MUSL") or sim.scheme.uses_lumped_velocity:
         return False
     return not any(term.grid_reads(sim) & LUMPED or overrides(term, "grid_force") or
@@ -118,7 +122,18 @@ def p2g(sim, state, force: bool = True, dt=None) -> GridFields:
     scheme's affine part (APIC/TPIC/RPIC), and (``force=True``) the terms' quantities (the nodal
     force), all in one pass of the transfer kernel.  With ``dt`` (see :func:`folds_force`)
     momentum and force are scattered as one updated momentum p + f dt.  Without the force (USF's
-    first P2G) the exchanging term's quantities (contact's mass gradients) are scattered too."""
+    first P2G) the exchanging term's quantities (contact's mass gradients) are scattered too.
+
+    Args:
+        sim: the :class:`jaxmpm.Simulation`.
+        state: the :class:`jaxmpm.State` at the step's start.
+        force: whether to scatter the terms' quantities (the nodal force); default True.
+        dt: the time step, to scatter p + f dt in place of p and f (only where
+            :func:`folds_force` allows); None (the default): p and f apart.
+
+    Returns:
+        The :class:`jaxmpm.GridFields`, with the step's :class:`jaxmpm.Transfer`.
+    """
     stencil = sim.stencil(state)
     columns = {"mass": Weighted(state.mass), "momentum": as_terms(sim.scheme.momentum_contributions(stencil, state))}
     exchanger = sim.exchange_term
@@ -200,7 +215,18 @@ def impose_conditions(fields: GridFields, dt, constraint) -> GridSolution:
 
 def grid_solve(fields: GridFields, force, dt, constraint) -> GridSolution:
     """The velocity conditions alone on P2G's fields with the nodal force ``force``
-    (:func:`impose_conditions`); the model's whole grid solve, with its terms, is :func:`grid_phases`."""
+    (``impose_conditions``): v = p/m, a = f/m, v_tilde = v + a dt with the conditions imposed;
+    the model's whole grid solve, with its terms, is :func:`grid_phases`.
+
+    Args:
+        fields: the :class:`jaxmpm.GridFields` of :func:`p2g`.
+        force: the nodal force (n, D) in place of ``fields.force``, or None to keep it.
+        dt: the time step.
+        constraint: the velocity conditions, ``sim.constraint(dtype)``.
+
+    Returns:
+        The :class:`jaxmpm.GridSolution` (``v``, ``a``, ``v_tilde``, ...).
+    """
     return impose_conditions(fields if force is None else fields.replace(force=force), dt, constraint)
 
 
@@ -244,7 +270,17 @@ def exchange_dv(term, dp, mass, constraint):
 
 def grid_phases(sim, fields: GridFields, dt, constraint) -> GridSolution:
     """The grid solve of one step: the phases forces -> exchange -> velocity conditions -> readers
-    (module docstring), each term acting in the phase its hooks name."""
+    (docs/architecture.md), each term acting in the phase its hooks name.
+
+    Args:
+        sim: the :class:`jaxmpm.Simulation`.
+        fields: the :class:`jaxmpm.GridFields` of :func:`p2g`.
+        dt: the time step.
+        constraint: the velocity conditions, ``sim.constraint(dtype)``.
+
+    Returns:
+        The :class:`jaxmpm.GridSolution` with the terms' named results.
+    """
     results = {}
     for term in sim.terms:  # 1. nodal forces from the assembled grid; they add up
         out = term.grid_force(sim, fields, dt)
@@ -330,7 +366,20 @@ def g2p(sim, state, transfer: Transfer, constraint, grid: GridSolution, dt, fiel
     """Particle update by the scheme (with the terms' damping), the USL-/MUSL strain update, the
     terms' particle actions, then the material's state update with the step's increment.
     ``fields`` (the step's P2G fields) is needed by MUSL/USAVG+ when velocity fields exchange
-    momentum (the exchange of the re-extrapolated momenta)."""
+    momentum (the exchange of the re-extrapolated momenta).
+
+    Args:
+        sim: the :class:`jaxmpm.Simulation`.
+        state: the :class:`jaxmpm.State` at the step's start.
+        transfer: the step's :class:`jaxmpm.Transfer` (``fields.transfer``).
+        constraint: the velocity conditions, ``sim.constraint(dtype)``.
+        grid: the :class:`jaxmpm.GridSolution` of :func:`grid_phases`.
+        dt: the time step.
+        fields: the step's :class:`jaxmpm.GridFields`, or None (the default).
+
+    Returns:
+        The :class:`jaxmpm.State` at the step's end.
+    """
     damping = combine_damping(term.particle_damping(sim, state, transfer, grid) for term in sim.terms)
     V = state.v
     if "condition_dv" in grid:  # the conditions' impulse on the particles (jm.Prescribed(impulse=True))

@@ -8,6 +8,7 @@ import jax.numpy as jnp
 
 from ..core.errors import check
 from ..core.registry import Parameter, register_term
+from ..core.validate import FINITE
 from ..transfer.backend import materialise
 from ..transfer.contractions import Weighted
 from .term import Term
@@ -15,14 +16,24 @@ from .term import Term
 
 class BodyForce(Term):
     """Body force per unit mass b = g + b(x, t) on every particle: f_i += sum_p S_pi M_p b_p
-    (001 eq. 20).  ``gravity`` (D,) is a differentiable leaf; ``field`` an optional callable
-    b(x, t) -> (N, D) of the current positions and time (a function or an equinox module)."""
+    (001 eq. 20).  A :class:`jaxmpm.Simulation` adds one from its ``gravity`` and ``body_force``.
+
+    Args:
+        gravity: the uniform acceleration g, (D,) (a differentiable leaf, the registered
+            parameter ``gravity``).
+        field: an optional callable b(x, t) -> (N, D) of the current positions and time (a
+            function or an equinox module); None (the default): gravity alone.
+    """
 
     gravity: jnp.ndarray
     field: Callable | None = None
 
     def __init__(self, gravity, field: Callable | None = None):
-        self.gravity = gravity
+        example = "the acceleration's D components, e.g. (0.0, -9.81)"
+        self.gravity = FINITE.leaf("BodyForce", "gravity", gravity, fix=example)
+        check(self.gravity.ndim == 1,
+              f"BodyForce: gravity must be a vector of the grid's D components, e.g. (0.0, -9.81); "
+              f"got shape {self.gravity.shape}")
         check(field is None or callable(field), "Simulation: body_force must be a callable b(x, t) -> (N, D)")
         self.field = field
 

@@ -47,7 +47,12 @@ CONSTRAINED_FORCES = ("zero", "reaction")
 class NodeSet:
     """A fixed set of grid nodes (a boolean mask over the nodes), compared and hashed by its
     contents.  A model stores the nodes a callable selector picked, not the callable: two
-    models built alike are equal (and share compiled code) without any hand-written hashing."""
+    models built alike are equal (and share compiled code) without any hand-written hashing.
+    A condition's ``where`` may be one.
+
+    Args:
+        mask: one bool per grid node, (num_nodes,); stored read-only.
+    """
 
     def __init__(self, mask):
         self.mask = np.asarray(mask, dtype=bool)
@@ -172,7 +177,24 @@ class Constraint(eqx.Module):
     components whose change the particles take as an impulse (``Prescribed(impulse=True)``), or None;
     ``reaction`` how the grid solve imposes them (:data:`CONSTRAINED_FORCES`): False, v = g and
     a = 0 on constrained components (jaxmpm's default), True, v keeps the lumped p/m and the force
-    becomes the reaction that brings v + a dt to g (NairnMPM's rule)."""
+    becomes the reaction that brings v + a dt to g (NairnMPM's rule).  A model builds it from its
+    conditions (``sim.constraint(dtype)``); the series and schemes read it.
+
+    Args:
+        mask: (n, D) bool, the constrained components.
+        value: (n, D) their prescribed velocities (0 elsewhere).
+        wall: (n, D) the outward normal sign (-1, 0, +1) of one-sided walls, or None (the
+            default) without walls.
+        inhomogeneous: True when some constrained component may be non-zero (a Prescribed
+            condition); default False.
+        normal: (n, D) the unit normal of inclined slip planes on their nodes (0 elsewhere), or
+            None (the default).
+        mirror: the symmetry planes' images (``MirrorMap``), or None (the default).
+        impulse: (n, D) bool, the components whose change the particles take as an impulse
+            (``Prescribed(impulse=True)``), or None (the default).
+        reaction: False (the default): v = g, a = 0 on constrained components; True: the
+            reaction force (``Simulation(constrained_force="reaction")``).
+    """
 
     mask: jnp.ndarray
     value: jnp.ndarray
@@ -251,7 +273,14 @@ class Constraint(eqx.Module):
 
 
 class Fixed(eqx.Module):
-    """No-slip: all velocity components zero on the selected nodes."""
+    """No-slip: all velocity components zero on the selected nodes.
+
+    Args:
+        where: the nodes: a grid face (``"x-"``, ``"y+"``, ...), a callable ``where(x) -> bool`` of
+            the node coordinates (n, D), or a :class:`NodeSet`.
+        layers: node layers inward from a face (a positive integer, default 1); ignored for a
+            callable ``where``.
+    """
 
     where: Selector = eqx.field(static=True)
     layers: int = eqx.field(static=True, default=1)
@@ -267,7 +296,20 @@ class Slip(eqx.Module):
     An inclined plane: ``Slip(normal=n, point=x0)`` (n and x0 of the grid's dimension, n pointing
     out of the body into the wall) acts on the nodes on and beyond the plane, (x_i - x0).n >= 0,
     or on the nodes ``where`` selects; there u <- u - (u.n) n for momentum, force and every
-    iterate of the mass-matrix series (:meth:`Constraint.zero`)."""
+    iterate of the mass-matrix series (:meth:`Constraint.zero`).
+
+    Args:
+        where: the nodes: a grid face (``"x-"``, ``"y+"``, ...), a callable ``where(x) -> bool`` of
+            the node coordinates (n, D), or a :class:`NodeSet`; None (the default) with an
+            inclined plane's ``point``.
+        layers: node layers inward from a face (a positive integer, default 1); ignored for a
+            callable ``where``.
+        axis: the normal axis (0 .. D-1) when ``where`` is a callable; a face names its own.
+        normal: an inclined plane's normal, D numbers pointing out of the body into the wall
+            (normalised here); not with ``axis``.
+        point: a point of the inclined plane, D numbers; needed with ``normal`` unless ``where``
+            picks the nodes.
+    """
 
     where: Selector | None = eqx.field(static=True, default=None)
     layers: int = eqx.field(static=True, default=1)
@@ -333,7 +375,19 @@ class Prescribed(eqx.Module):
     condition a force on the updated momentum, which FLIP's increment must carry), and PIC-like
     updates are unchanged (they read only the grid).  ``impulse=False``: the grid alone holds the
     velocity, as a jm.Fixed node holds zero (FLIP particles on the nodes keep their own velocity;
-    the convention before core v2)."""
+    the convention before core v2).
+
+    Args:
+        where: the nodes: a grid face (``"x-"``, ``"y+"``, ...), a callable ``where(x) -> bool`` of
+            the node coordinates (n, D), or a :class:`NodeSet`.
+        velocity: the prescribed velocity, one number or D components, finite; an array leaf
+            (``jax.grad`` reaches it, a new value does not recompile).
+        axes: the constrained components, e.g. ``(0,)`` for x only; None (the default): all.
+        layers: node layers inward from a face (a positive integer, default 1); ignored for a
+            callable ``where``.
+        impulse: True (the default): the particles take the nodal change as an impulse;
+            False: only the grid holds the velocity.
+    """
 
     where: Selector = eqx.field(static=True)
     velocity: jnp.ndarray
@@ -370,7 +424,13 @@ class Wall(eqx.Module):
     wall-normal velocity component is zeroed only where it points into the wall, i.e. v_n < 0 on
     a lower face and v_n > 0 on an upper face (Taichi mpm88: ``if i < bound and v.x < 0: v.x = 0``).
     Tangential components are free.  On a grid of ``n`` cells, ``Wall(face, layers=3)`` is exactly
-    mpm88's ``bound = 3`` (nodes i < 3 and i > n - 3)."""
+    mpm88's ``bound = 3`` (nodes i < 3 and i > n - 3).
+
+    Args:
+        where: the grid face, ``"x-"``, ``"y+"``, ...
+        layers: the wall's thickness in node layers from the face, a positive integer
+            (default 1).
+    """
 
     where: str = eqx.field(static=True)
     layers: int = eqx.field(static=True, default=1)
@@ -395,7 +455,13 @@ class Mirror(eqx.Module):
     body from below (the image lies at x < position), ``"x+"`` from above.  The particles' images
     are folded onto the grid (:class:`MirrorMap`): normal velocity odd, tangential velocity even,
     zero normal velocity on the plane, and B-spline stencils that cross the plane see the reflected
-    body.  Every node on the image side is a ghost node; its reflection must lie on the grid."""
+    body.  Every node on the image side is a ghost node; its reflection must lie on the grid.
+
+    Args:
+        where: the body's side of the plane as a face: ``"x-"`` (the image lies below
+            x = position), ``"x+"``, ``"y-"``, ...
+        position: the plane's coordinate along that axis, finite; it must be a node plane.
+    """
 
     where: str = eqx.field(static=True)
     position: float = eqx.field(static=True)

@@ -200,13 +200,32 @@ def _safe_norm(u):
 
 
 class Contact(Term):
-    """``materials`` (default 2) materials, each with its own velocity field, coupled by a contact
-    law on the nodes where two or more have mass (module docstring).  ``law``: "stick",
-    "frictionless" or "coulomb" (with ``friction`` mu >= 0); ``normal``: "first" (default),
-    "max_gradient", "average" or a vector (module docstring); ``series``: the exchange in XPIC/FMPM's
-    series, "separate" (003 eqs. 3.18, 3.22) or "incremental" (NairnMPM's, module docstring).
-    Particles carry their material id in the field ``material`` (0..M-1;
-    ``sim.init(particles, fields={"material": ids})``)."""
+    """Materials (bodies), each with its own velocity field, coupled by a contact law on the nodes
+    where two or more have mass (multimaterial mode; the module ``jaxmpm.physics.contact`` has the
+    laws, the normals, the separation criterion and the series in full, 003 ch. 3).  Particles
+    carry their material id in the field ``material`` (0..M-1; ``sim.init(particles,
+    fields={"material": ids})``).
+
+    Args:
+        law: "stick" (perfect interface), "frictionless" (default) or "coulomb".
+        friction: the Coulomb coefficient mu >= 0 (default 0.0); a differentiable leaf (the
+            parameter ``friction``), non-zero only with ``law="coulomb"``.
+        normal: the contact normal, from material 0 into material 1: "first" (default,
+            material 0's mass gradient), "max_gradient", "average", or a vector (that unit
+            direction on every node).
+        materials: M, the number of materials, an integer >= 2 (default 2).
+        separation: the gap, in cells, below which the bodies touch: a node is a contact node
+            only where the materials' nodal centres of mass are closer than ``separation`` h
+            along the normal; None (the default): wherever both have mass.
+        series_correction: under XPIC(m)/FMPM(k), subtract the series of the exchange Dp/m
+            (003 eqs. 3.18, 3.22; default True); False drops that term.
+        gradient: the gradients behind the normals: "mass" (default, sum_p M_p G_pi) or
+            "volume" (sum_p J_p V0_p G_pi, NairnMPM's).
+        separation_update: the gap of the second application (on p + f dt): "start" (default,
+            the step's start) or "extrapolated" (moved over the step, NairnMPM's).
+        series: the exchange in XPIC/FMPM's series: "separate" (default, 003 eqs. 3.16-3.22) or
+            "incremental" (the law on every increment, NairnMPM's; two materials only).
+    """
 
     law: str = eqx.field(static=True)
     normal: str | tuple = eqx.field(static=True)  # a name of NORMALS, or the specified unit vector

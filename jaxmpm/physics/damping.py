@@ -65,6 +65,17 @@ class Damping(Term, ParticleDamping):
       ``approach="force"`` the nodal rate is the mass-weighted extrapolation
       alpha_i = sum_p S_ip M_p alpha(t, x_p) / m_i of the particle property (001 §5.3, last
       paragraph) in place of alpha_g(t, x_i) of 001 eq. (105).
+
+    Args:
+        grid: alpha_g, the grid damping rate in 1/time, >= 0 (default 0.0); a differentiable
+            leaf (the parameter ``alpha_g``).
+        particle: alpha_p, the particle damping rate in 1/time, >= 0 (default 0.0; the
+            parameter ``alpha_p``).
+        approach: "velocity" (default), "momentum" or "force", the variants above.
+        schedule: the time factor s(t): a callable s(t) -> scalar, a pair (times, factors) of a
+            piecewise-linear :class:`Schedule` (factors >= 0), or None (the default: constant).
+        region: the position factor w: a callable w(x) (N, D) -> (N,) of the particle
+            positions, or None (the default: everywhere).
     """
 
     grid: jnp.ndarray

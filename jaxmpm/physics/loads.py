@@ -72,18 +72,27 @@ def _chosen(owner: str, where: Callable):
 
 
 class Traction(Term):
-    """A traction ``traction`` (force per unit area, a (D,) vector or a function of t) on the
-    ``face`` ("x+", "y-", ...: the side of the particle domains it acts on) of the particles
-    ``where(x0)`` picks (module docstring; 001 eqs. 12, 21).  ``name``: the particle field that
-    marks them (change it to put two tractions in one model).  ``basis``: the nodal weights of
-    each edge point -- "grid" (default) the grid basis N_i itself, 001 eq. 21 as written (uGIMP:
-    the tent), "shape" the model's shape function there (uGIMP: its domain-averaged S; the same
-    as "grid" for point particles: linear, B-splines).  Measured on the axisymmetric ``cylinder``
+    """A traction (force per unit area) on one face of the particle domains of the particles
+    ``where(x0)`` picks (module docstring; 001 eqs. 12, 21).  The ``basis`` options: "grid" the
+    grid basis N_i itself, 001 eq. 21 as written (uGIMP: the tent), "shape" the model's shape
+    function there (uGIMP: its domain-averaged S; the same as "grid" for point particles: linear,
+    B-splines).  Measured on the axisymmetric ``cylinder``
     (uGIMP, static solve, ``experiments/axisymmetric.py``): "shape" moves 6.7 % of the load one
     node inward, and the hoop stress stays 3.2 %, 2.4 %, 2.0 % off Lamé at 16, 32, 64 cells;
     "grid": 1.8 %, 0.9 %, 0.5 %.  A uGIMP bar (32 cells) settled under an end traction: "grid" puts
     every particle within 0.15 % of sigma / E, "shape" the last particles up to 15 % off.  Both
-    are bounded at any face position by the nodes' reach (:func:`bounded_shares`)."""
+    are bounded at any face position by the nodes' reach (:func:`bounded_shares`).
+
+    Args:
+        where: ``where(x0) -> bool`` (N,) of the initial positions x0 (N, D): the loaded
+            particles, chosen once; it must pick at least one.
+        traction: T, a finite (D,) vector (a differentiable leaf) or a function T(t) -> (D,);
+            per radian times the radius on an axisymmetric grid (001 eq. 108).
+        face: the side of the particle domains it acts on: "x+", "y-", ...
+        name: the particle field that marks the loaded particles (default "traction_face");
+            change it to put two tractions in one model.
+        basis: the nodal weights of each edge point: "grid" (default) or "shape".
+    """
 
     traction: jnp.ndarray | Callable
     face: str = eqx.field(static=True)
@@ -177,8 +186,17 @@ def bounded_shares(sim, stencil, area, reach):
 
 
 class ParticleForce(Term):
-    """A force ``force`` (a (D,) vector or a function of t) on each particle ``where(x0)`` picks,
-    f_i += S_ip F_p (001 eqs. 13, 20).  ``name``: the particle field that marks them."""
+    """A force on each particle ``where(x0)`` picks, distributed by its own shape functions:
+    f_i += S_ip F_p (001 eqs. 13, 20).
+
+    Args:
+        where: ``where(x0) -> bool`` (N,) of the initial positions x0 (N, D), chosen once; it
+            must pick at least one particle.
+        force: F_p, the force on each picked particle: a finite (D,) vector (a differentiable
+            leaf) or a function F(t) -> (D,).
+        name: the particle field that marks them (default "point_force"); change it to put two
+            point forces in one model.
+    """
 
     force: jnp.ndarray | Callable
     where: Callable = eqx.field(static=True)

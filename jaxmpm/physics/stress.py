@@ -27,7 +27,11 @@ class StressDivergence(Term):
 
     On an axisymmetric grid (001 §7) tau is 3x3 in (r, z, theta) and the force is 001 eq. 120,
     f_i = -sum_p V0_p (tau_rz . G_pi + tau_thth T_pi e_r), V0_p per radian: see
-    :func:`axisymmetric_stress_divergence`."""
+    :func:`axisymmetric_stress_divergence`.
+
+    Args:
+        xpic: m, the order of the XPIC stress smoothing, an integer >= 0 (default 0: off).
+    """
 
     xpic: int = eqx.field(static=True, default=0)
 

@@ -86,7 +86,17 @@ class Dirichlet(eqx.Module):
     nodes on it hold ``value``, and the selected nodes beyond it are its odd (mirror) extension,
     T_ghost = 2 value - T_mirror, with a_ghost = -a_mirror -- what B-spline shape functions, whose
     stencils reach past the boundary, need for a second-order boundary (held ghosts are first
-    order).  Linear shapes do not reach past the plane; for them it changes nothing."""
+    order).  Linear shapes do not reach past the plane; for them it changes nothing.
+
+    Args:
+        where: the nodes: a grid face (``"x-"``, ...), a callable of the node coordinates
+            (n, D) -> bool, or a :class:`jaxmpm.NodeSet`.
+        value: the held value (a temperature, a concentration potential), finite; a
+            differentiable leaf.
+        layers: node layers inward from a face, a positive integer (default 1).
+        mirror: ``(axis, position)`` of the boundary's node plane for the odd extension beyond
+            it, or None (the default: the selected nodes are simply held).
+    """
 
     where: Selector
     value: jnp.ndarray
@@ -106,8 +116,16 @@ class Dirichlet(eqx.Module):
 
 
 class Neumann(eqx.Module):
-    """A prescribed inward ``flux`` per unit area (heat: W/m^2; diffusion: mu m/s) through the nodes
-    ``where`` selects: Q_i,q = flux h^(D-1) (001 eq. 136, lumped)."""
+    """A prescribed inward ``flux`` per unit area through the nodes ``where`` selects:
+    Q_i,q = flux h^(D-1) (001 eq. 136, lumped).
+
+    Args:
+        where: the nodes: a grid face (``"x-"``, ...), a callable of the node coordinates
+            (n, D) -> bool, or a :class:`jaxmpm.NodeSet`.
+        flux: the inward flux per unit area (heat: W/m^2; diffusion: mu m/s), finite; a
+            differentiable leaf.
+        layers: node layers inward from a face, a positive integer (default 1).
+    """
 
     where: Selector
     flux: jnp.ndarray
@@ -150,9 +168,26 @@ def _norm(u):
 
 
 class Transport(Term):
-    """Scalar transport by conduction/diffusion (module docstring).  Subclasses name the field and
-    the particle capacity: :class:`Heat` (temperature, m_Tp = M_p C_p) and :class:`Diffusion`
-    (concentration potential, m_Tp = V_p)."""
+    """Scalar transport by conduction/diffusion (the module ``jaxmpm.physics.transport``, 001
+    §8-9).  Subclasses name the field and the particle capacity: :class:`Heat` (temperature,
+    m_Tp = M_p C_p) and :class:`Diffusion` (concentration potential, m_Tp = V_p); build those
+    (their constructors check and convert the arguments into the fields below).
+
+    Args:
+        conductivity: k (heat) or D (diffusion), >= 0: a scalar or a symmetric positive
+            semi-definite (D, D) tensor.
+        capacity: C_p per unit mass (heat); 1 (diffusion).
+        source: the source per unit volume and time.
+        expansion: alpha, the isotropic stretch per unit field (thermal or moisture expansion).
+        reference: the field at which the stretch is zero.
+        boundary: the field's conditions, a tuple of :class:`jaxmpm.Dirichlet` and
+            :class:`jaxmpm.Neumann`.
+        beta: the FLIP fraction of the particle update, in [0, 1] (000 eq. 3.58).
+        order: the XPIC(m) order of the particle update (1: the FLIP/PIC blend).
+        initial: the initial field: a number or f(x) -> (N,).
+        interface: across contact interfaces: "perfect", "insulated" or "conductance".
+        conductance: the interface conductance h_c >= 0 (with ``interface="conductance"``).
+    """
 
     conductivity: jnp.ndarray  # k (heat) or D (diffusion): a scalar or a (D, D) tensor
     capacity: jnp.ndarray  # C_p per unit mass (heat); 1 (diffusion)
@@ -446,10 +481,26 @@ class Transport(Term):
 
 
 class Heat(Transport):
-    """Heat conduction (001 §8): ``conductivity`` k (W/(m K); scalar or D x D tensor),
-    ``heat_capacity`` C_p (J/(kg K)), ``source`` q_s (W/m^3), ``expansion`` alpha_T (1/K) about
-    ``reference`` T_ref, ``boundary`` (jm.Dirichlet: fixed temperature, jm.Neumann: heat flux in),
-    ``initial`` temperature (a number or f(x) -> (N,)); particle field ``temperature``."""
+    """Heat conduction (001 §8) on the particle field ``temperature``; with ``expansion`` the
+    material sees F / (1 + alpha_T (T - T_ref)).  The stable time step h^2 / (2 D a) joins
+    :meth:`jaxmpm.Simulation.stable_dt`.
+
+    Args:
+        conductivity: k (W/(m K)), >= 0: a scalar or a symmetric positive semi-definite D x D
+            tensor (the parameter ``conductivity``).
+        heat_capacity: C_p per unit mass (J/(kg K)), positive (default 1.0).
+        source: q_s, the heat source per unit volume (W/m^3; default 0.0).
+        expansion: alpha_T, the thermal expansion coefficient (1/K; default 0.0: no coupling).
+        reference: T_ref, the temperature of zero thermal strain (default 0.0).
+        boundary: a :class:`jaxmpm.Dirichlet` (fixed temperature), a :class:`jaxmpm.Neumann`
+            (heat flux in), a sequence of them, or None (the default: adiabatic).
+        update: the particle update: "flip" (default, 001 §8), "pic" (a comparison: it smooths
+            even with k = 0) or "xpic:M" (000 §3.6).
+        beta: the FLIP fraction in [0, 1]; None (the default): 1 for "flip", 0 otherwise.
+        initial: the initial temperature: a finite number (default 0.0) or f(x) -> (N,).
+        interface: across contact interfaces (jm.Contact): "perfect" (default), "insulated" or
+            a conductance h_c >= 0 (W/(m^2 K)).
+    """
 
     FIELD, MASS, MOMENTUM, TOTAL = "temperature", "thermal_mass", "thermal_momentum", "thermal_energy"
 
@@ -463,10 +514,23 @@ class Heat(Transport):
 
 
 class Diffusion(Transport):
-    """Diffusion (001 §9) of the concentration potential mu = c / c_sat: ``diffusivity`` D (m^2/s;
-    scalar or tensor), ``source`` (1/s), ``expansion`` (moisture expansion per unit mu) about
-    ``reference``, ``boundary`` (jm.Dirichlet: fixed concentration, jm.Neumann: flux in),
-    ``initial``; particle field ``concentration``; the particle's "mass" is its volume."""
+    """Diffusion (001 §9) of the concentration potential mu = c / c_sat, the particle field
+    ``concentration``; the particle's "mass" is its current volume.
+
+    Args:
+        diffusivity: D (m^2/s), >= 0: a scalar or a symmetric positive semi-definite D x D
+            tensor (the parameter ``diffusivity``).
+        source: the source per unit volume (1/s; default 0.0).
+        expansion: the moisture expansion per unit mu (default 0.0: no coupling).
+        reference: the potential of zero moisture strain (default 0.0).
+        boundary: a :class:`jaxmpm.Dirichlet` (fixed concentration), a :class:`jaxmpm.Neumann`
+            (flux in), a sequence of them, or None (the default: sealed).
+        update: the particle update: "flip" (default), "pic" or "xpic:M".
+        beta: the FLIP fraction in [0, 1]; None (the default): 1 for "flip", 0 otherwise.
+        initial: the initial potential: a finite number (default 0.0) or f(x) -> (N,).
+        interface: across contact interfaces: "perfect" (default), "insulated" or a
+            mass-transfer coefficient >= 0.
+    """
 
     FIELD, MASS, MOMENTUM, TOTAL = "concentration", "solvent_mass", "solvent_momentum", "solute"
 

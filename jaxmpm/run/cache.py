@@ -35,7 +35,14 @@ def compilation_cache(path=None, *, min_compile_seconds: float = 0.5) -> Path:
     Call it once, early (the first cell of a notebook): programs compiled before the call are not
     kept.  The cache is JAX's own (``jax_compilation_cache_dir``); its entries are keyed by the
     program, the JAX version and the device, and are safe to delete at any time.  Keep one folder
-    per machine."""
+    per machine.
+
+    Args:
+        path: the cache folder (created if missing); None (the default): ``$JAXMPM_CACHE_DIR``,
+            else ``$XDG_CACHE_HOME/jaxmpm/xla`` (``~/.cache/jaxmpm/xla``).
+        min_compile_seconds: keep only programs that took at least this long to compile, a
+            number >= 0 (default 0.5).
+    """
     check(isinstance(min_compile_seconds, (int, float)) and min_compile_seconds >= 0,
           f"compilation_cache: min_compile_seconds = {min_compile_seconds!r} must be a number >= 0")
     folder = default_cache_dir() if path is None else Path(path).expanduser()

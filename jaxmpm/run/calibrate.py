@@ -42,6 +42,17 @@ def _transform(bound):
 
 @dataclasses.dataclass
 class CalibrationResult:
+    """What :func:`calibrate` returns.
+
+    Args:
+        params: the fitted values, ``{name: array}`` (after the last iteration's update).
+        losses: the loss at every iteration, (iterations,).
+        trajectory: ``{name: (iterations, ...)}``, the parameters at which each loss was
+            evaluated.
+        iterations: the number of iterations run (fewer than ``steps`` when ``tol`` was met).
+        wall_time: the seconds the iterations took, compilation included.
+    """
+
     params: dict  # fitted values
     losses: np.ndarray  # loss at every iteration
     trajectory: dict  # parameter values at every iteration
@@ -66,7 +77,24 @@ def calibrate(
     stopping early once the loss is below ``tol``.  ``bounds`` maps a name to ``"positive"``,
     ``(lower, upper)`` or ``None``; names of simulation parameters get the bounds their
     registration declares (``jaxmpm.core.registry``).
-    ``callback(iteration, loss, params)`` is called every iteration."""
+
+    Args:
+        loss: ``loss(params) -> scalar`` of a dict of parameters, differentiable (usually a
+            :func:`jaxmpm.set_params` of a model, a run and a misfit).
+        init: ``{name: initial value}``, non-empty; each inside its bounds.
+        bounds: ``{name: "positive" | (lower, upper) | None}``: the parameter is reparameterised
+            (exp, a scaled sigmoid) to stay inside; default: the registered bounds of simulation
+            parameters, None (unbounded) for other names.
+        optimizer: an optax ``GradientTransformation`` on the raw parameters; None (the
+            default): ``optax.adam(0.05)``.
+        steps: the most iterations, a positive integer (default 200).
+        tol: stop once the loss is below it; None (the default): run all ``steps``.
+        callback: ``callback(iteration, loss, params)``, called every iteration; None (the
+            default).
+
+    Returns:
+        A :class:`CalibrationResult`.
+    """
     check(isinstance(init, dict) and init, "calibrate: init must be a non-empty dict {name: initial value}")
     check(isinstance(steps, int) and steps >= 1, f"calibrate: steps = {steps!r} must be a positive integer")
     bounds = {**{k: default_bounds(k) for k in init}, **(bounds or {})}

@@ -5,6 +5,7 @@ progress bar.  ``Simulation.run`` and ``Simulation.rollout`` call these."""
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 
@@ -13,7 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..core.errors import InstabilityError, check
+from ..core.errors import InstabilityError, ParticlesLeftGrid, check
 from ..core.limits import require_memory, require_steps
 from ..core.state import State
 from ..core.warn import warn
@@ -31,9 +32,29 @@ class StableTimeStepWarning(UserWarning):
 
 class History(eqx.Module):
     """Saved frames (leading axis T): time, particle x/v (None if not saved), energies, momenta,
-    the per-particle fields the terms declare (``fields``, empty if particles are not saved) and,
+    the per-particle fields the terms declare and those the run chose (``fields``: stress,
+    pressure, J, F, ..., see :mod:`jaxmpm.model.frame_fields`; empty if particles are not saved) and,
     in multimaterial mode, per-material sums (``by_material``: kinetic, strain, momentum,
-    contact_force), and the terms' totals (``totals``: thermal energy, solute)."""
+    contact_force), and the terms' totals (``totals``: thermal energy, solute).  Runs build it
+    (``Simulation.diagnostics_frame``); ``jaxmpm.load_h5`` reads one back.
+
+    Args:
+        time: the frames' times, (T,).
+        x: particle positions (T, N, D), or None when particles are not saved.
+        v: particle velocities (T, N, D), or None.
+        kinetic: kinetic energy (T,).
+        strain: strain energy (T,).
+        dissipated: the cumulative energy dissipated by the scheme and damping (T,).
+        momentum: linear momentum (T, D).
+        angular: angular momentum (T, 1) in 1D and 2D, (T, 3) in 3D (the scheme's, APIC's
+            affine term included).
+        fields: saved per-particle fields ``{name: (T, N, ...)}``, the terms' and those chosen;
+            default ``{}``.
+        by_material: multimaterial mode: per-material kinetic and strain energy (T, M), momentum
+            and contact force (T, M, D); default ``{}``.
+        totals: the terms' totals ``{name: (T,)}`` (thermal_energy of jm.Heat, solute of
+            jm.Diffusion); default ``{}``.
+    """
 
     time: jnp.ndarray
     x: jnp.ndarray | None
@@ -43,7 +64,7 @@ class History(eqx.Module):
     dissipated: jnp.ndarray
     momentum: jnp.ndarray
     angular: jnp.ndarray
-    fields: dict = eqx.field(default_factory=dict)  # saved per-particle fields of the terms, (T, N, ...)
+    fields: dict = eqx.field(default_factory=dict)  # saved per-particle fields, the terms' and chosen, (T, N, ...)
     # multimaterial mode: per-material kinetic, strain (T, M), momentum and contact force (T, M, D)
     by_material: dict = eqx.field(default_factory=dict)
     # the terms' totals (T,): thermal_energy (jm.Heat), solute (jm.Diffusion)
@@ -83,10 +104,12 @@ def check_state(state) -> None:
 
 
 def rollout(sim, state: State, dt, frames: int, save_every: int = 1, save_particles: bool = True,
-            checkpoint=True, history_gradients: bool = True):
+            checkpoint=True, history_gradients: bool = True, fields: tuple = ()):
     """Pure ``lax.scan`` rollout of ``frames * save_every`` steps.  Returns
     ``(final_state, history, failure)``; ``history`` holds the initial frame and one frame
-    every ``save_every`` steps (``frames + 1`` in all).
+    every ``save_every`` steps (``frames + 1`` in all), each with the per-particle ``fields``
+    chosen by name (``("stress", "pressure", "J", "F")``, :mod:`jaxmpm.model.frame_fields`) in
+    ``history.fields``.
 
     ``checkpoint`` (reverse mode only; the forward pass is unchanged):
 
@@ -107,6 +130,7 @@ def rollout(sim, state: State, dt, frames: int, save_every: int = 1, save_partic
     holds residuals.  The instability record is never differentiated (its outputs are integers).
     """
     sim = sim.in_precision(state.x.dtype)  # the model computes in its state's precision
+    fields = _chosen_fields(sim, state, fields, save_particles)
     dt = jnp.asarray(dt, state.x.dtype)
     none = Failure(jnp.array(-1, jnp.int32), jnp.array(0, jnp.int32), jnp.array(-1, jnp.int32))
     segment = _segment_length(save_every, checkpoint, frames)
@@ -134,7 +158,7 @@ def rollout(sim, state: State, dt, frames: int, save_every: int = 1, save_partic
         return carry, None
 
     def frame(s):
-        return sim.diagnostics_frame(s if history_gradients else jax.lax.stop_gradient(s), save_particles)
+        return sim.diagnostics_frame(s if history_gradients else jax.lax.stop_gradient(s), save_particles, fields)
 
     @remat_frames
     def one_frame(carry, _):
@@ -161,6 +185,8 @@ def run(
     checkpoint=True,
     history_gradients: bool = True,
     start_step: int | None = None,
+    fields: tuple | None = None,
+    timings: dict | None = None,
 ):
     """Run ``steps`` steps, saving a frame every ``save_every`` steps (plus the initial frame).
 
@@ -179,7 +205,15 @@ def run(
     or SIGTERM stops a chunked run at the next chunk boundary and raises :class:`RunInterrupted`.
     ``start_step`` (resume) is the step of the run's first frame when ``state`` is part-way
     through it.  Before anything runs, the step count and the memory the saved frames need are
-    checked (:mod:`jaxmpm.core.limits`).
+    checked (:mod:`jaxmpm.core.limits`).  A chunked run compiles its loop before the first step
+    (the progress bar says "compiling" meanwhile, so that its rate and ETA are the steps' alone),
+    fills ``timings`` (a dict, if given) with the seconds spent compiling (``compile``) and running
+    (``run``) and the ``steps`` run, and, when the rest of the run will take more than
+    :data:`LONG_RUN_SECONDS`, prints one line to stderr saying how long.
+
+    ``fields``: the per-particle fields each frame holds besides x, v and the terms' fields,
+    by name (``("stress", "pressure", "J", "F")``, :mod:`jaxmpm.model.frame_fields`; only
+    these are computed); with a writer, the writer's (``jm.H5Writer(..., fields=...)``).
     """
     check(isinstance(steps, (int, np.integer)) and steps >= 0, f"run: steps = {steps!r} must be a non-negative integer")
     check(isinstance(save_every, (int, np.integer)) and save_every >= 1,
@@ -194,6 +228,13 @@ def run(
     check(start_step is None or writer is not None or progress,
           "run: start_step continues a chunked run; pass writer=... (see jaxmpm.resume)")
     sim = sim.in_precision(state.x.dtype)  # the model computes in its state's precision
+    if writer is not None:
+        held = tuple(getattr(writer, "fields", ()))
+        check(fields is None or _chosen_fields(sim, state, fields, save_particles) == held,
+              f"run: fields = {fields!r} but the writer saves {held!r}; choose them once, on the writer "
+              "(jm.H5Writer(..., fields=...))")
+        fields = held
+    fields = _chosen_fields(sim, state, () if fields is None else fields, save_particles)
     traced = _is_traced((sim, state, dt))
     dt = jnp.asarray(dt, state.x.dtype)  # an array, so a new dt value does not recompile
     if not traced:
@@ -208,31 +249,39 @@ def run(
                  f"use dt <= {0.5 * limit:.6g} (CFL 0.5) to stay stable", StableTimeStepWarning)
         first = int(state.step) if start_step is None else int(start_step)
         require_steps(first + steps, "shorten t_end, use a larger dt, or split the run")
-        _require_frame_memory(sim, state, frames, save_particles, writer is None)
+        _require_frame_memory(sim, state, frames, save_particles, writer is None, fields)
     if traced or (writer is None and not progress):
         final, history, failure = _jit_rollout(sim, state, dt, frames, save_every, save_particles,
-                                               checkpoint, history_gradients)
+                                               checkpoint, history_gradients, fields)
         if not traced and check_stability:
-            _raise_if_failed(failure, dt, state)
+            _raise_if_failed(failure, dt, state, None, sim.grid)
         return final, history
     return _run_chunked(sim, state, dt, frames, save_every, save_particles, check_stability,
-                        progress, writer, frames_per_chunk, checkpoint, start_step)
+                        progress, writer, frames_per_chunk, checkpoint, start_step, fields, timings)
 
 
-def _frame_bytes(sim, state, save_particles) -> int:
-    shape = jax.eval_shape(lambda s: sim.diagnostics_frame(s, save_particles), state)
+def _chosen_fields(sim, state, fields, save_particles) -> tuple:
+    """The chosen per-frame fields, checked; they are per particle, so they need the particles saved."""
+    fields = sim.check_frame_fields(state, fields, "run: fields")
+    check(save_particles or not fields, f"run: fields = {fields!r} are per-particle fields, saved with the "
+                                        "particles; pass save_particles=True, or no fields")
+    return fields
+
+
+def _frame_bytes(sim, state, save_particles, fields=()) -> int:
+    shape = jax.eval_shape(lambda s: sim.diagnostics_frame(s, save_particles, fields), state)
     return sum(math.prod(a.shape) * a.dtype.itemsize for a in jax.tree_util.tree_leaves(shape))
 
 
-def _require_frame_memory(sim, state, frames, save_particles, in_memory):
+def _require_frame_memory(sim, state, frames, save_particles, in_memory, fields=()):
     """The saved frames (all of them when kept in memory, twice: the device result and the
     concatenated history) plus the state and its step temporaries, before the run starts."""
     state_bytes = sum(a.size * a.dtype.itemsize for a in jax.tree_util.tree_leaves(state) if hasattr(a, "size"))
-    frame_bytes = _frame_bytes(sim, state, save_particles)
+    frame_bytes = _frame_bytes(sim, state, save_particles, fields)
     # a writer holds up to two chunks of frames (the file's two copies lag one publication apart)
     held = 2 * (frames + 1) * frame_bytes if in_memory else min(frames + 1, 3) * frame_bytes + 2 * _CHUNK_BYTES
-    fix = ("save fewer frames (frames=/--frames, a larger save_every), save_particles=False, or write "
-           "to a file (writer=jm.H5Writer(...), the CLI's --out)") if in_memory else "use fewer particles"
+    fix = ("save fewer frames (frames=/--frames, a larger save_every), save_particles=False, fewer fields, or "
+           "write to a file (writer=jm.H5Writer(...), the CLI's --out)") if in_memory else "use fewer particles"
     require_memory(f"this run ({frames + 1} frames of {frame_bytes:,} bytes, {int(state.x.shape[0]):,} particles)",
                    held + 4 * state_bytes, fix)
 
@@ -241,7 +290,14 @@ class RunInterrupted(KeyboardInterrupt):
     """A chunked run stopped on SIGINT (Ctrl-C) or SIGTERM at a chunk boundary.  ``state`` is the
     state reached (also in the writer's file, see :func:`jaxmpm.resume`), ``frames`` the number
     of frames saved, ``history`` those frames when no writer holds them (else None), ``signal``
-    the signal's name."""
+    the signal's name.
+
+    Args:
+        state: the :class:`jaxmpm.State` reached.
+        frames: the number of frames saved.
+        signal_name: the signal's name, "SIGINT" or "SIGTERM" (kept as ``.signal``).
+        history: the saved :class:`History` when no writer holds it; None (the default).
+    """
 
     def __init__(self, state, frames: int, signal_name: str, history=None):
         self.state = state
@@ -294,22 +350,129 @@ _STATE_SHARE = 0.05
 _STATE_SECONDS = 0.05
 
 
-def _chunk_seconds() -> float:
-    """:data:`CHUNK_SECONDS`, or ``$JAXMPM_CHUNK_SECONDS`` where it is set."""
-    value = os.environ.get("JAXMPM_CHUNK_SECONDS", "").strip()
+def _seconds_from_env(name: str, default: float, valid, requirement: str) -> float:
+    """``$name`` as seconds where it is set (checked: ``valid(seconds)``, else an InputError saying
+    ``requirement``), else ``default``."""
+    value = os.environ.get(name, "").strip()
     if not value:
-        return CHUNK_SECONDS
+        return default
     try:
         seconds = float(value)
     except ValueError:
         seconds = math.nan
-    check(math.isfinite(seconds) and seconds > 0,
-          f"JAXMPM_CHUNK_SECONDS = {value!r} must be a positive number of seconds (unset: {CHUNK_SECONDS:g})")
+    check(valid(seconds), f"{name} = {value!r} must be {requirement} (unset: {default:g})")
     return seconds
 
 
+def _chunk_seconds() -> float:
+    """:data:`CHUNK_SECONDS`, or ``$JAXMPM_CHUNK_SECONDS`` where it is set."""
+    return _seconds_from_env("JAXMPM_CHUNK_SECONDS", CHUNK_SECONDS, lambda s: math.isfinite(s) and s > 0,
+                             "a positive number of seconds")
+
+
+#: a chunked run whose remaining steps will take longer than this (seconds, at the measured rate) says
+#: so on stderr, once, before it goes on; ``$JAXMPM_LONG_RUN_SECONDS`` overrides it (``inf``: never)
+LONG_RUN_SECONDS = 3600.0
+
+
+def _long_run_seconds() -> float:
+    """:data:`LONG_RUN_SECONDS`, or ``$JAXMPM_LONG_RUN_SECONDS`` where it is set."""
+    return _seconds_from_env("JAXMPM_LONG_RUN_SECONDS", LONG_RUN_SECONDS, lambda s: s >= 0,
+                             "a number of seconds >= 0, or inf")
+
+
+def duration(seconds: float) -> str:
+    """A time span as people say it: "45 s", "12 min", "37 h", "3.5 days"."""
+    if seconds < 90:
+        return f"{seconds:.2g} s"
+    if seconds < 90 * 60:
+        return f"{seconds / 60:.0f} min"
+    if seconds < 48 * 3600:
+        return f"{seconds / 3600:.2g} h"
+    return f"{seconds / 86400:.2g} days"
+
+
+def _count(n: float) -> str:
+    """1.2e9, 9.1e3, 640: two significant digits without the exponent's plus sign and zeros."""
+    text = f"{n:.2g}"
+    return text.replace("e+0", "e").replace("e+", "e")
+
+
+class _Clock:
+    """The times of a chunked run and what it shows of them.  The loop is compiled before the first
+    step (:meth:`compiling`): meanwhile the progress bar reads "compiling" and shows no rate; from
+    then (:meth:`start`) the bar's clock, rate and ETA are those of the steps.  ``timings`` (a dict,
+    or None) receives ``compile`` and ``run`` (seconds; run: from the first step to the end of the
+    loop, writing included) and ``steps`` (run).  :meth:`tell_if_long` prints, once, how long
+    the rest of a long run will take."""
+
+    def __init__(self, total: int, done: int, progress: bool, timings: dict | None):
+        import time
+
+        self.clock = time.perf_counter
+        self.total, self.done = total, done
+        self.timings = {} if timings is None else timings
+        self.timings.update(compile=0.0, run=0.0, steps=0)
+        self.started = None
+        self.chunks = 0
+        self.limit = _long_run_seconds()
+        self.told = False
+        self.bar = None
+        if progress:
+            from tqdm.auto import tqdm
+
+            self.bar = tqdm(total=total, initial=done, unit="step", desc="jaxmpm (compiling)")
+
+    @contextlib.contextmanager
+    def compiling(self):
+        tic = self.clock()
+        yield
+        self.timings["compile"] += self.clock() - tic
+
+    def start(self) -> None:
+        """The steps begin: the run's clock starts, and the bar's (its elapsed time, rate and ETA)."""
+        self.started = self.clock()
+        if self.bar is not None:
+            self.bar.set_description("jaxmpm", refresh=False)
+            self.bar.unpause()
+
+    def chunk(self, steps: int) -> None:
+        """A chunk of ``steps`` steps ran."""
+        self.done += steps
+        self.chunks += 1
+        self.timings["steps"] += steps
+        if self.bar is not None:
+            self.bar.update(steps)
+
+    def tell_if_long(self, rate: float, writer) -> None:
+        """After the second chunk (the first is one step: its time is mostly the call's, and it sizes
+        the second to about :data:`CHUNK_SECONDS`), print to stderr how long the rest of the run
+        needs at that chunk's ``rate`` when that exceeds the limit (:data:`LONG_RUN_SECONDS`)."""
+        import sys
+
+        if self.told or self.chunks < 2 or rate <= 0:
+            return
+        self.told = True
+        left = self.total - self.done
+        if left <= 0 or left / rate <= self.limit:
+            return
+        kept = f" in {writer.path}" if getattr(writer, "path", None) else ""
+        message = (f"jaxmpm: this run needs about {duration(left / rate)} more ({_count(left)} steps at "
+                   f"{_count(rate)} steps/s); Ctrl-C stops it and keeps the frames{kept}")
+        if self.bar is not None:
+            self.bar.write(message, file=sys.stderr)
+        else:
+            print(message, file=sys.stderr, flush=True)
+
+    def close(self) -> None:
+        if self.started is not None:
+            self.timings["run"] = self.clock() - self.started
+        if self.bar is not None:
+            self.bar.close()
+
+
 def _run_chunked(sim, state, dt, frames, save_every, save_particles, check_stability, progress, writer,
-                 frames_per_chunk, checkpoint=True, start_step=None):
+                 frames_per_chunk, checkpoint=True, start_step=None, fields=(), timings=None):
     """Run in chunks sized by wall time (about :data:`CHUNK_SECONDS` each), each chunk one call of
     the same compiled loop (``_advance``) whose frame and step counts are runtime values: no
     chunk recompiles, and the arithmetic is that of an uninterrupted run whatever the chunking.
@@ -320,7 +483,9 @@ def _run_chunked(sim, state, dt, frames, save_every, save_particles, check_stabi
     frames with the state reached after it, in one publication each (``writer.batch()``; the file
     survives a kill at any moment, see :class:`jaxmpm.H5Writer`), so the file can be continued
     (:func:`jaxmpm.resume`) from its last chunk whatever stops the run.  On SIGINT/SIGTERM the loop
-    stops at the next chunk boundary and :class:`RunInterrupted` is raised."""
+    stops at the next chunk boundary and :class:`RunInterrupted` is raised.  The loop is compiled
+    (by a call that runs no frame) before the first step; ``timings`` and the progress bar are
+    :class:`_Clock`'s."""
     import time
 
     _segment_length(save_every, checkpoint, frames)  # validated; the chunked runner is forward only
@@ -330,34 +495,41 @@ def _run_chunked(sim, state, dt, frames, save_every, save_particles, check_stabi
     check(0 <= done_steps <= total, f"resume: the state is at step {int(state.step)}, outside the run's "
                                     f"steps {start_step}..{start_step + total}")
     seconds = _chunk_seconds()
-    frame_bytes = _frame_bytes(sim, state, save_particles)
+    frame_bytes = _frame_bytes(sim, state, save_particles, fields)
     buffer_frames = max(1, min(frames, frames_per_chunk or frames, _CHUNK_BYTES // max(1, frame_bytes)))
-    rate = None  # steps per second, measured on the chunks after the first (which compiles)
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
-
-        bar = tqdm(total=total, initial=done_steps, unit="step", desc="jaxmpm")
+    rate = 0.0  # steps per second, measured on each chunk (compiled before the first: 0.0, unknown)
+    clock = _Clock(total, done_steps, progress, timings)
     pieces = []
     if writer is not None:
         state_bytes = sum(a.size * a.dtype.itemsize for a in jax.tree_util.tree_leaves(state) if hasattr(a, "size"))
         publisher = _Publisher(writer, dict(start_step=start_step, steps=total, save_every=save_every), state_bytes)
     none = Failure(jnp.array(-1, jnp.int32), jnp.array(0, jnp.int32), jnp.array(-1, jnp.int32))
+
+    def advance(s, n_frames, per_frame):
+        """``n_frames`` frames of ``per_frame`` steps from ``s``: one call of the compiled loop."""
+        return _advance(sim, s, none, dt, jnp.asarray(n_frames, jnp.int32), jnp.asarray(per_frame, jnp.int32),
+                        buffer_frames, save_particles, check_stability, fields)
+
     try:
         with _StopOnSignal() as stop:
-            if done_steps == 0 and (writer is None or writer.frames == 0):
-                first = jax.tree_util.tree_map(lambda a: a[None], _jit_frame(sim, state, save_particles))
+            first = None
+            with clock.compiling():  # no frames: compiles the loop (and the initial frame), runs no step
+                if done_steps < total:
+                    jax.block_until_ready(advance(state, 0, 1))
+                if done_steps == 0 and (writer is None or writer.frames == 0):
+                    first = jax.block_until_ready(_jit_frame(sim, state, save_particles, fields))
+            if first is not None:
+                first = jax.tree_util.tree_map(lambda a: a[None], first)
                 if writer is None:
                     pieces.append(first)
                 else:  # before the first step: from here on the file can be continued
                     publisher.publish(first, state)
+            clock.start()
             while done_steps < total:
                 n_frames, per_frame = _chunk(done_steps, total, save_every, rate, buffer_frames, frames_per_chunk,
                                              seconds)
                 tic = time.perf_counter()
-                new_state, failure, buffer = _advance(sim, state, none, dt, jnp.asarray(n_frames, jnp.int32),
-                                                      jnp.asarray(per_frame, jnp.int32), buffer_frames,
-                                                      save_particles, check_stability)
+                new_state, failure, buffer = advance(state, n_frames, per_frame)
                 failure, buffer = jax.device_get((failure, buffer))
                 elapsed = time.perf_counter() - tic
                 steps_run = n_frames * per_frame
@@ -373,13 +545,13 @@ def _run_chunked(sim, state, dt, frames, save_every, save_particles, check_stabi
                 else:  # one publication: the chunk's frames and the state reached (not a failed chunk's)
                     publisher.publish(frames_kept, None if failed else new_state,
                                       due=stop.requested is not None or done_steps + steps_run == total)
-                if bar is not None:
-                    bar.update(steps_run)
+                clock.chunk(steps_run)
                 if check_stability:
-                    _raise_if_failed(failure, dt, state)
+                    _raise_if_failed(failure, dt, state, new_state, sim.grid)
                 state = new_state
                 done_steps += steps_run
                 rate = _measured_rate(rate, steps_run, elapsed)
+                clock.tell_if_long(steps_run / max(elapsed, 1e-6), writer)  # this chunk's rate
                 if stop.requested is not None and done_steps < total:
                     if writer is not None:
                         publisher.publish(None, state, due=True)  # saved already, unless the signal came late
@@ -387,8 +559,7 @@ def _run_chunked(sim, state, dt, frames, save_every, save_particles, check_stabi
                     history = jax.tree_util.tree_map(lambda *a: jnp.concatenate(a), *pieces)
                     raise RunInterrupted(state, len(history), stop.requested, history)
     finally:
-        if bar is not None:
-            bar.close()
+        clock.close()
         if writer is not None:
             writer.flush()
     if writer is not None:
@@ -443,16 +614,16 @@ def _chunk(done_steps, total, save_every, rate, buffer_frames, frames_per_chunk,
 
 
 def _measured_rate(rate, steps, elapsed):
-    """Steps per second: None after the first chunk (it includes the compilation), then the
-    latest chunk's rate."""
-    if rate is None:
-        return 0.0 if steps else None  # 0.0 marks "compiled": the next chunk is measured
-    return steps / max(elapsed, 1e-6) if rate == 0.0 else 0.5 * (rate + steps / max(elapsed, 1e-6))
+    """Steps per second: the first chunk's (``rate`` 0.0: none measured yet; the loop is compiled
+    before it, so no chunk's time includes the compilation), then the mean of the estimate so far
+    and the latest chunk's."""
+    latest = steps / max(elapsed, 1e-6)
+    return latest if rate == 0.0 else 0.5 * (rate + latest)
 
 
 @eqx.filter_jit
 def _advance(sim, state, failure, dt, n_frames, steps_per_frame, buffer_frames: int, save_particles: bool,
-             stop_at_failure: bool = True):
+             stop_at_failure: bool = True, fields: tuple = ()):
     """``n_frames`` (<= ``buffer_frames``) frames of ``steps_per_frame`` steps, both runtime
     values, stopping at the first unstable step (``stop_at_failure``); returns the state, the failure record and a
     ``buffer_frames`` buffer whose first ``n_frames`` frames hold the frames reached."""
@@ -473,11 +644,11 @@ def _advance(sim, state, failure, dt, n_frames, steps_per_frame, buffer_frames: 
         s, fail, buffer, j = carry
         s, fail, _ = jax.lax.while_loop(lambda c: (c[2] < steps_per_frame) & running(c[1]), one_step,
                                         (s, fail, jnp.zeros((), jnp.int32)))
-        frame = sim.diagnostics_frame(s, save_particles)
+        frame = sim.diagnostics_frame(s, save_particles, fields)
         buffer = jax.tree_util.tree_map(lambda b, f: b.at[j].set(f), buffer, frame)
         return s, fail, buffer, j + 1
 
-    shapes = jax.eval_shape(lambda s: sim.diagnostics_frame(s, save_particles), state)
+    shapes = jax.eval_shape(lambda s: sim.diagnostics_frame(s, save_particles, fields), state)
     buffer = jax.tree_util.tree_map(lambda a: jnp.zeros((buffer_frames,) + a.shape, a.dtype), shapes)
     state, failure, buffer, _ = jax.lax.while_loop(lambda c: (c[3] < n_frames) & running(c[1]), one_frame,
                                                    (state, failure, buffer, jnp.zeros((), jnp.int32)))
@@ -485,13 +656,14 @@ def _advance(sim, state, failure, dt, n_frames, steps_per_frame, buffer_frames: 
 
 
 @eqx.filter_jit
-def _jit_frame(sim, state, save_particles):
-    return sim.diagnostics_frame(state, save_particles)
+def _jit_frame(sim, state, save_particles, fields=()):
+    return sim.diagnostics_frame(state, save_particles, fields)
 
 
 @eqx.filter_jit
-def _jit_rollout(sim, state, dt, frames, save_every, save_particles, checkpoint=True, history_gradients=True):
-    return sim.rollout(state, dt, frames, save_every, save_particles, checkpoint, history_gradients)
+def _jit_rollout(sim, state, dt, frames, save_every, save_particles, checkpoint=True, history_gradients=True,
+                 fields=()):
+    return sim.rollout(state, dt, frames, save_every, save_particles, checkpoint, history_gradients, fields)
 
 
 def _segment_length(save_every: int, checkpoint, frames: int = 1):
@@ -510,11 +682,19 @@ def _segment_length(save_every: int, checkpoint, frames: int = 1):
     return int(checkpoint)
 
 
-def _raise_if_failed(failure: Failure, dt, state0):
+def _raise_if_failed(failure: Failure, dt, state0, reached=None, grid=None):
+    """:class:`InstabilityError` for the first failing step of a run from ``state0``, if any:
+    :class:`ParticlesLeftGrid` when particles left the grid (cause 3: the grid is too small, not
+    a numerical instability), with the particle's position in ``reached`` when that is the state
+    of the failing step (the chunked runner stops there) and the box of ``grid``."""
     step = int(failure.step)
     if step < 0:
         return
-    cause = CAUSES.get(int(failure.cause), "unknown")
-    cause = f"{cause} (particle {int(failure.particle)})"
     t = float(state0.time) + (step - int(state0.step)) * float(np.asarray(dt))
-    raise InstabilityError(step, cause, t)
+    particle = int(failure.particle)
+    if int(failure.cause) == 3:
+        at = reached is not None and int(reached.step) == step
+        raise ParticlesLeftGrid(step, particle, np.asarray(reached.x[particle]) if at else None,
+                                None if grid is None else grid.lower, None if grid is None else grid.upper, t)
+    cause = CAUSES.get(int(failure.cause), "unknown")
+    raise InstabilityError(step, f"{cause} (particle {particle})", t)

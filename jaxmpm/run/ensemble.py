@@ -40,12 +40,28 @@ def ensemble(sim, state, dt, steps: int, save_every: int = 1, *, params: dict | 
              save_particles: bool = False, devices=None):
     """Run a batch of simulations at once.
 
-    ``params`` maps parameter names (see :func:`jaxmpm.set_params`: beta, alpha_g, alpha_p, E, nu,
-    density, gravity) to arrays whose leading axis is the batch; ``states`` is a batched
-    :class:`State` (leading axis = batch) to vary initial conditions instead of ``state``.
     The batch is vmapped and, when several devices are present, split over as many of them as
-    divide the batch size (``devices`` to choose).  Returns ``(final_states, histories,
-    failure_steps)``; ``failure_steps[b]`` is the first unstable step of member b, -1 if none.
+    divide the batch size.  Give ``params``, ``states`` or both; every batched input has the same
+    leading (batch) size.
+
+    Args:
+        sim: the :class:`jaxmpm.Simulation` every member starts from.
+        state: the initial :class:`jaxmpm.State` of every member (unless ``states`` is given).
+        dt: the time step, > 0.
+        steps: the number of steps, a multiple of ``save_every`` (>= 0).
+        save_every: steps between saved frames, a positive integer (default 1).
+        params: ``{name: batch}``, parameter names (see :func:`jaxmpm.set_params`: beta,
+            alpha_g, alpha_p, E, nu, density, gravity, ...) to arrays whose leading axis is the
+            batch; each member is checked against the parameter's valid range.
+        states: a batched :class:`jaxmpm.State` (leading axis = batch) to vary the initial
+            conditions instead of ``state``.
+        save_particles: whether the histories keep the particle positions and velocities
+            (default False).
+        devices: the devices to shard the batch over; None (the default): ``jax.devices()``.
+
+    Returns:
+        ``(final_states, histories, failure_steps)``; ``failure_steps[b]`` is the first unstable
+        step of member b, -1 if none.
     """
     check(params is not None or states is not None, "ensemble: give params={name: batch} and/or states=batch")
     check(params is None or isinstance(params, dict), "ensemble: params must be a dict {name: batch}")

@@ -2,10 +2,19 @@
 
 ``jm.scene(name, **options)`` returns a :class:`Setup` with the simulation, its initial state, the
 time step and the number of steps; ``setup.run()`` runs it.
+
+Scenes of your own join the registry ``SCENES`` by :func:`register_scene`, or from an installed
+package through the entry-point group ``jaxmpm.scenes`` (each entry point names a builder; its name
+is the scene's), which :func:`load_scene_entry_points` reads once -- the command line does at its
+start, ``jm.scene`` when it is asked for a name it does not know.  ``jaxmpm run my_scene.py`` runs
+the function ``scene`` of a Python file without registering it (:mod:`jaxmpm.scenes.command`).
 """
 
 from __future__ import annotations
 
+import re
+
+from ..core.errors import InputError, check
 from ._common import Setup, cast_state, resolve_dtype
 from .bar import bar
 from .bars_impact import bars_impact
@@ -46,11 +55,102 @@ def scene(name: str, **options) -> Setup:
     The options are checked by the builder itself (``scenes._options.checked_options``, one table
     for every scene), so ``jm.SCENES[name][0](**options)`` is checked the same way: an unknown
     option, a count that is not a positive integer, a non-positive or non-finite size, step or
-    time, or a material constant out of range raises :class:`jaxmpm.InputError`."""
-    from ..core.errors import check
+    time, or a material constant out of range raises :class:`jaxmpm.InputError`.
 
-    check(isinstance(name, str) and name in SCENES, f"unknown scene {name!r}; choose one of {', '.join(SCENES)}")
+    Args:
+        name: a registered scene (``SCENES``: "bar", "disks", "spin", ...; an installed
+            package's entry point of the group ``jaxmpm.scenes`` too).
+        **options: the builder's keyword options (scheme, shape, cells, ppc, dt, t_end, ...:
+            each is a ``jaxmpm run`` option).
+
+    Returns:
+        The :class:`jaxmpm.scenes.Setup`: ``sim``, ``state``, ``dt``, ``steps``, ...;
+        ``setup.run()`` runs it.
+    """
+    if isinstance(name, str) and name not in SCENES:
+        load_scene_entry_points()
+    check(isinstance(name, str) and name in SCENES, unknown_scene(name))
     return SCENES[name][0](**options)
 
 
-__all__ = ["SCENES", "Setup", "cast_state", "scene", "resolve_dtype"]
+def unknown_scene(name) -> str:
+    """The message for a scene name that is not registered (a failed entry point's own reason)."""
+    if name in ENTRY_POINT_ERRORS:
+        return ENTRY_POINT_ERRORS[name]
+    return f"unknown scene {name!r}; choose one of {', '.join(SCENES)}"
+
+
+def register_scene(name: str, builder, description: str | None = None, *, replace: bool = False) -> None:
+    """Add scene ``name`` to ``SCENES``: ``jm.scene(name, ...)``, ``jaxmpm scenes`` and ``jaxmpm run
+    name`` then know it.  ``builder`` takes keyword options -- named as the built-in builders name
+    those it has (cells, spacing, ppc, cfl, dt, t_end, frames, scheme, shape, update, damping,
+    dtype, E, nu, density, gravity, ...: each is a ``jaxmpm run`` option) -- and returns a
+    :class:`Setup`; it is wrapped in :func:`~jaxmpm.scenes._options.checked_options`, so its options
+    are checked like a built-in scene's.  ``description`` (default: the first line of the builder's
+    docstring) is what ``jaxmpm scenes`` prints.  A name already taken is an error unless
+    ``replace=True``.
+
+    Args:
+        name: the scene's name, a word of letters, digits, '_' and '-' starting with a letter
+            (typed as ``jaxmpm run NAME``).
+        builder: ``builder(**options) -> Setup``, the function that builds the scene.
+        description: one line for ``jaxmpm scenes``; None (the default): the first line of the
+            builder's docstring.
+        replace: replace a scene of that name (default False: a taken name is an error).
+    """
+    from ._options import checked_options
+
+    check(isinstance(name, str) and re.fullmatch(r"[A-Za-z][A-Za-z0-9_-]*", name) is not None,
+          f"register_scene: name = {name!r} must be a word of letters, digits, '_' and '-' (it is typed as "
+          "`jaxmpm run NAME`)")
+    check(callable(builder), f"register_scene: builder = {builder!r} must be a function returning a jm.scenes.Setup")
+    check(description is None or isinstance(description, str),
+          f"register_scene: description = {description!r} must be a string (one line)")
+    check(replace or name not in SCENES,
+          f"register_scene: the scene name {name!r} is taken ({SCENES[name][1] if name in SCENES else ''}); "
+          "choose another name, or pass replace=True to replace it")
+    if description is None:
+        lines = (getattr(builder, "__doc__", None) or "").strip().splitlines()
+        description = lines[0].strip() if lines else f"scene {name} (its builder has no docstring)"
+    SCENES[name] = (checked_options(builder, name=name), " ".join(description.split()))
+
+
+#: name -> why the entry point of that name did not become a scene (it failed to load, or the name
+#: is taken): ``jaxmpm run name`` says so instead of "unknown scene"
+ENTRY_POINT_ERRORS: dict = {}
+_entry_points_loaded = False
+
+
+def scene_entry_points():
+    """The installed packages' entry points of the group ``jaxmpm.scenes``."""
+    from importlib.metadata import entry_points
+
+    return entry_points(group="jaxmpm.scenes")
+
+
+def load_scene_entry_points() -> None:
+    """Register the scenes of the entry-point group ``jaxmpm.scenes``, once: each entry point's name
+    is the scene's, its object the builder, the builder's docstring's first line the description.
+    One that fails to load, or whose name is taken, is left out (its reason kept in
+    ``ENTRY_POINT_ERRORS``), so that one broken package does not stop the others."""
+    global _entry_points_loaded
+    if _entry_points_loaded:
+        return
+    _entry_points_loaded = True
+    for point in scene_entry_points():
+        where = f"entry point {point.name} = {point.value} (group jaxmpm.scenes)"
+        try:
+            builder = point.load()
+        except Exception as err:  # anything the package's import raises
+            ENTRY_POINT_ERRORS[point.name] = f"scene {where} failed to load: {type(err).__name__}: " + \
+                " ".join(str(err).split())
+            continue
+        if point.name in SCENES and getattr(SCENES[point.name][0], "__wrapped__", None) is builder:
+            continue  # the package registered it itself when it was imported
+        try:
+            register_scene(point.name, builder)
+        except InputError as err:
+            ENTRY_POINT_ERRORS[point.name] = f"scene {where} is not registered: {err}"
+
+
+__all__ = ["SCENES", "Setup", "cast_state", "load_scene_entry_points", "register_scene", "resolve_dtype", "scene"]

@@ -64,9 +64,39 @@ PART_DEFAULTS = {
     "cylinder": {"scheme": "flip", "shape": "ugimp"},
 }
 
+#: what a default the builder derives (``None``, or a damping the scene adds itself) amounts to, as
+#: ``jaxmpm scenes`` and ``jaxmpm run SCENE --help`` print it; a ``dt=None`` of a scene with ``cfl`` is
+#: "from cfl" everywhere, and a damping left out "0" (``alpha_g``/``alpha_p``: the damping's rates,
+#: --alpha-g and --alpha-p); tests/test_cli_scenes.py checks the numbers against the built scenes
+DERIVED_DEFAULTS = {
+    "spin": {"t_end": "1 (with stress: one turn 2 pi/omega)"},
+    "mms": {"t_end": "one period 2/c"},
+    "vortex": {"t_end": "one period"},
+    "bars_impact": {"t_end": "4 L/c (twice the contact time)"},
+    "thermal_bar": {"alpha_p": "20"},
+    "cylinder": {"alpha_g": "the breathing mode's frequency"},
+}
+
 #: the ``contact`` option of the multimaterial scenes: "none" keeps one velocity field (the model of a
 #: one-material scene), the others give each body its own material and field (jaxmpm/_contact.py)
 CONTACT_OPTIONS = ("none", "stick", "frictionless", "coulomb")
+
+#: the per-frame fields ``jaxmpm run SCENE`` saves when ``--fields`` is not given (jaxmpm.model.frame_fields):
+#: the stress of the solids (the cylinder's hoop stress stress_tt), the fluid's pressure, the heated bar's
+#: expansion J; a scene not listed saves none (the transport scenes' temperature / concentration is saved
+#: anyway, the spinning disk has no stress).  The Python API saves none unless asked (fields=)
+FIELD_DEFAULTS = {
+    "bar": ("stress",),
+    "disks": ("stress",),
+    "rings": ("stress",),
+    "mpm88": ("pressure",),
+    "mms": ("stress",),
+    "vortex": ("stress",),
+    "bars_impact": ("stress",),
+    "slide": ("stress",),
+    "thermal_bar": ("stress", "J"),
+    "cylinder": ("stress",),
+}
 
 
 def contact_model(contact: str, friction: float, normal=None, separation: float | None = None) -> tuple:

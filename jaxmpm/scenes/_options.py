@@ -30,7 +30,20 @@ import inspect
 
 import numpy as np
 
-from ..core.validate import FINITE, NON_NEGATIVE, POISSON, POSITIVE, Range, concrete, fail, positive_int, sequence, show
+from ..core.validate import (
+    FINITE,
+    NON_NEGATIVE,
+    POISSON,
+    POSITIVE,
+    Range,
+    concrete,
+    fail,
+    finite_vector,
+    ndim,
+    positive_int,
+    sequence,
+    show,
+)
 from ._common import CONTACT_OPTIONS
 
 
@@ -53,6 +66,17 @@ def _finite_list(scene, name, value):
     for i, v in enumerate(sequence(scene, name, value)):
         FINITE.real(scene, f"{name}[{i}]", v)
     return value
+
+
+def _gravity(scene, name, value):
+    """One finite number (a magnitude g, which the scene points: mpm88 down, slide tilted by theta)
+    or a vector of 1 to 3 finite components (GX,GY[,GZ] on the command line)."""
+    if ndim(value) == 0:
+        return _range(FINITE, "the gravitational acceleration")(scene, name, value)
+    vector = finite_vector(scene, name, value)
+    if not 1 <= len(vector) <= 3:
+        fail(scene, f"{name} = {show(value)} has {len(vector)} components", "give one number or GX,GY[,GZ]")
+    return vector
 
 
 def _contact(scene, name, value):
@@ -96,7 +120,7 @@ OPTION_CHECKS = {
     "E": _range(POSITIVE), "density": _range(POSITIVE), "nu": _range(POISSON, POISSON.fix),
     # motions and loads (any sign)
     "speed": _range(FINITE), "v0": _range(FINITE), "omega": _range(FINITE), "amplitude": _range(FINITE),
-    "gravity": _range(FINITE),
+    "gravity": _gravity,
     "pressure": _range(FINITE, "the pressure, force per area"),
     "phases": _finite_list,
     "theta": _range(Range(0, 90, high_open=True), "the slope angle in degrees"),
@@ -134,10 +158,15 @@ def _parts(scene: str, values: dict, signature) -> dict:
     return values
 
 
-def checked_options(builder):
-    """Decorate a scene builder: unknown options, bad counts, sizes and constants -> InputError."""
-    scene = builder.__name__
+def checked_options(builder, name: str | None = None):
+    """Decorate a scene builder: unknown options, bad counts, sizes and constants -> InputError.
+    ``name`` (default: the function's name) starts the messages; a builder that already is checked
+    is returned as it is (``jm.register_scene`` and scene files wrap the builders they are given)."""
+    if getattr(builder, "checked_options", False):
+        return builder
+    scene = name or builder.__name__
     signature = inspect.signature(builder)
+    collected = next((k for k, p in signature.parameters.items() if p.kind is inspect.Parameter.VAR_KEYWORD), None)
 
     @functools.wraps(builder)
     def build(*args, **options):
@@ -148,11 +177,14 @@ def checked_options(builder):
             what = f"unknown option {', '.join(map(repr, unknown))}" if unknown else str(err)
             fail(scene, f"{what}; {scene} takes {', '.join(signature.parameters)}")
         given = dict(bound.arguments)
-        for name, value in given.items():
-            check = OPTION_CHECKS.get(name)
-            if check is None or (value is None and signature.parameters[name].default is None):
+        if collected is not None:  # a builder with **options: its collected options are checked too
+            given.update(given.pop(collected, {}))
+        for key, value in given.items():
+            check = OPTION_CHECKS.get(key)
+            default = signature.parameters[key].default if key in signature.parameters else None
+            if check is None or (value is None and default is None):
                 continue  # not a checked option, or None where the builder derives the value
-            given[name] = check(scene, name, value)
+            given[key] = check(scene, key, value)
         if "friction" in given and "contact" in signature.parameters:
             contact = given.get("contact", signature.parameters["contact"].default)
             mu = concrete(given["friction"])
@@ -165,4 +197,5 @@ def checked_options(builder):
                      "pass contact='frictionless', 'coulomb' or 'stick', or leave normal out")
         return builder(**_parts(scene, given, signature))
 
+    build.checked_options = True
     return build

@@ -54,7 +54,7 @@ def disks(
     """``contact``: "none" (one velocity field, Sulsky's setting) or a contact law -- "stick",
     "frictionless", "coulomb" (with ``friction`` mu) -- with each disk its own material (ids 0 for
     the disk at (0.2, 0.2), 1 for the other; jaxmpm/_contact.py).  ``separation`` (cells) is the
-    contact's separation criterion: 1.0 by default, measured (README "Contact"): without it the
+    contact's separation criterion: 1.0 by default, measured (docs/contact.md): without it the
     disks interact from a cell apart and FLIP's energy dips to 0.896 in contact, as in single-field
     mode; with 1.0 the minimum is 0.959; 0.5 gains energy (1.059), 0 loses it (0.81).  ``normal``:
     the contact normal (jm.Contact's options; None: the library default "first"): "average" here,

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..core.errors import check
 from ..core.grid import Grid
 from ..core.particles import Particles
 from ..materials import VolumetricFluid
@@ -53,7 +54,7 @@ def mpm88(
     t_end: float = 1.0,
     E: float = 400.0,
     density: float = 1.0,
-    gravity: float = 9.8,
+    gravity: float | tuple = 9.8,
     bound: int = 3,
     speed: float = 1.0,
     seed: int = 0,
@@ -62,8 +63,13 @@ def mpm88(
     dtype=None,
     frames: int = 200,
 ) -> Setup:
-    """The mpm88 scene; ``n_particles`` random points in [0.2, 0.6]^2 (NumPy seed ``seed``)."""
+    """The mpm88 scene; ``n_particles`` random points in [0.2, 0.6]^2 (NumPy seed ``seed``);
+    ``gravity`` its magnitude g, downward, or the vector (gx, gy)."""
     dtype = resolve_dtype(dtype)
+    downward = np.ndim(gravity) == 0
+    check(downward or len(gravity) == 2,
+          f"mpm88: gravity = {gravity!r} has {np.size(gravity)} components but the scene is 2D; give g (downward) "
+          "or gx, gy")
     scheme = APIC() if scheme is None else scheme
     shape = QuadraticBSpline() if shape is None else shape
     grid = Grid((0.0, 0.0), (1.0, 1.0), (n_grid, n_grid))
@@ -75,9 +81,10 @@ def mpm88(
                           volume=np.full(n_particles, p_vol), mass=None, ppc=2)
     walls = tuple(Wall(face, layers=bound) for face in ("x-", "x+", "y-", "y+"))
     sim = Simulation(grid=grid, shape=shape, material=VolumetricFluid(E=E, density=density), scheme=scheme,
-                     damping=damping, update=update, boundary=walls, gravity=(0.0, -gravity))
+                     damping=damping, update=update, boundary=walls,
+                     gravity=(0.0, -gravity) if downward else tuple(gravity))
     state = cast_state(sim.init(particles), dtype)
     steps, save_every = schedule(t_end, dt, frames)
     params = dict(n_particles=n_particles, n_grid=n_grid, dx=dx, dt=dt, E=E, density=density, p_vol=p_vol,
-                  gravity=gravity, bound=bound, speed=speed, seed=seed, t_end=steps * dt)
+                  gravity=gravity if downward else list(gravity), bound=bound, speed=speed, seed=seed, t_end=steps * dt)
     return Setup("mpm88", sim, state, dt, steps, save_every, params, None)

@@ -105,6 +105,7 @@ def slide(
     that time (a quasi-static load; 0: switched on at t = 0); ``speed`` launches the block down the
     incline (along +x) at that velocity; dt = cfl * h / c unless ``dt`` is given."""
     dtype = resolve_dtype(dtype)
+    check(np.ndim(gravity) == 0, f"slide: gravity = {gravity!r} must be one number, its magnitude g (theta tilts it)")
     check(gravity >= 0, f"slide: gravity = {gravity} must be >= 0 (its magnitude g; theta tilts it)")
     check(speed >= 0, f"slide: speed = {speed} must be >= 0 (the block's initial velocity down the incline)")
     check(speed == 0 or contact in ("coulomb", "frictionless"),

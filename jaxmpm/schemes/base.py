@@ -102,6 +102,17 @@ def combine_damping(parts) -> ParticleDamping:
 
 
 class ParticleUpdate(eqx.Module):
+    """What a scheme's ``update`` returns: the particles' new velocities and positions, the grid
+    velocity of a USL- strain update and the energy the update dissipated.
+
+    Args:
+        velocity: V^{n+1}, (N, D).
+        position: X^{n+1}, (N, D).
+        strain_velocity: the nodal velocity the USL- (and USAVG-) strain update uses, (n, D).
+        dissipated: the energy the update removed this step relative to FLIP (a scalar;
+            :func:`dissipated_energy`, 000 eq. 2.43).
+    """
+
     velocity: jnp.ndarray  # V^{n+1}
     position: jnp.ndarray  # X^{n+1}
     strain_velocity: jnp.ndarray  # grid velocity for a USL- strain update
@@ -189,7 +200,14 @@ def with_velocity_gradient(sim, state, gradient):
     ((D, D) or (N, D, D)): B_p = L_p D_p under APIC (D_p from the stencil), grad v_p = L_p under
     TPIC, and under RPIC L_p = K_p omega with omega the rotation of the skew part of L_p (the rigid
     part, 002 prop. 4.1); unchanged for schemes without such a state
-    (:meth:`Scheme.state_for_velocity_gradient`)."""
+    (:meth:`Scheme.state_for_velocity_gradient`).
+
+    Args:
+        sim: the :class:`jaxmpm.Simulation` (its scheme, shape and grid).
+        state: the :class:`jaxmpm.State`, e.g. from ``sim.init``.
+        gradient: the velocity gradient L, (D, D) for all particles or (N, D, D), in the grid's
+            coordinates.
+    """
     d = state.x.shape[-1]  # the grid's dimension (F is 3x3 on an r-z grid; the affine state is d x d)
     L = jnp.asarray(gradient, state.x.dtype)
     check(L.shape[-2:] == (d, d), f"with_velocity_gradient: gradient has shape {L.shape}; give a ({d}, {d}) "

@@ -42,6 +42,17 @@ class FMPM(Scheme):
     FMPM(0) is FLIP (003 Table 2.1, "FMPM(0)/XPIC(0)": V += a dt, X += (S v_tilde - a dt/2) dt,
     the second-order FLIP of 000 eqs. 2.48-2.49 with VV = S v), computed by the same update as
     ``FLIP()``; its strain update uses the lumped velocities, as FLIP's.
+
+    Args:
+        order: k, the series order, an integer >= 0 (default 2; static): 0 is FLIP, 1 the "new
+            PIC"; above 40 warns (round-off, use ``series="neumann"``).
+        beta: a FLIP fraction in [0, 1] (default 0.0, the seeds' FMPM); an array leaf.
+        boundary: the velocity conditions of the series (:func:`jaxmpm.mass_matrix_series`):
+            "iterates" (default), "result", "lumped" or a variant of 003 §1.5 and §2.4
+            ("unlumped1", "unlumped2", "unlumped2_mtilde", "partial", "collection",
+            "series_start", "pinv_start"; USL only).
+        series: "binomial" (default) or "neumann", the same polynomial summed two ways.
+        damping_velocity: the grid damping's u: "lumped" (default, S v) or "updated" (S v+).
     """
 
     beta: jnp.ndarray

@@ -134,6 +134,18 @@ class XPIC(Scheme):
     eq. 3.12 does not define it: (I - S S+)^0 = I would give P = 0.)  P = I makes beta irrelevant
     (beta V + (1 - beta) P V = V); it is taken as 1, so ``XPIC(0, position=...)`` is
     ``FLIP(position=...)`` exactly.
+
+    Args:
+        order: m, the series order, an integer >= 0 (default 2; static, a loop length): 1 is the
+            FLIP/PIC blend, 0 is FLIP; above 40 warns (round-off, use ``series="neumann"``).
+        beta: the FLIP fraction in [0, 1] (default 0.0): 1 FLIP, 0 PIC; an array leaf
+            (:func:`jaxmpm.set_params`, ``jax.grad``).
+        position: the position update, the VV of the list above (default "Sv").
+        boundary: the series' velocity conditions: "iterates" (default), "result", "lumped" or
+            "unconstrained_start".
+        series: how the series is summed: "binomial" (default, 000 eqs. 3.23-3.25) or "neumann"
+            (the same polynomial, stable at high order; :func:`jaxmpm.mass_matrix_series`).
+        damping_velocity: the u of the grid damping alpha_g u: "lumped" (default) or "updated".
     """
 
     beta: jnp.ndarray
@@ -252,7 +264,14 @@ class FLIP(XPIC):
 
     ``FLIP(position="V_end")`` is "Modified FLIP #2" (000 eqs. 2.54-2.56, X += V^{n+1} dt) and
     ``FLIP(beta=alpha, position="V_end")`` the PIC/FLIP blend of Stomakhin et al. (003 §2.3.4);
-    ``FLIP(position="V")`` is 000 eq. (2.49)'s second form.  All position options: :class:`XPIC`."""
+    ``FLIP(position="V")`` is 000 eq. (2.49)'s second form.  All position options: :class:`XPIC`.
+
+    Args:
+        beta: the FLIP fraction in [0, 1] (default 1.0, pure FLIP; 0 is PIC).
+        position: the position update (default "Sv"; the options of :class:`XPIC`).
+        damping_velocity: the u of the grid damping alpha_g u: "lumped" (default, S v) or
+            "updated" (NairnMPM's rule).
+    """
 
     def __init__(self, beta=1.0, position: str = "Sv", damping_velocity: str = "lumped"):
         super().__init__(order=1, beta=beta, position=position, damping_velocity=damping_velocity)
@@ -261,7 +280,13 @@ class FLIP(XPIC):
 class PIC(XPIC):
     """PIC: the blend with beta = 0 (000 eq. 2.85 with beta = 0).  ``PIC(position="second_order")``
     is the second-order PIC of 000 eqs. (2.70)-(2.72), ``PIC(position="first_order")`` "Modified
-    PIC #1" (000 eqs. 2.64-2.65)."""
+    PIC #1" (000 eqs. 2.64-2.65).
+
+    Args:
+        position: the position update (default "Sv"; the options of :class:`XPIC`).
+        damping_velocity: the u of the grid damping alpha_g u: "lumped" (default, S v) or
+            "updated" (S(v + a dt), NairnMPM's rule).
+    """
 
     def __init__(self, position: str = "Sv", damping_velocity: str = "lumped"):
         super().__init__(order=1, beta=0.0, position=position, damping_velocity=damping_velocity)

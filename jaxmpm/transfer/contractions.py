@@ -29,7 +29,13 @@ import jax.numpy as jnp
 
 
 class Contraction(eqx.Module):
-    """A per-particle quantity ``value`` and how P2G contracts it with the stencil (module docstring)."""
+    """A per-particle quantity ``value`` and how P2G contracts it with the stencil: the subclass
+    names the nodal sum (:class:`Weighted`, :class:`Gradient`, :class:`Divergence`,
+    :class:`Affine`, :class:`Hoop`, :class:`PerSlot`).
+
+    Args:
+        value: the per-particle quantity q_p, shaped as the subclass asks.
+    """
 
     value: jnp.ndarray
 
@@ -39,42 +45,71 @@ class Contraction(eqx.Module):
 
 
 class Weighted(Contraction):
-    """sum_p S_pi q_p, q (N,) or (N, C)."""
+    """sum_p S_pi q_p: a nodal scalar (n,) or (n, C) (the mass ``Weighted(M)``, the momentum
+    ``Weighted(M V)``).
+
+    Args:
+        value: q_p, (N,) or (N, C).
+    """
 
     def width(self, dim):
         return self.value.shape[1:]
 
 
 class Gradient(Contraction):
-    """sum_p q_p G_pi of a scalar q (N,): a nodal vector (n, D)."""
+    """sum_p q_p G_pi of a scalar q (N,): a nodal vector (n, D) (contact's mass gradient
+    ``Gradient(M)``).
+
+    Args:
+        value: q_p, (N,).
+    """
 
     def width(self, dim):
         return (dim,)
 
 
 class Divergence(Contraction):
-    """sum_p q_p . G_pi, q (N, C, D) contracted on its last axis with G_pi: (n, C)."""
+    """sum_p q_p . G_pi, q (N, C, D) contracted on its last axis with G_pi: (n, C) (the internal
+    force ``Divergence(-V0 tau)``).
+
+    Args:
+        value: q_p, (N, C, D).
+    """
 
     def width(self, dim):
         return self.value.shape[1:2]
 
 
 class Affine(Contraction):
-    """sum_p S_pi q_p (x_i - X_p), q (N, C, D): the affine part of APIC/TPIC/RPIC's momentum, (n, C)."""
+    """sum_p S_pi q_p (x_i - X_p), q (N, C, D): the affine part of APIC/TPIC/RPIC's momentum, (n, C).
+
+    Args:
+        value: q_p, (N, C, D) (APIC: M_p B_p D_p^-1).
+    """
 
     def width(self, dim):
         return self.value.shape[1:2]
 
 
 class Hoop(Contraction):
-    """sum_p T_pi q_p with the hoop shape function T of an axisymmetric stencil (001 eq. 116)."""
+    """sum_p T_pi q_p with the hoop shape function T of an axisymmetric stencil (001 eq. 116):
+    (n,) or (n, C).
+
+    Args:
+        value: q_p, (N,) or (N, C).
+    """
 
     def width(self, dim):
         return self.value.shape[1:]
 
 
 class PerSlot(Contraction):
-    """Per-slot values given, planar (K, N) or (C, K, N): sum_p c_pi."""
+    """Per-slot values given: sum_p c_pi, for a term that computes its own per-slot weights.
+
+    Args:
+        value: c_pi per stencil slot k (the node ``stencil.index[k, p]``), planar: (K, N) for
+            a nodal scalar (n,), (C, K, N) for (n, C).
+    """
 
     def width(self, dim):
         return self.value.shape[:1] if self.value.ndim == 3 else ()

@@ -73,12 +73,30 @@ def p2g(stencil, columns: dict, num_nodes: int) -> dict:
 
 
 def gather(stencil, u):
-    """(S u)_p = sum_i S_pi u_i for nodal ``u`` of shape (n,) or (n, C); result (N,) or (N, C)."""
+    """(S u)_p = sum_i S_pi u_i: a nodal field interpolated to the particles (grid -> particle).
+
+    Args:
+        stencil: the particles' stencil (:class:`jaxmpm.StencilBase`, e.g.
+            ``shape.stencil(grid, x)``).
+        u: the nodal field, (n,) or (n, C).
+
+    Returns:
+        (N,) or (N, C).
+    """
     return kernel().gather(stencil, u)
 
 
 def scatter(stencil, q, num_nodes: int):
-    """(S^T q)_i = sum_p S_pi q_p for particle ``q`` of shape (N,) or (N, C)."""
+    """(S^T q)_i = sum_p S_pi q_p: a particle quantity summed onto the nodes (particle -> grid).
+
+    Args:
+        stencil: the particles' stencil (:class:`jaxmpm.StencilBase`).
+        q: the particle quantity, (N,) or (N, C).
+        num_nodes: n, the number of grid nodes (``grid.num_nodes``).
+
+    Returns:
+        (n,) or (n, C).
+    """
     return p2g(stencil, {"q": Weighted(q)}, num_nodes)["q"]
 
 
@@ -105,7 +123,19 @@ def divergence(stencil, weighted_stress, num_nodes: int, particle_force=None):
 
 
 class Transfer(eqx.Module):
-    """S, S+ and S+S for one particle configuration (one time step)."""
+    """S, S+ and S+S for one particle configuration (one time step): the operators every scheme
+    and term uses (:meth:`gather`, :meth:`scatter`, :meth:`s_plus`, :meth:`s_plus_s`, ...).
+    :meth:`build` makes one from a stencil and the particle masses.
+
+    Args:
+        stencil: the particles' stencil (:class:`jaxmpm.StencilBase`).
+        particle_mass: M_p, (N,).
+        nodal_mass: the lumped nodal mass m_i = sum_p S_pi M_p, (n,).
+        num_nodes: n, the number of nodal rows (the grid's nodes times the velocity fields).
+        images: the mirror planes' map (``jaxmpm.physics.conditions.MirrorMap``) whose images
+            the nodal sums of :meth:`s_plus` fold in (:class:`jaxmpm.Mirror`), or None (the
+            default).
+    """
 
     stencil: object  # the particles' stencil (jaxmpm.StencilBase)
     particle_mass: jnp.ndarray  # M_p, (N,)

@@ -54,7 +54,16 @@ def series(start, order: int, transfer, project=None, form: str = "binomial"):
     function on nodal fields, the projection on free components; None: the identity), in the
     ``form`` "binomial" (000 eqs. 3.22-3.24) or "neumann" (the same polynomial as
     sum_{j<m} (I - P S+S)^j start; see :func:`mass_matrix_series`).  A ``fori_loop`` of
-    ``transfer.s_plus_s``: differentiable, and its length is static."""
+    ``transfer.s_plus_s``: differentiable, and its length is static.
+
+    Args:
+        start: the nodal field the series acts on, (n, C).
+        order: m >= 1, the number of terms (static; 1 returns ``start``).
+        transfer: the step's :class:`jaxmpm.Transfer` (its ``s_plus_s``).
+        project: a function on nodal fields applied after every S+S (the projection on the free
+            components of a velocity field), or None (the default) for the identity.
+        form: "binomial" (the default) or "neumann", the same polynomial summed two ways.
+    """
     if project is None:
         project = _identity
     if order == 1:
@@ -127,6 +136,16 @@ def mass_matrix_series(
       * ``"unconstrained_start"`` (XPIC only): NairnMPM's series, which starts from the lumped
         velocity before the conditions (``free`` = p/m) and zeroes only the increments
         (:func:`unconstrained_series`).
+
+    Args:
+        u: the lumped nodal velocity with the velocity conditions imposed, (n, D).
+        order: m >= 1, the series order (XPIC's m, FMPM's k; static).
+        transfer: the step's :class:`jaxmpm.Transfer`.
+        constraint: the velocity conditions (:class:`jaxmpm.Constraint`).
+        boundary: how the conditions enter, one of the modes above (default "iterates").
+        form: "binomial" (the default) or "neumann".
+        free: the lumped velocity before the conditions, p+/m (or p/m); needed by the
+            unlumped modes and "unconstrained_start", else None (the default).
     """
     if boundary in UNLUMPED_MODES:
         return unlumped_series(u, free, order, transfer, constraint, boundary, form)
@@ -182,7 +201,18 @@ def exchange_series(dv, order: int, transfer, constraint, boundary: str = "itera
     term XPIC(k) and FMPM(k) subtract when velocity fields exchange momentum (contact: 003 eqs.
     3.16-3.18, 3.22; m~_0^{-1} = 0 by 003 eq. 3.15 at k = 1).  None when there is no exchange
     (``dv`` None) or k = 1.  Homogeneous: Dv^a is zero on constrained components and stays so (no
-    prescribed-velocity terms, unlike :func:`mass_matrix_series`)."""
+    prescribed-velocity terms, unlike :func:`mass_matrix_series`).
+
+    Args:
+        dv: Dv^a = Dp^a / m^a, the velocity change of the momentum exchange, (n, D); or None.
+        order: k, the scheme's series order (the series has order k - 1).
+        transfer: the step's :class:`jaxmpm.Transfer`.
+        constraint: the velocity conditions (:class:`jaxmpm.Constraint`).
+        boundary: the scheme's boundary mode: under "iterates" (the default) and
+            "unconstrained_start" every iterate has its constrained components zeroed; under
+            the others the series runs without the conditions.
+        form: "binomial" (the default) or "neumann".
+    """
     if dv is None or order == 1:
         return None
     project = constraint.zero if boundary in ("iterates", "unconstrained_start") else None

@@ -92,8 +92,16 @@ class StencilBase(eqx.Module):
 
 
 class Stencil(StencilBase):
-    """A stencil given by its four planar arrays (see :class:`StencilBase`).  ``index`` must lie
-    in [0, n): the transfers gather and scatter without bounds handling (shape functions clip)."""
+    """A stencil given by its four planar arrays (see :class:`StencilBase`), e.g. a padded one in
+    a test; shape functions return a :class:`TensorStencil`.
+
+    Args:
+        index: (K, N) flat node numbers i of the K stencil slots of each particle, in [0, n): the
+            transfers gather and scatter without bounds handling (shape functions clip).
+        weight: (K, N) the shape function values S_pi.
+        gradient: (D, K, N) the gradients G_pi, component first.
+        offset: (D, K, N) x_i - X_p, component first.
+    """
 
     index: jnp.ndarray
     weight: jnp.ndarray
@@ -111,7 +119,14 @@ class TensorStencil(StencilBase):
     ``weight``, ``gradient`` and ``offset`` are products and sums of these factors,
     S_pi = prod_a w_a,  G_pi[a] = dw_a prod_{b != a} w_b, formed where they are used: on CPU one
     multiply per slot inside the consuming kernel is cheaper than reading a stored (K, N) array,
-    while the kernels themselves (selects, powers) are evaluated once per axis."""
+    while the kernels themselves (selects, powers) are evaluated once per axis.
+
+    Args:
+        index: (K, N) flat node numbers of the K = K1^D slots, C order over the axes.
+        w: (D, K1, N) the 1D shape function N(r) per axis.
+        dw: (D, K1, N) its derivative dN/dx per axis (1/h included).
+        dx: (D, K1, N) x_i - X_p per axis.
+    """
 
     index: jnp.ndarray
     w: jnp.ndarray
@@ -173,7 +188,15 @@ class AxisymmetricStencil(TensorStencil):
         T_ip = (1/(A_p r_p)) int chi_p N_i dA = t_r * w_z,   t_r = (Cartesian radial factor) / r_p,
 
     (for a rectangle <r_p> = r_p).  Point particles (Linear, B-splines): S = N_i(X_p),
-    G = grad N_i(X_p), T = N_i(X_p) / r_p."""
+    G = grad N_i(X_p), T = N_i(X_p) / r_p.
+
+    Args:
+        index: (K, N) flat node numbers, as for :class:`TensorStencil`.
+        w: (2, K1, N) the per-axis factors (r, z), the radial one r-weighted (001 eq. 112).
+        dw: (2, K1, N) their derivatives, the radial one r-weighted (001 eq. 115).
+        dx: (2, K1, N) x_i - X_p per axis.
+        t_r: (K1, N) the radial factor of the hoop shape function, T_ip = t_r * w_z (001 eq. 116).
+    """
 
     t_r: jnp.ndarray
 
@@ -324,8 +347,10 @@ class Linear(ShapeFunction):
 class UGIMP(ShapeFunction):
     """Uniform GIMP (001 eqs. 16-17) with particle half-width l_p = h / (2 ppc).
 
-    ``ppc`` is the number of particles per cell along each axis used when filling the body
-    (it must match the ``ppc`` given to :func:`jaxmpm.fill`).
+    Args:
+        ppc: the number of particles per cell along each axis used when filling the body, a
+            positive integer (default 2); it must match the ``ppc`` given to :func:`jaxmpm.fill`
+            (:meth:`jaxmpm.Simulation.init` checks).
     """
 
     ppc: int = eqx.field(static=True)

@@ -55,7 +55,16 @@ _KERNELS: dict = {}
 def register_kernel(policy: str, kernel: Kernel) -> Kernel:
     """Use ``kernel`` for the transfers traced under ``policy`` ("cpu" or "gpu").  The kernel is
     chosen when a step is traced, so the programs JAX compiled with the previous one are dropped
-    (``jax.clear_caches``): the next call retraces with the new kernel."""
+    (``jax.clear_caches``): the next call retraces with the new kernel.
+
+    Args:
+        policy: the backend policy, "cpu" or "gpu" (``Simulation(backend=...)``; "auto" picks
+            one of them).
+        kernel: a :class:`Kernel` instance.
+
+    Returns:
+        ``kernel``.
+    """
     check(policy in POLICIES and policy != "auto",
           f"register_kernel: policy = {policy!r}; choose 'cpu' or 'gpu' (jaxmpm.transfer.backend)")
     check(isinstance(kernel, Kernel), f"register_kernel: {kernel!r} is not a jaxmpm Kernel")

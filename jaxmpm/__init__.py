@@ -28,7 +28,7 @@ from .materials import (ElasticMaterial, HypoElastic, Increment, IncrementalElas
 from .physics import (BodyForce, Constraint, Contact, Damping, Diffusion, Dirichlet, Fixed, Heat, Mirror, Neumann,
                       NodeSet, ParticleForce, Prescribed, Reaction, Slip, StressDivergence, Term, Traction, Transport,
                       Wall)
-from .run.cache import compilation_cache
+from .run.cache import compilation_cache, enable_by_default as _enable_compilation_cache
 from .run.calibrate import CalibrationResult, calibrate
 from .run.driver import History, RunInterrupted, StableTimeStepWarning
 from .run.ensemble import ensemble
@@ -69,3 +69,8 @@ for _public in map(globals().get, __all__):
     if isinstance(_public, type):
         _document_init(_public)
 del _public
+
+# the persistent compilation cache, on by default (jaxmpm/run/cache.py; JAXMPM_CACHE=0 switches it
+# off): last, so that a compilation while importing would not open it
+_enable_compilation_cache()
+del _enable_compilation_cache

@@ -25,11 +25,14 @@ from .scenes.command import SCENE_OPTIONS, build_setup, setup_from_options, stor
 EXIT_ERROR = 2
 _IMPORTED = time.perf_counter()  # the origin of seconds_since_start where /proc is missing
 EXIT_SIGNAL = {"SIGINT": 130, "SIGTERM": 143}
-CACHE_HELP = ("keep compiled programs on disk (jm.compilation_cache: $JAXMPM_CACHE_DIR, else ~/.cache/jaxmpm/xla), "
-              "so that the same command run again skips most of XLA's compilation")
+NO_CACHE_HELP = ("do not keep compiled programs on disk.  By default they are kept (jm.compilation_cache: "
+                 "$JAXMPM_CACHE_DIR, else the user cache folder, ~/.cache/jaxmpm/xla on Linux; at most "
+                 "$JAXMPM_CACHE_MAX_BYTES, 1 GiB), so that the same command run again, or its resume, skips most "
+                 "of XLA's compilation; JAXMPM_CACHE=0 in the environment switches it off too")
+CACHE_HELP = "the default (the cache is on unless --no-cache); accepted for older command lines"
 
 #: the options of ``jaxmpm run`` that are not scene options (kept out of the stored command)
-RUN_ONLY = ("out", "force", "no_progress", "command", "cache")
+RUN_ONLY = ("out", "force", "no_progress", "command", "cache", "no_cache")
 
 
 class _OneLineErrors(argparse.ArgumentParser):
@@ -229,6 +232,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="HDF5 output file (an XDMF sidecar goes beside it)")
     run.add_argument("--force", action="store_true", help="overwrite --out and its XDMF sidecar if they exist")
     run.add_argument("--no-progress", action="store_true", help="no progress bar")
+    run.add_argument("--no-cache", action="store_true", help=NO_CACHE_HELP)
     run.add_argument("--cache", action="store_true", help=CACHE_HELP)
     resume = sub.add_parser(
         "resume",
@@ -238,6 +242,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     resume.add_argument("file", metavar="FILE.h5", help="the --out file of an interrupted `jaxmpm run`")
     resume.add_argument("--no-progress", action="store_true", help="no progress bar")
+    resume.add_argument("--no-cache", action="store_true", help=NO_CACHE_HELP)
     resume.add_argument("--cache", action="store_true", help=CACHE_HELP)
     add_plot_commands(sub)
     return parser
@@ -256,6 +261,10 @@ def main(argv=None) -> int:
     if scene is not None:
         return scene_help(parser, scene)
     args = parser.parse_args(argv)
+    if getattr(args, "no_cache", False):  # before anything compiles
+        from .run.cache import compilation_cache
+
+        compilation_cache(False)
     if args.command == "scenes":
         return list_scenes()
     if args.command == "resume":
@@ -447,8 +456,7 @@ def resume_run(args) -> int:
         setup = setup_from_options(options)
     except (ValueError, KeyError) as err:  # InputError is a ValueError
         fail(str(err))
-    return run_setup(setup, argparse.Namespace(out=args.file, no_progress=args.no_progress, cache=args.cache), options,
-                     resume=True)
+    return run_setup(setup, argparse.Namespace(out=args.file, no_progress=args.no_progress), options, resume=True)
 
 
 def saved_state(path) -> dict | None:
@@ -546,11 +554,6 @@ def run_setup(setup, args, options: dict, resume: bool = False) -> int:
     import jaxmpm as jm
     from jaxmpm.io.xdmf import xdmf_paths
 
-    if args.cache:
-        try:
-            jm.compilation_cache()
-        except jm.InputError as err:
-            fail(str(err))
     sim, state = setup.sim, setup.state
     n = int(state.x.shape[0])
     p0 = np.asarray(sim.diagnostics(state)["momentum"], dtype=float)

@@ -13,9 +13,21 @@ values (tests/test_reference_values.py) were produced at XLA's defaults and agre
 step) and 1e-10 (whole runs).  Benchmarks, experiments and users compile at XLA's defaults.  Both
 are set through the environment before JAX is imported, so the subprocesses the tests start (CLI,
 notebooks, resume) inherit them; ``JAX_DISABLE_MOST_OPTIMIZATIONS=0`` and
-``XLA_FLAGS=--xla_cpu_use_fusion_emitters=true`` in the environment run the suite at the defaults."""
+``XLA_FLAGS=--xla_cpu_use_fusion_emitters=true`` in the environment run the suite at the defaults.
 
+Each test process also keeps every program it compiles in a folder of its own for the session
+(JAX's persistent cache, emptied and removed when the process ends), so a program compiled again
+is read back instead: a test that builds the same simulation anew, a module run after
+``jax.clear_caches()`` below, and above all eager code, where every ``lax.cond`` of a step (the
+transfer's stage boundaries) is traced as a new function and would be compiled again each call.
+About a third of the suite's compilation is such repeats.  A cached program is the one XLA
+compiled, so no number changes.  The cache is this process's only (not the subprocesses', not
+other workers'), is never read by a later session, and ``JAXMPM_TEST_XLA_CACHE=0`` switches it off."""
+
+import atexit
 import os
+import shutil
+import tempfile
 from importlib.metadata import version as _version
 
 os.environ.setdefault("JAX_DISABLE_MOST_OPTIMIZATIONS", "1")
@@ -29,6 +41,12 @@ import jax
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_dtype_promotion", "strict")
 jax.config.update("jax_numpy_rank_promotion", "raise")
+
+if os.environ.get("JAXMPM_TEST_XLA_CACHE", "1") != "0":
+    _compiled = tempfile.mkdtemp(prefix="jaxmpm-tests-xla-")
+    atexit.register(shutil.rmtree, _compiled, ignore_errors=True)
+    jax.config.update("jax_compilation_cache_dir", _compiled)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)  # every program, however quick
 
 
 import pytest  # noqa: E402

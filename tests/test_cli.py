@@ -156,30 +156,24 @@ def test_run_scheme_options_reach_hdf5(tmp_path, capsys, options, attrs, n):
     assert summary_value(capsys.readouterr().out, "particles") == str(n)
 
 
-def test_cache_option_switches_on_the_compilation_cache(tmp_path, capsys, monkeypatch):
-    """`--cache` calls jm.compilation_cache() (whose own tests are in test_compilation_cache.py)
-    once, before the run; it is not a scene option (not stored for `resume`); a folder it cannot
-    use exits 2 in one line."""
+def test_no_cache_switches_the_compilation_cache_off(tmp_path, monkeypatch):
+    """The cache is on by default (test_compilation_cache.py); `--no-cache` calls
+    jm.compilation_cache(False) once, before the run; `--cache` (the default, kept for older
+    command lines) is accepted and calls nothing; neither is a scene option (not stored for `resume`)."""
     import h5py
 
+    from jaxmpm.run import cache
+
     calls = []
-    monkeypatch.setattr(jm, "compilation_cache", lambda: calls.append("called"))
-    path = tmp_path / "cached.h5"
-    assert run_cli(["run", "bar", *SHORT, "--out", str(path), "--no-progress", "--cache"]) == 0
-    assert calls == ["called"]
-    with h5py.File(path, "r") as f:
-        assert "cache" not in f.attrs["command"]
-    assert run_cli(["run", "bar", *SHORT, "--out", str(tmp_path / "plain.h5"), "--no-progress"]) == 0
-    assert calls == ["called"]
-
-    def refuse():
-        raise jm.InputError("compilation_cache: path '/nowhere' is not a folder; pass a folder")
-
-    monkeypatch.setattr(jm, "compilation_cache", refuse)
-    capsys.readouterr()
-    assert run_cli(["run", "bar", *SHORT, "--out", str(tmp_path / "x.h5"), "--no-progress", "--cache"]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "is not a folder" in err[0], err
+    monkeypatch.setattr(cache, "compilation_cache", lambda *args, **kwargs: calls.append(args))
+    path = tmp_path / "uncached.h5"
+    assert run_cli(["run", "bar", *SHORT, "--out", str(path), "--no-progress", "--no-cache"]) == 0
+    assert calls == [(False,)]
+    assert run_cli(["run", "bar", *SHORT, "--out", str(tmp_path / "cached.h5"), "--no-progress", "--cache"]) == 0
+    assert calls == [(False,)]
+    for name in ("uncached.h5", "cached.h5"):
+        with h5py.File(tmp_path / name, "r") as f:
+            assert "cache" not in f.attrs["command"]
 
 
 def test_unknown_scheme_exits_2_naming_it(tmp_path, capsys):

@@ -235,17 +235,23 @@ SHARDED = textwrap.dedent("""
     assert len(jax.devices()) == 2
     setup = jm.scene("bar", scheme=jm.XPIC(order=2))
     betas = jnp.linspace(0.0, 0.9, 16)
-    final, hist, failed = jm.ensemble(setup.sim, setup.state, setup.dt, 100, 25, params={"beta": betas})
-    np.save(sys.argv[1], np.asarray(final.v))
+    # each device runs its 8 members (shard_map) batched, one after another, and in chunks of 2
+    out = {s + str(c): np.asarray(jm.ensemble(setup.sim, setup.state, setup.dt, 100, 25, params={"beta": betas},
+                                              strategy=s, chunk=c)[0].v)
+           for s, c in (("auto", None), ("sequential", None), ("vmap", 2))}
+    np.savez(sys.argv[1], **out)
 """)
 
 
 @pytest.mark.slow
 def test_ensemble_sharded_over_two_host_devices(tmp_path):
-    out = tmp_path / "sharded.npy"
+    out = tmp_path / "sharded.npz"
     env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
     subprocess.run([sys.executable, "-c", SHARDED, str(out)], check=True, env=env, timeout=300)
     setup = jm.scene("bar", scheme=jm.XPIC(order=2))
     betas = jnp.linspace(0.0, 0.9, 16)
     final, _, _ = jm.ensemble(setup.sim, setup.state, setup.dt, 100, 25, params={"beta": betas})
-    np.testing.assert_allclose(np.load(out), np.asarray(final.v), rtol=1e-12, atol=1e-15)
+    sharded = np.load(out)
+    assert sorted(sharded.files) == ["autoNone", "sequentialNone", "vmap2"]
+    for name in sharded.files:
+        np.testing.assert_allclose(sharded[name], np.asarray(final.v), rtol=1e-12, atol=1e-15)

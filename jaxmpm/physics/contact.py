@@ -212,11 +212,12 @@ class Contact(Term):
             parameter ``friction``), non-zero only with ``law="coulomb"``.
         normal: the contact normal, from material 0 into material 1: "first" (default,
             material 0's mass gradient), "max_gradient", "average", or a vector (that unit
-            direction on every node).
+            direction on every node; an array leaf, so another vector compiles nothing new).
         materials: M, the number of materials, an integer >= 2 (default 2).
         separation: the gap, in cells, below which the bodies touch: a node is a contact node
             only where the materials' nodal centres of mass are closer than ``separation`` h
-            along the normal; None (the default): wherever both have mass.
+            along the normal (an array leaf: another value compiles nothing new); None (the
+            default): wherever both have mass.
         series_correction: under XPIC(m)/FMPM(k), subtract the series of the exchange Dp/m
             (003 eqs. 3.18, 3.22; default True); False drops that term.
         gradient: the gradients behind the normals: "mass" (default, sum_p M_p G_pi) or
@@ -228,10 +229,15 @@ class Contact(Term):
     """
 
     law: str = eqx.field(static=True)
-    normal: str | tuple = eqx.field(static=True)  # a name of NORMALS, or the specified unit vector
+    # the normal: a name of NORMALS, or "specified" for ``direction``, the given unit vector (a leaf, so that
+    # another vector compiles nothing new; None with a name)
+    normal_rule: str = eqx.field(static=True)
+    direction: jnp.ndarray | None
     materials: int = eqx.field(static=True)
     friction: jnp.ndarray
-    separation: float | None = eqx.field(static=True)
+    # the separation criterion in cells, a leaf (another value compiles nothing new); None: off (a
+    # different program: no mass moments)
+    separation: jnp.ndarray | None
     series_correction: bool = eqx.field(static=True)
     gradient: str = eqx.field(static=True, default="mass")
     separation_update: str = eqx.field(static=True, default="start")
@@ -246,10 +252,13 @@ class Contact(Term):
         check(materials >= 2, f"Contact: materials = {materials}; contact needs at least two materials "
                               "(each body its own material id 0..M-1)")
         self.law = law
-        self.normal = normal
+        named = isinstance(normal, str)
+        self.normal_rule = normal if named else "specified"
+        self.direction = None if named else jnp.asarray(normal, dtype=jnp.result_type(float))
         self.materials = materials
-        self.separation = None if separation is None else FINITE.real(
-            "Contact", "separation", separation, fix="the gap, in cells, below which the bodies touch (e.g. 0.5)")
+        self.separation = None if separation is None else jnp.asarray(FINITE.real(
+            "Contact", "separation", separation, fix="the gap, in cells, below which the bodies touch (e.g. 0.5)"),
+            dtype=jnp.result_type(float))
         check(isinstance(series_correction, bool),
               f"Contact: series_correction = {series_correction!r}; use True or False")
         self.series_correction = series_correction
@@ -274,6 +283,14 @@ class Contact(Term):
         self.friction = NON_NEGATIVE.leaf("Contact", "friction", friction, fix="the Coulomb coefficient mu")
         mu = concrete(self.friction)
         check(law == "coulomb" or mu is None or not np.any(mu), f"Contact: friction = {friction} needs law='coulomb'")
+
+    @property
+    def normal(self):
+        """The ``normal`` option: a name of :data:`NORMALS`, or the specified unit vector as a tuple
+        of floats (concrete values only)."""
+        if self.direction is None:
+            return self.normal_rule
+        return tuple(float(c) for c in np.asarray(self.direction))
 
     def check_fields(self, fields: dict) -> None:
         ids = concrete(fields["material"])
@@ -341,29 +358,31 @@ class Contact(Term):
 
     def specified_normal(self, like):
         """The specified normal (``normal=`` a vector) on every node, shaped and typed as ``like`` (n, D)."""
-        check(len(self.normal) == like.shape[-1], f"Contact: normal = {self.normal} has {len(self.normal)} "
-                                                  f"components but the grid is {like.shape[-1]}D")
-        return jnp.broadcast_to(jnp.asarray(self.normal, dtype=like.dtype), like.shape)
+        size = self.direction.shape[0]
+        if size != like.shape[-1]:
+            fail("Contact", f"normal = {show(concrete(self.direction))} has {size} components but the grid is "
+                            f"{like.shape[-1]}D", f"give a unit vector of {like.shape[-1]} components")
+        return jnp.broadcast_to(self.direction.astype(like.dtype), like.shape)
 
     def contact_normal(self, grad_m):
         """Two materials: the unit normal from material 0 into material 1 on every node, (n, D)."""
         g0, g1 = self.split(grad_m)
-        if isinstance(self.normal, tuple):
+        if self.direction is not None:
             return self.specified_normal(g0)
-        if self.normal == "max_gradient":  # the larger |g^a| defines it; material 0's on a tie
+        if self.normal_rule == "max_gradient":  # the larger |g^a| defines it; material 0's on a tie
             own = jnp.sum(g0 * g0, axis=-1) >= jnp.sum(g1 * g1, axis=-1)
             return _safe_unit(jnp.where(own[:, None], g0, -g1))
-        return _safe_unit(g0 if self.normal == "first" else g0 - g1)
+        return _safe_unit(g0 if self.normal_rule == "first" else g0 - g1)
 
     def material_normals(self, grad_m, m):
         """M materials: the unit normal n^a from material a into the rest on every node, (M, n, D)
         (module docstring); for two materials (n^0, -n^0) with n^0 = :meth:`contact_normal`."""
         g = self.per_material(grad_m)
-        if self.normal == "average":
+        if self.normal_rule == "average":
             return _safe_unit(2.0 * g - jnp.sum(g, axis=0, keepdims=True))  # g^a - sum_{b != a} g^b
         first = jnp.argmax(self.per_material(m) > 0, axis=0)  # the lowest-numbered material present
         own = first[None, :] == jnp.arange(self.materials)[:, None]  # (M, n): a is that material
-        if self.normal == "max_gradient":
+        if self.normal_rule == "max_gradient":
             # the rest's gradient sum_{b != a} g^b as a sum of the others alone (adding exact zeros), so that
             # with two materials it is the other's g^b bit for bit and n^1 = -n^0 exactly
             others = ~np.eye(self.materials, dtype=bool)[:, :, None, None]
@@ -371,7 +390,7 @@ class Contact(Term):
             g_sq, rest_sq = jnp.sum(g * g, axis=-1), jnp.sum(rest * rest, axis=-1)
             mine = (g_sq > rest_sq) | ((g_sq == rest_sq) & own)  # a tie goes to the lowest-numbered material's side
             return _safe_unit(jnp.where(mine[..., None], g, -rest))
-        if isinstance(self.normal, tuple):
+        if self.direction is not None:
             direction = self.specified_normal(g[0])[None]
         else:  # "first"
             direction = _safe_unit(jnp.take_along_axis(g, first[None, :, None], axis=0)[0])[None]

@@ -67,7 +67,7 @@ import numpy as np
 from ..core.errors import check
 from ..core.fields import ParticleField
 from ..core.registry import Parameter, register_term
-from ..core.validate import FINITE, FRACTION, NON_NEGATIVE, POSITIVE, concrete, positive_int
+from ..core.validate import FINITE, FRACTION, NON_NEGATIVE, POSITIVE, concrete, positive_int, traced
 from ..transfer.contractions import Divergence, Gradient, Weighted
 from ..transfer.operators import Transfer, gather, p2g, safe_divide
 from ..transfer.series import series
@@ -197,7 +197,9 @@ class Transport(Term):
     boundary: tuple
     beta: jnp.ndarray  # the FLIP fraction of the particle update (000 eq. 3.58)
     order: int = eqx.field(static=True)  # XPIC(m) order of the update (1: FLIP/PIC)
-    initial: float | Callable = eqx.field(static=True)
+    # a number: a leaf (another value compiles nothing new); a function of the positions: kept as it is, static
+    # to eqx.filter_jit (give one that compares equal when rebuilt, not a new lambda, to reuse compiled programs)
+    initial: jnp.ndarray | Callable
     interface: str = eqx.field(static=True)  # across contact interfaces: "perfect", "insulated" or "conductance"
     conductance: jnp.ndarray  # the interface conductance h_c (interface="conductance")
 
@@ -231,9 +233,9 @@ class Transport(Term):
         self.order, default_beta = _parse_update(owner, update)
         self.beta = FRACTION.leaf(owner, "beta", default_beta if beta is None else beta,
                                  fix="the FLIP fraction of the update, in [0, 1]")
-        check(callable(initial) or np.isfinite(np.asarray(initial, dtype=float)).all(),
+        check(callable(initial) or traced(initial) or np.isfinite(np.asarray(initial, dtype=float)).all(),
               f"{owner}: initial = {initial!r}; give a finite number or a function f(x) -> (N,)")
-        self.initial = initial
+        self.initial = initial if callable(initial) else jnp.asarray(initial, dtype=jnp.result_type(float))
         if isinstance(interface, str):
             check(interface in ("perfect", "insulated"),
                   f"{owner}: interface = {interface!r}; choose 'perfect' (one field on shared nodes), 'insulated' "
@@ -246,7 +248,11 @@ class Transport(Term):
 
     # ------------------------------------------------------------------ per particle
     def particle_fields(self) -> tuple:
-        return (ParticleField(self.FIELD, initial=self.initial, doc=f"{self.FIELD} of the particle (001 §8-9)"),)
+        initial = self.initial
+        if not callable(initial):  # a leaf, but ParticleField keeps a static value: a float (or NumPy values),
+            value = concrete(initial)  # or while traced a function returning the traced value
+            initial = (lambda x: self.initial) if value is None else float(value) if value.ndim == 0 else value
+        return (ParticleField(self.FIELD, initial=initial, doc=f"{self.FIELD} of the particle (001 §8-9)"),)
 
     def particle_capacity(self, state):
         """m_Tp: the particle's capacity (heat: M_p C_p; diffusion: the current volume)."""
@@ -418,9 +424,14 @@ class Transport(Term):
         when a held value differs from it."""
         held, value = self.held(sim, dtype)
         x = sim.grid.node_coordinates()
-        t0 = (np.asarray(self.initial(x), dtype=float) if callable(self.initial)
-              else np.full(len(x), float(self.initial)))
-        t0 = jnp.asarray(np.tile(np.broadcast_to(t0, (len(x),)), self.copies(sim)), dtype)
+        copies = self.copies(sim)
+        if callable(self.initial):  # evaluated on the nodes while tracing
+            t0 = np.asarray(self.initial(x), dtype=float)
+            t0 = jnp.asarray(np.tile(np.broadcast_to(t0, (len(x),)), copies), dtype)
+        else:
+            check(self.initial.ndim == 0, f"{type(self).__name__}: initial has shape {self.initial.shape}; with held "
+                                          "values (jm.Dirichlet) give a number or a function f(x) -> (N,)")
+            t0 = jnp.broadcast_to(self.initial.astype(dtype), (copies * len(x),))
         target = value
         ghosts, mirrors = self.mirror_map(sim)
         if ghosts.size:  # a ghost switches on to the odd extension of the initial field
@@ -497,7 +508,8 @@ class Heat(Transport):
         update: the particle update: "flip" (default, 001 §8), "pic" (a comparison: it smooths
             even with k = 0) or "xpic:M" (000 §3.6).
         beta: the FLIP fraction in [0, 1]; None (the default): 1 for "flip", 0 otherwise.
-        initial: the initial temperature: a finite number (default 0.0) or f(x) -> (N,).
+        initial: the initial temperature: a finite number (default 0.0; an array leaf) or
+            f(x) -> (N,) (static: pass one that compares equal when rebuilt).
         interface: across contact interfaces (jm.Contact): "perfect" (default), "insulated" or
             a conductance h_c >= 0 (W/(m^2 K)).
     """
@@ -527,7 +539,8 @@ class Diffusion(Transport):
             (flux in), a sequence of them, or None (the default: sealed).
         update: the particle update: "flip" (default), "pic" or "xpic:M".
         beta: the FLIP fraction in [0, 1]; None (the default): 1 for "flip", 0 otherwise.
-        initial: the initial potential: a finite number (default 0.0) or f(x) -> (N,).
+        initial: the initial potential: a finite number (default 0.0; an array leaf) or
+            f(x) -> (N,) (static: pass one that compares equal when rebuilt).
         interface: across contact interfaces: "perfect" (default), "insulated" or a
             mass-transfer coefficient >= 0.
     """

@@ -4,13 +4,20 @@
 parameters.  Parameters that must stay positive or inside an interval are reparameterised, not
 clipped: the optimiser works on an unconstrained ``raw`` value and the loss sees
 ``transform(raw)`` (exp for positive values, a scaled sigmoid for intervals).
+
+The update (loss, gradient, optimizer step) is compiled once per loss function, optimizer and
+bounds and kept while the loss function lives: a second ``calibrate`` with the same ones compiles
+nothing (issue 30).  It is compiled for every parameter of ``init``, and ``free=`` picks the ones
+fitted by a mask passed as an argument, so fitting a, then b, then both runs one program.
 """
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import time
-from typing import Callable
+import weakref
+from typing import Callable, Iterable
 
 import jax
 import jax.numpy as jnp
@@ -19,6 +26,7 @@ import optax
 
 from ..core.errors import check
 from ..core.params import default_bounds
+from .progress import AheadOfTime, bar, shown
 
 
 def _transform(bound):
@@ -40,24 +48,114 @@ def _transform(bound):
     return forward, inverse
 
 
+def _bound_key(bound):
+    """A bound as a hashable key: a (lower, upper) pair as two floats; None, "positive" and anything
+    malformed (that :func:`_transform` then reports) unchanged."""
+    if bound is None or isinstance(bound, str):
+        return bound
+    try:
+        lower, upper = bound
+        return float(lower), float(upper)
+    except (TypeError, ValueError):
+        return bound
+
+
+_ADAM = optax.adam(0.05)  # the default optimizer: one object, so that calls without optimizer= share programs
+# compiled updates: loss function (weakly: dropped with it) -> {(optimizer, bounds): _Update}, the most recent
+# _KEPT_PER_LOSS pairs per loss
+_UPDATES = weakref.WeakKeyDictionary()
+_KEPT_PER_LOSS = 4
+
+
+@dataclasses.dataclass
+class _Update:
+    """The jitted update of one (loss, optimizer, bounds) and the programs compiled for it ahead of
+    time (:class:`jaxmpm.run.progress.AheadOfTime`'s, one per signature of the parameters)."""
+
+    jitted: Callable
+    programs: dict
+
+
+def _make_update(loss_ref, optimizer, bounds) -> _Update:
+    """The update ``(raw, optimizer state, free) -> (raw, state, loss, |gradient|)`` of the loss
+    ``loss_ref()`` (a weak reference: the cache does not keep the loss, nor what it holds, alive)
+    over the raw parameters with ``bounds`` (``((name, bound), ...)``); ``free`` ``{name: bool}``
+    masks the gradient and the step, so the held parameters keep their values exactly."""
+    transforms = {k: _transform(b) for k, b in bounds}
+
+    def raw_loss(rr):
+        return loss_ref()({k: transforms[k][0](rr[k]) for k in rr})
+
+    def masked(tree, free):
+        return {k: jnp.where(free[k], v, jnp.zeros_like(v)) for k, v in tree.items()}
+
+    def update(r, s, free):
+        value, grads = jax.value_and_grad(raw_loss)(r)
+        grads = masked(grads, free)
+        # optimizers with a line search (optax.lbfgs) need the value, gradient and function;
+        # the others ignore these extra arguments
+        # optax mixes Python floats with integer step counts (Adam's decay**count): let it
+        # promote as it expects even when the caller runs JAX with strict promotion
+        with jax.numpy_dtype_promotion("standard"):
+            updates, s = optimizer.update(grads, s, r, value=value, grad=grads, value_fn=raw_loss)
+            grad_norm = jnp.sqrt(sum(jnp.sum(jnp.square(g)) for g in jax.tree_util.tree_leaves(grads)))  # shown
+        return optax.apply_updates(r, masked(updates, free)), s, value, grad_norm
+
+    return _Update(jax.jit(update), {})
+
+
+def _update_for(loss, optimizer, bounds) -> _Update:
+    """The cached update of (``loss``, ``optimizer``, ``bounds``), made on the first call; a loss
+    that cannot be weakly referenced or hashed (or an unhashable optimizer) gets one of its own."""
+    key = (optimizer, bounds)
+    try:
+        kept = _UPDATES.get(loss)
+        if kept is None:
+            kept = _UPDATES[loss] = collections.OrderedDict()
+        entry = kept.get(key)
+    except TypeError:
+        return _make_update(lambda: loss, optimizer, bounds)
+    if entry is None:
+        entry = kept[key] = _make_update(weakref.ref(loss), optimizer, bounds)
+        while len(kept) > _KEPT_PER_LOSS:
+            kept.popitem(last=False)
+    else:
+        kept.move_to_end(key)
+    return entry
+
+
+def _names(free) -> list:
+    """``free`` as a list (empty when it is not iterable: calibrate reports it)."""
+    try:
+        return list(free)
+    except TypeError:
+        return []
+
+
 @dataclasses.dataclass
 class CalibrationResult:
     """What :func:`calibrate` returns.
 
     Args:
-        params: the fitted values, ``{name: array}`` (after the last iteration's update).
+        params: the fitted values, ``{name: array}`` (after the last iteration's update); the
+            parameters ``free=`` leaves out keep their initial values.
         losses: the loss at every iteration, (iterations,).
         trajectory: ``{name: (iterations, ...)}``, the parameters at which each loss was
             evaluated.
         iterations: the number of iterations run (fewer than ``steps`` when ``tol`` was met).
-        wall_time: the seconds the iterations took, compilation included.
+        wall_time: the seconds the whole calibration took, from before compiling to the last
+            iteration's end: ``compile_time`` plus the iterations.
+        compile_time: the seconds spent compiling the update (the loss, its gradient and the
+            optimizer's step), ahead of the first iteration; part of ``wall_time``; 0 when an
+            earlier call compiled it (the same loss function, optimizer and bounds).
     """
 
     params: dict  # fitted values
     losses: np.ndarray  # loss at every iteration
     trajectory: dict  # parameter values at every iteration
     iterations: int
-    wall_time: float
+    wall_time: float  # compilation included
+    compile_time: float = 0.0
 
 
 def calibrate(
@@ -69,6 +167,8 @@ def calibrate(
     steps: int = 200,
     tol: float | None = None,
     callback: Callable | None = None,
+    progress: bool | None = None,
+    free: str | Iterable[str] | None = None,
 ) -> CalibrationResult:
     """Minimise ``loss(params)`` from ``init`` with ``optimizer`` (default ``optax.adam(0.05)``
     on the raw parameters; ``optax.lbfgs()`` converges in far fewer iterations on smooth,
@@ -77,6 +177,22 @@ def calibrate(
     stopping early once the loss is below ``tol``.  ``bounds`` maps a name to ``"positive"``,
     ``(lower, upper)`` or ``None``; names of simulation parameters get the bounds their
     registration declares (``jaxmpm.core.registry``).
+
+    The update (the loss, its gradient and the optimizer's step) is compiled ahead of the first
+    iteration, timed apart (``CalibrationResult.compile_time``).  With progress shown, stderr
+    gets ``jaxmpm calibrate: compiling the loss and its gradient ... 3.1 s``, then a tqdm bar of
+    the iterations with the loss, the gradient's norm (of the raw parameters, what the optimizer
+    sees), the time per iteration and the time left (for ``steps`` iterations: an upper bound
+    when ``tol`` stops it early).  Showing progress changes no number.
+
+    The compiled update is kept while the loss function lives (for its 4 most recent optimizers and
+    bounds) and reused by a later call with the same loss function, optimizer object (the default
+    Adam is one object) and bounds, and parameters of the same names and shapes: that call compiles
+    nothing (``compile_time`` 0).  As with ``jax.jit``, the loss is traced once: a value it reads
+    from outside and that changed since (a global target assigned anew) keeps its first value in
+    the reused program, so define the loss function again to trace it anew.  The update covers every
+    parameter of ``init``; ``free`` picks the fitted ones by a mask passed to the program, so fitting
+    ``free="alpha_g"``, then ``free="alpha_p"``, then both from one ``init`` compiles once.
 
     Args:
         loss: ``loss(params) -> scalar`` of a dict of parameters, differentiable (usually a
@@ -91,16 +207,27 @@ def calibrate(
         tol: stop once the loss is below it; None (the default): run all ``steps``.
         callback: ``callback(iteration, loss, params)``, called every iteration; None (the
             default).
+        progress: show the compilation time and a progress bar on stderr (True), or not (False);
+            None (the default): shown when the call is interactive (stderr is a terminal, or a
+            Jupyter kernel runs it), so tests and CI stay quiet.
+        free: the names of ``init`` to fit, a name or several; the others keep their initial
+            values (their gradient and step are masked out); None (the default): all of them.
 
     Returns:
         A :class:`CalibrationResult`.
     """
     check(isinstance(init, dict) and init, "calibrate: init must be a non-empty dict {name: initial value}")
     check(isinstance(steps, int) and steps >= 1, f"calibrate: steps = {steps!r} must be a positive integer")
+    names = [free] if isinstance(free, str) else None if free is None else _names(free)
+    check(names is None or (names and all(isinstance(n, str) and n in init for n in names)),
+          f"calibrate: free = {free!r} must name one or more parameters of init ({', '.join(map(str, init))}); "
+          "the others keep their initial values")
+    show = shown(progress, "calibrate")
     bounds = {**{k: default_bounds(k) for k in init}, **(bounds or {})}
-    transforms = {k: _transform(bounds.get(k)) for k in init}
+    bounds = {k: _bound_key(bounds.get(k)) for k in init}
+    transforms = {k: _transform(bounds[k]) for k in init}
     for k, v in init.items():
-        b = bounds.get(k)
+        b = bounds[k]
         if b == "positive":
             check(np.all(np.asarray(v) > 0), f"calibrate: initial {k} = {v} must be > 0")
         elif isinstance(b, tuple):
@@ -111,40 +238,40 @@ def calibrate(
     def constrained(r):
         return {k: transforms[k][0](r[k]) for k in r}
 
-    optimizer = optax.adam(0.05) if optimizer is None else optimizer
+    optimizer = _ADAM if optimizer is None else optimizer
     opt_state = optimizer.init(raw)
     # strong types: optax.lbfgs starts with a weakly typed counter that its update makes strong, which
     # would make the jitted update below compile twice
     opt_state = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype=a.dtype) if hasattr(a, "dtype") else a, opt_state)
 
-    def raw_loss(rr):
-        return loss(constrained(rr))
-
-    @jax.jit
-    def update(r, s):
-        value, grads = jax.value_and_grad(raw_loss)(r)
-        # optimizers with a line search (optax.lbfgs) need the value, gradient and function;
-        # the others ignore these extra arguments
-        # optax mixes Python floats with integer step counts (Adam's decay**count): let it
-        # promote as it expects even when the caller runs JAX with strict promotion
-        with jax.numpy_dtype_promotion("standard"):
-            updates, s = optimizer.update(grads, s, r, value=value, grad=grads, value_fn=raw_loss)
-        return optax.apply_updates(r, updates), s, value
+    mask = {k: jnp.asarray(names is None or k in names) for k in init}  # the parameters fitted
+    cached = _update_for(loss, optimizer, tuple(sorted(bounds.items())))
 
     losses, trajectory = [], {k: [] for k in init}
     start = time.perf_counter()
-    for it in range(steps):
-        params = constrained(raw)
-        raw, opt_state, value = update(raw, opt_state)
-        value = float(value)
-        check(np.isfinite(value), f"calibrate: the loss became {value} at iteration {it}; lower the learning rate")
-        losses.append(value)
-        for k in init:
-            trajectory[k].append(np.asarray(params[k]))
-        if callback is not None:
-            callback(it, value, params)
-        if tol is not None and value < tol:
-            break
+    # compiled before the first iteration (the same program a first call would compile, once), so
+    # that its time is measured and shown apart from the iterations'; an optimizer whose state
+    # changes type compiles again, as a plain jax.jit would; programs an earlier call compiled are reused
+    update = AheadOfTime(cached.jitted, "jaxmpm calibrate: compiling the loss and its gradient", show)
+    update.programs = cached.programs
+    update.compile(raw, opt_state, mask)
+    with bar(show, total=steps, unit="it", desc="jaxmpm calibrate") as progress_bar:
+        for it in range(steps):
+            params = constrained(raw)
+            raw, opt_state, value, grad_norm = update(raw, opt_state, mask)
+            value = float(value)
+            check(np.isfinite(value),
+                  f"calibrate: the loss became {value} at iteration {it}; lower the learning rate")
+            losses.append(value)
+            for k in init:
+                trajectory[k].append(np.asarray(params[k]))
+            if progress_bar is not None:
+                progress_bar.set_postfix_str(f"loss {value:.3e}, |grad| {float(grad_norm):.2e}", refresh=False)
+                progress_bar.update(1)
+            if callback is not None:
+                callback(it, value, params)
+            if tol is not None and value < tol:
+                break
     final = {k: np.asarray(v) for k, v in constrained(raw).items()}
     return CalibrationResult(final, np.asarray(losses), {k: np.asarray(v) for k, v in trajectory.items()},
-                             len(losses), time.perf_counter() - start)
+                             len(losses), time.perf_counter() - start, update.compile_time)

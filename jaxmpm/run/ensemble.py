@@ -1,4 +1,21 @@
-"""Ensembles: many simulations in one batched (``jax.vmap``) call, sharded over devices."""
+"""Ensembles: many simulations in one compiled call, sharded over devices.
+
+How the members on a device run is the ``strategy`` (:data:`STRATEGIES`), which ``"auto"`` picks by
+backend (:func:`plan`; benchmarks/ensemble_throughput.py):
+
+* a GPU vmaps them: one batched step for all (H200, mpm88 8k particles float32: 4.8x a single
+  run's particle-steps/s at 256 members);
+* the CPU runs them one after another inside one program (``lax.map``), each member the single-run
+  step: a single run's speed per member (mpm88: 0.94-1.06x for 1-16 members, where vmap gave
+  0.49-0.94x).  Vmapped members on the CPU first lost the transfer layer's stage boundaries
+  (a batched ``lax.cond`` becomes a ``select``; kept since by :mod:`jaxmpm.transfer.backend`), and
+  still lose with the batch size: several members' per-slot buffers (about 1 MiB per mpm88
+  member in float32) outgrow the per-core cache.  Small scenes are still vmapped on the CPU, in
+  chunks of about :data:`CPU_CHUNK_PARTICLES` particles, where batching amortises the cost per
+  operation (the 32-particle bar: 1.8-2.8x a single run).
+
+Every strategy gives the same numbers (on the CPU bit for bit; tests/test_ensemble_strategies.py).
+With several devices, each runs its share of the members (``shard_map``) by the same strategy."""
 
 from __future__ import annotations
 
@@ -11,6 +28,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from ..core.errors import check
 from ..core.params import _where, _with_owner, check_value, set_params
 from ..core.validate import POSITIVE, batch_members, positive_int
+from .progress import shown, shown_call
 
 
 def _batch_size(tree) -> int:
@@ -30,19 +48,55 @@ def _check_members(sim, params: dict) -> None:
                           s, n, member, "ensemble" if i is None else f"ensemble member {i}"))
 
 
-def _shard(tree, devices):
-    mesh = Mesh(np.asarray(devices), ("batch",))
+def _shard(tree, mesh):
     sharding = NamedSharding(mesh, PartitionSpec("batch"))
     return jax.tree_util.tree_map(lambda a: jax.device_put(a, sharding), tree)
 
 
-def ensemble(sim, state, dt, steps: int, save_every: int = 1, *, params: dict | None = None, states=None,
-             save_particles: bool = False, devices=None):
-    """Run a batch of simulations at once.
+#: how the members on one device run: "auto" (by backend), "vmap" (batched) or "sequential" (one after another)
+STRATEGIES = ("auto", "vmap", "sequential")
 
-    The batch is vmapped and, when several devices are present, split over as many of them as
-    divide the batch size.  Give ``params``, ``states`` or both; every batched input has the same
-    leading (batch) size.
+#: ``strategy="auto"`` on the CPU vmaps members together in chunks of about this many particles in all
+#: (one member per chunk, i.e. "sequential", from this size on); benchmarks/ensemble_throughput.py
+CPU_CHUNK_PARTICLES = 512
+
+
+def plan(strategy: str, chunk: int | None, members: int, particles: int, platform: str) -> tuple[str, int | None]:
+    """The ``(strategy, chunk)`` an ensemble of ``members`` members per device, each of ``particles``
+    particles, runs with on a ``platform`` ("cpu", "gpu", ...) device: ``"auto"`` resolved (a GPU
+    or any other accelerator: "vmap" of all members; the CPU: "vmap" in chunks of about
+    :data:`CPU_CHUNK_PARTICLES` particles, "sequential" where a chunk would hold one member), and
+    a chunk that holds every member dropped (None: all at once).
+
+    Args:
+        strategy: one of :data:`STRATEGIES`.
+        chunk: members per vmapped chunk (only with "vmap"), or None.
+        members: the number of members on each device (> 0).
+        particles: particles per member.
+        platform: the devices' platform, ``jax.Device.platform``.
+
+    Returns:
+        ``("vmap", chunk or None)`` or ``("sequential", None)``.
+    """
+    if strategy == "auto":
+        if platform != "cpu":
+            return "vmap", None
+        chunk = max(1, CPU_CHUNK_PARTICLES // max(1, particles))
+        strategy = "sequential" if chunk == 1 else "vmap"
+    if strategy == "sequential":
+        return strategy, None
+    return strategy, None if chunk is None or chunk >= members else chunk
+
+
+def ensemble(sim, state, dt, steps: int, save_every: int = 1, *, params: dict | None = None, states=None,
+             save_particles: bool = False, devices=None, progress: bool | None = None, strategy: str = "auto",
+             chunk: int | None = None):
+    """Run a batch of simulations at once, in one compiled program.
+
+    When several devices are present the batch is split over as many of them as divide the batch
+    size; on each device the members run as ``strategy`` says.  Every strategy gives the same
+    numbers as separate :meth:`Simulation.run` calls.  Give ``params``, ``states`` or both; every
+    batched input has the same leading (batch) size.
 
     Args:
         sim: the :class:`jaxmpm.Simulation` every member starts from.
@@ -58,6 +112,18 @@ def ensemble(sim, state, dt, steps: int, save_every: int = 1, *, params: dict | 
         save_particles: whether the histories keep the particle positions and velocities
             (default False).
         devices: the devices to shard the batch over; None (the default): ``jax.devices()``.
+        progress: True prints to stderr the compile time (``jaxmpm ensemble: 9 members x 400
+            steps: compiling ... 3.1 s``; the program is compiled ahead of the run, the same
+            program, so the same numbers) and then the run time; False prints nothing; None (the
+            default): True when the call is interactive (stderr is a terminal, or a Jupyter
+            kernel runs it).  Nothing is printed under ``jax.jit``/``grad``.
+        strategy: how the members on a device run: ``"vmap"``: batched, one vmapped step for all
+            (``chunk`` at a time if given); ``"sequential"``: one after another (``lax.map``),
+            each with the single-run step (on the CPU as fast per member as a single run); or
+            ``"auto"`` (default): "vmap" on a GPU, on the CPU "sequential" but for small scenes,
+            vmapped in chunks of about ``CPU_CHUNK_PARTICLES`` (512) particles (:func:`plan`).
+        chunk: with ``strategy="vmap"``: members vmapped together, chunks one after another (fewer
+            members' arrays in memory at once); None (default): all members of a device at once.
 
     Returns:
         ``(final_states, histories, failure_steps)``; ``failure_steps[b]`` is the first unstable
@@ -68,6 +134,12 @@ def ensemble(sim, state, dt, steps: int, save_every: int = 1, *, params: dict | 
     steps = positive_int("ensemble", "steps", steps, low=0)
     save_every = positive_int("ensemble", "save_every", save_every)
     POSITIVE.check("ensemble", "dt", dt)
+    show = shown(progress, "ensemble")
+    check(strategy in STRATEGIES, f"ensemble: strategy = {strategy!r}; choose one of {', '.join(STRATEGIES)}")
+    if chunk is not None:
+        check(strategy == "vmap", f"ensemble: chunk = {chunk!r} applies to strategy='vmap' only; drop chunk or set "
+                                  "strategy='vmap'")
+        chunk = positive_int("ensemble", "chunk", chunk)
     _check_members(sim, params or {})
     batch = _batch_size((params or {}, states))
     if steps % save_every:
@@ -78,20 +150,40 @@ def ensemble(sim, state, dt, steps: int, save_every: int = 1, *, params: dict | 
     devices = jax.devices() if devices is None else list(devices)
     used = max(d for d in range(1, len(devices) + 1) if batch % d == 0)
     inputs = (params or None, states)
-    if used > 1:
-        inputs = _shard(inputs, devices[:used])
-    return _batched_rollout(sim, state, dt, frames, save_every, save_particles, *inputs)
+    mesh = Mesh(np.asarray(devices[:used]), ("batch",)) if used > 1 else None
+    if mesh is not None:
+        inputs = _shard(inputs, mesh)
+    how = plan(strategy, chunk, batch // used, int(state.x.shape[0]), devices[0].platform)
+    return shown_call(_batched_rollout, (sim, state, dt, frames, save_every, save_particles, *how, mesh, *inputs),
+                      f"jaxmpm ensemble: {batch} members x {steps} steps", show)
 
 
 @eqx.filter_jit
-def _batched_rollout(sim, state, dt, frames, save_every, save_particles, params, states):
-    """vmap of one member's rollout; a module-level filter_jit, so repeated calls reuse the compilation."""
+def _batched_rollout(sim, state, dt, frames, save_every, save_particles, strategy, chunk, mesh, params, states):
+    """Every member's rollout, as :func:`plan` resolved ``strategy`` and ``chunk``, in each device's
+    share of the batch (``mesh``: a ``shard_map`` over its "batch" axis; None: one device); a
+    module-level filter_jit, so repeated calls reuse the compilation."""
 
-    def member(p, s):
-        member_sim = set_params(sim, **p) if p else sim
-        final, hist, failure = member_sim.rollout(state if s is None else s, dt, frames, save_every,
-                                                  save_particles, checkpoint=False)
-        return final, hist, failure.step
+    def members(sim, state, dt, params, states):
+        def member(p, s):
+            member_sim = set_params(sim, **p) if p else sim
+            final, hist, failure = member_sim.rollout(state if s is None else s, dt, frames, save_every,
+                                                      save_particles, checkpoint=False)
+            return final, hist, failure.step
 
-    in_axes = (0 if params else None, 0 if states is not None else None)
-    return jax.vmap(member, in_axes=in_axes)(params, states)
+        if strategy == "vmap" and chunk is None:
+            in_axes = (0 if params else None, 0 if states is not None else None)
+            return jax.vmap(member, in_axes=in_axes)(params, states)
+        # scanned over the members: one compiled member (or chunk of members), its inputs sliced per iteration
+        return jax.lax.map(lambda ps: member(*ps), (params, states), batch_size=chunk)
+
+    if mesh is None:
+        return members(sim, state, dt, params, states)
+    dynamic, static = eqx.partition(sim, eqx.is_array)
+    each, batched = PartitionSpec(), PartitionSpec("batch")
+
+    def local(dynamic, state, dt, params, states):
+        return members(eqx.combine(dynamic, static), state, dt, params, states)
+
+    return jax.shard_map(local, mesh=mesh, in_specs=(each, each, each, batched, batched), out_specs=batched,
+                         check_vma=False)(dynamic, state, dt, params, states)

@@ -29,6 +29,7 @@ eq. 2.77) while F follows the undamped grid velocity; R_p (F_thth - 1) is within
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -45,6 +46,24 @@ from ..schemes import FLIP
 from ..transfer.shapes import UGIMP
 from ._common import Setup, cast_state, resolve_dtype, schedule
 from ._options import checked_options
+
+
+@dataclasses.dataclass(frozen=True)
+class Below:
+    """The particles with x_axis < ``limit`` (the loaded inner face's layer), a module-level callable
+    compared and hashed by value: the traction's ``where`` is static, so a lambda per build would
+    compile the rollout again on every build.
+
+    Args:
+        axis: the coordinate compared (0: the radius).
+        limit: the particles below it are picked.
+    """
+
+    axis: int
+    limit: float
+
+    def __call__(self, x):
+        return x[:, self.axis] < self.limit
 
 
 def lame(r, inner: float, outer: float, pressure: float, E: float, nu: float) -> dict:
@@ -92,7 +111,7 @@ def cylinder(
     grid = Grid.covering((inner, 0.0), (outer, h), h, shape=shape, pad=(2.0 * u_max + h, 0.0), axisymmetric=True)
     particles = fill(grid, Box((inner, 0.0), (outer, h)), ppc=ppc)
     plane_strain = Slip(lambda x: np.ones(x.shape[0], dtype=bool), axis=1)  # v_z = 0 at every node: eps_zz = 0
-    load = Traction(lambda x: x[:, 0] < inner + h / ppc, (pressure, 0.0), "x-", name="pressure", basis="grid")
+    load = Traction(Below(0, inner + h / ppc), (pressure, 0.0), "x-", name="pressure", basis="grid")
     sim = Simulation(grid=grid, shape=shape, material=LinearElastic(E=E, nu=nu, density=density),
                      scheme=scheme, damping=damping, update=update, boundary=plane_strain, terms=(load,))
     state = cast_state(sim.init(particles), dtype)

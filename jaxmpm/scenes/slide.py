@@ -67,10 +67,11 @@ class RampedGravity(eqx.Module):
     """Gravity raised linearly from 0 to ``gravity`` over ``ramp`` (a body force b(x, t))."""
 
     gravity: jnp.ndarray
-    ramp: float = eqx.field(static=True)
+    ramp: jnp.ndarray  # a leaf: another ramp compiles nothing new
 
     def __call__(self, x, t):
-        return jnp.broadcast_to(self.gravity.astype(x.dtype) * jnp.minimum(t / self.ramp, 1.0), x.shape)
+        return jnp.broadcast_to(self.gravity.astype(x.dtype) * jnp.minimum(t / self.ramp.astype(x.dtype), 1.0),
+                                x.shape)
 BLOCK = ((0.1, 0.1), (0.3, 0.2))
 
 
@@ -135,7 +136,9 @@ def slide(
     base = Fixed(where=lambda x: x[:, 1] <= SLAB[0][1] + 1e-9 * spacing)  # the slab's bottom face (and below)
     terms, multimaterial = contact_model(contact, friction, normal)
     g = (gravity * sin, -gravity * cos)
-    load = dict(gravity=g) if ramp == 0 else dict(body_force=RampedGravity(jnp.asarray(g), ramp))
+    load = dict(gravity=g)
+    if ramp != 0:
+        load = dict(body_force=RampedGravity(jnp.asarray(g), jnp.asarray(ramp, dtype=jnp.result_type(float))))
     sim = Simulation(grid=grid, shape=shape, material=LinearElastic(E=E, nu=nu, density=density),
                      scheme=scheme, damping=damping, update=update, boundary=base, terms=terms, **load)
     fields = {"material": material_ids((slab.x.shape[0], block.x.shape[0]))} if multimaterial else None

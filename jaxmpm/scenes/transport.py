@@ -21,6 +21,7 @@ density, heat_capacity, length, ...) in ``params`` (HDF5 attributes).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -36,6 +37,24 @@ from ..schemes import FLIP
 from ..transfer.shapes import UGIMP, Linear
 from ._common import Setup, cast_state, resolve_dtype, schedule
 from ._options import checked_options
+
+
+@dataclasses.dataclass(frozen=True)
+class SineProfile:
+    """heat1d's initial temperature T0(x) = amplitude sin(pi x / length), a module-level callable
+    compared and hashed by value (a lambda per build would be a new static value: every build would
+    compile the rollout again).
+
+    Args:
+        amplitude: the peak temperature A.
+        length: the rod's length L.
+    """
+
+    amplitude: float
+    length: float
+
+    def __call__(self, x):
+        return self.amplitude * np.sin(np.pi * x[:, 0] / self.length)
 
 
 def _conduction(name, grid, shape, particles, term, cfl, t_end, frames, dtype, params, reference):
@@ -68,7 +87,7 @@ def heat1d(shape=None, cells: int = 32, ppc: int = 2, cfl: float = 0.5, t_end: f
     grid = Grid.covering((0.0,), (length,), length / cells, shape=shape)
     particles = fill(grid, Box((0.0,), (length,)), ppc=ppc)
     term = Heat(conductivity=conductivity, heat_capacity=heat_capacity, update=transport,
-                initial=lambda x: amplitude * np.sin(np.pi * x[:, 0] / length),
+                initial=SineProfile(amplitude, length),
                 boundary=[_held_end(grid, 0.0, 0.0, -1), _held_end(grid, length, 0.0, +1)])
     a = conductivity / (density * heat_capacity)
 

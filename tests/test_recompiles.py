@@ -1,0 +1,192 @@
+"""No avoidable recompiles (issue 30): a new value of a number compiles nothing new.  Counted with
+``jax.monitoring``'s XLA compilation events (benchmarks/compile_time.py counts them the same way; the
+event fires for a program read from the test session's persistent cache too): a second
+``jm.calibrate`` with the same loss, ``free=`` picking other parameters, a contact's separation or
+specified normal, a transport term's initial value, a rebuilt scene (heat1d, cylinder, slide's ramp)
+and a new E, beta or dt compile no new program.  Which values the programs compute with is checked
+too: a reused program must see the new value."""
+
+import gc
+import weakref
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxmpm as jm
+
+_COMPILED = []
+_RECORDING = [False]
+
+
+def _listen(event, seconds, **kw):
+    if _RECORDING[0] and event == "/jax/core/compile/backend_compile_duration":
+        _COMPILED.append(kw.get("fun_name", "?"))
+
+
+jax.monitoring.register_event_duration_secs_listener(_listen)
+
+
+def compiled_by(action):
+    """(the result of ``action()``, run to completion, and the names of the programs it compiled)."""
+    _COMPILED.clear()
+    _RECORDING[0] = True
+    try:
+        out = jax.block_until_ready(action())
+    finally:
+        _RECORDING[0] = False
+    return out, list(_COMPILED)
+
+
+def quadratic(p):
+    return (p["a"] - 2.0) ** 2 + (jnp.log(p["b"]) - 1.0) ** 2 + 0.1 * p["a"] * jnp.log(p["b"])
+
+
+INIT = {"a": 0.0, "b": 1.0}
+BOUNDS = {"a": None, "b": "positive"}
+
+
+def test_a_second_calibrate_with_the_same_loss_compiles_nothing():
+    first, names = compiled_by(lambda: jm.calibrate(quadratic, INIT, bounds=BOUNDS, steps=4))
+    assert any("update" in n for n in names) and first.compile_time > 0
+    second, names = compiled_by(lambda: jm.calibrate(quadratic, INIT, bounds=BOUNDS, steps=4))
+    assert names == [] and second.compile_time == 0.0
+    np.testing.assert_array_equal(second.losses, first.losses)
+    for k in INIT:
+        np.testing.assert_array_equal(second.params[k], first.params[k])
+    # another start of the same shapes: the same program, its own numbers
+    third, names = compiled_by(lambda: jm.calibrate(quadratic, {"a": 1.0, "b": 2.0}, bounds=BOUNDS, steps=4))
+    assert names == [] and third.losses[0] != first.losses[0]
+
+
+def test_free_picks_the_fitted_parameters_of_one_program():
+    """free="a", then "b", then both: one compiled update; the held parameter keeps its initial
+    value exactly, and the fitted one follows the calibration of it alone."""
+    def loss(p):
+        return quadratic(p)
+
+    results, compiled = {}, []
+    for free in ("a", "b", None, ["a", "b"]):
+        results[str(free)], names = compiled_by(
+            lambda: jm.calibrate(loss, INIT, bounds=BOUNDS, steps=6, free=free))  # noqa: B023
+        compiled.append(names)
+    assert any("update" in n for n in compiled[0]) and compiled[1:] == [[], [], []]
+    assert float(results["a"].params["b"]) == 1.0 and np.all(results["a"].trajectory["b"] == 1.0)
+    assert float(results["b"].params["a"]) == 0.0
+    np.testing.assert_array_equal(results["None"].losses, results["['a', 'b']"].losses)
+    alone = jm.calibrate(lambda p: quadratic({"a": p["a"], "b": 1.0}), {"a": 0.0}, steps=6)
+    np.testing.assert_allclose(results["a"].losses, alone.losses, rtol=1e-13)
+    np.testing.assert_allclose(results["a"].params["a"], alone.params["a"], rtol=1e-13)
+    for bad in ("c", [], 3):
+        with pytest.raises(jm.InputError, match="free"):
+            jm.calibrate(loss, INIT, free=bad)
+
+
+def test_the_kept_update_does_not_keep_the_loss_alive():
+    """The compiled update is kept for the loss function weakly: the function, and what it holds
+    (here a large target), go when the caller drops them."""
+    from jaxmpm.run import calibrate as module
+
+    target = jnp.arange(100_000.0)
+
+    def loss(p):
+        return jnp.mean((p["a"] * target - 2.0 * target) ** 2)
+
+    jm.calibrate(loss, {"a": 1.0}, bounds={"a": None}, steps=2)
+    held = weakref.ref(loss)
+    assert loss in module._UPDATES
+    del loss
+    gc.collect()
+    assert held() is None
+
+
+def two_bars(separation, normal):
+    """Two 1D bars approaching at +-0.5 across a gap smaller than a cell, one material each."""
+    grid = jm.Grid((0.0,), (4.0,), (16,))
+    shape = jm.Linear()
+    a = jm.fill(grid, jm.Box((1.0,), (1.9,)), ppc=2, velocity=0.5)
+    b = jm.fill(grid, jm.Box((2.1,), (3.0,)), ppc=2, velocity=-0.5)
+    particles = jm.Particles(x=jnp.concatenate([a.x, b.x]), v=jnp.concatenate([a.v, b.v]),
+                             volume=jnp.concatenate([a.volume, b.volume]), mass=None, ppc=2)
+    sim = jm.Simulation(grid=grid, shape=shape, material=jm.LinearElastic(E=100.0, nu=0.0, density=1.0),
+                        scheme=jm.FLIP(), terms=(jm.Contact(separation=separation, normal=normal),))
+    ids = jnp.concatenate([jnp.zeros(a.x.shape[0]), jnp.ones(b.x.shape[0])])
+    return sim, sim.init(particles, fields={"material": ids})
+
+
+def test_contact_separation_and_normal_vector_compile_nothing():
+    def run(separation, normal):
+        sim, state = two_bars(separation, normal)
+        return sim.run(state, 0.01, 3, 3)[0].v
+
+    touching, names = compiled_by(lambda: run(2.0, (1.0,)))
+    assert any("rollout" in n for n in names)
+    apart, names = compiled_by(lambda: run(-2.0, (1.0,)))  # never touch
+    assert not any("rollout" in n for n in names)
+    reversed_normal, names = compiled_by(lambda: run(2.0, (-1.0,)))
+    assert not any("rollout" in n for n in names)
+    assert not np.array_equal(touching, apart) and not np.array_equal(touching, reversed_normal)
+    contact = jm.Contact(separation=0.5, normal=(0.0, 2.0))
+    assert isinstance(contact.separation, jax.Array) and contact.normal == (0.0, 1.0)
+    assert all(eqx.is_array(leaf) for leaf in (contact.separation, contact.direction))
+
+
+def test_a_transport_terms_initial_value_compiles_nothing():
+    """Heat(initial=T0): the held end's switch-on jump (value - T0 at the node) follows the new T0."""
+    grid = jm.Grid((0.0,), (1.0,), (8,))
+    particles = jm.fill(grid, jm.Box((0.0,), (1.0,)), ppc=2)
+    end = jm.Dirichlet("x-", 1.0)
+
+    def first_step(initial):
+        sim = jm.Simulation(grid=grid, shape=jm.Linear(), material=jm.NoStress(density=1.0), scheme=jm.FLIP(),
+                            terms=(jm.Heat(conductivity=0.0, initial=initial, boundary=end),), damping=False)
+        return sim.run(sim.init(particles), 1e-3, 1, 1)[0].fields["temperature"]
+
+    cold, names = compiled_by(lambda: first_step(0.0))
+    assert any("rollout" in n for n in names)
+    warm, names = compiled_by(lambda: first_step(0.25))
+    assert not any("rollout" in n for n in names)
+    # k = 0: only the switch-on moves the particles beside the held end, by (1 - T0) S
+    np.testing.assert_allclose(np.asarray(warm) - 0.25, 0.75 * np.asarray(cold), rtol=1e-12, atol=1e-15)
+
+
+def test_new_E_beta_and_dt_compile_nothing():
+    setup = jm.scene("bar", scheme="xpic:2", cells=8)
+    sim, state, dt = setup.sim, setup.state, setup.dt
+
+    def run(model=sim, step=dt):
+        return model.run(state, step, 4, 4)[0].v
+
+    _, names = compiled_by(run)
+    assert any("rollout" in n for n in names)
+    for change in (lambda: run(jm.set_params(sim, E=2.0 * float(jm.get_params(sim, "E")["E"]))),
+                   lambda: run(jm.set_params(sim, beta=0.5)), lambda: run(step=dt / 2)):
+        assert not any("rollout" in n for n in compiled_by(change)[1])
+
+
+@pytest.mark.slow
+def test_rebuilt_scenes_compile_nothing():
+    """heat1d (its initial profile), the cylinder (its traction's particles) and slide's gravity ramp
+    are callables and numbers that compare equal when built again, or leaves."""
+    def heat1d():
+        s = jm.scene("heat1d", cells=8)
+        return s.sim.run(s.state, s.dt, 2, 2)[1].fields["temperature"]
+
+    def cylinder():
+        s = jm.scene("cylinder", cells=4)
+        return s.sim.run(s.state, s.dt, 2, 2)[0].v
+
+    def slide(ramp):
+        s = jm.scene("slide", spacing=0.05, ramp=ramp)
+        return s.sim.run(s.state, s.dt, 2, 2)[0].v
+
+    for build in (heat1d, cylinder, lambda: slide(0.05)):
+        first, names = compiled_by(build)
+        assert any("rollout" in n for n in names)
+        again, names = compiled_by(build)
+        assert not any("rollout" in n for n in names)
+        np.testing.assert_array_equal(again, first)
+    other, names = compiled_by(lambda: slide(0.1))
+    assert not any("rollout" in n for n in names)

@@ -121,15 +121,16 @@ def compilation_cache(path=None, *, enabled: bool = True, min_compile_seconds: f
         folder = default_cache_dir()
     else:
         folder = Path(path).expanduser()
+    # refused before anything is created: a refused call leaves no folder behind
+    check(not current or ours or current == str(folder),
+          f"compilation_cache: JAX already caches compiled programs in {current!r} (set through JAX); a process "
+          f"has one cache folder, so pass path={current!r} or unset JAX's (JAX_COMPILATION_CACHE_DIR)")
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as err:
         check(False, f"compilation_cache: cannot create the folder {str(folder)!r} ({err}); pass another path "
                      f"or set ${ENV_VAR}")
     check(folder.is_dir(), f"compilation_cache: path {str(folder)!r} is not a folder; pass a folder")
-    check(not current or ours or current == str(folder),
-          f"compilation_cache: JAX already caches compiled programs in {current!r} (set through JAX); a process "
-          f"has one cache folder, so pass path={current!r} or unset JAX's (JAX_COMPILATION_CACHE_DIR)")
     if max_bytes is None:
         max_bytes = _env_max_bytes()
     _switch_on(str(folder), _default_min_seconds() if min_compile_seconds is None else min_compile_seconds, max_bytes)

@@ -25,9 +25,14 @@ from .schemes import (APIC, FLIP, FMPM, PIC, RPIC, TPIC, XPIC, ParticleDamping, 
                       with_velocity_gradient)
 from .materials import (ElasticMaterial, HypoElastic, Increment, IncrementalElastic, InelasticMaterial, LinearElastic,
                         Material, NeoHookean, NoStress, VolumetricFluid)
+from .materials import HenckyPlastic, VonMises
+from .materials import DruckerPrager
+from .materials import CamClay
+from .materials import NewtonianFluid
 from .physics import (BodyForce, Constraint, Contact, Damping, Diffusion, Dirichlet, Fixed, Heat, Mirror, Neumann,
                       NodeSet, ParticleForce, Prescribed, Reaction, Slip, StressDivergence, Term, Traction, Transport,
                       Wall)
+from .physics import Collider, HalfSpace, LevelSet, SolidBox, SolidCylinder, SolidSphere, SolidUnion
 from .run.cache import compilation_cache, enable_by_default as _enable_compilation_cache
 from .run.calibrate import CalibrationResult, calibrate
 from .run.driver import History, RunInterrupted, StableTimeStepWarning
@@ -61,6 +66,11 @@ __all__ = [
     "ElasticMaterial", "InelasticMaterial", "Increment", "ParticleDamping", "Contraction", "Weighted", "Gradient",
     "Divergence", "Affine", "Hoop", "PerSlot", "Kernel", "register_kernel", "series", "exchange_series",
     "grid_phases", "Mesh", "Polygon", "point_cloud", "animate", "plot_frames",
+    "Collider", "HalfSpace", "LevelSet", "SolidBox", "SolidCylinder", "SolidSphere", "SolidUnion",
+    "HenckyPlastic", "VonMises",
+    "DruckerPrager",
+    "CamClay",
+    "NewtonianFluid",
 ]
 
 # help(jm.Grid.__init__) and call tips show the Args of the class docstring (an equinox module's

@@ -190,7 +190,8 @@ def build_parser() -> argparse.ArgumentParser:
                      help="contact between the bodies: none (one velocity field) or a law, each body its own "
                           "material " + _defaults("contact"))
     run.add_argument("--friction", type=float, default=None, metavar="MU",
-                     help="Coulomb friction coefficient mu >= 0, with --contact coulomb " + _defaults("friction"))
+                     help="Coulomb friction coefficient mu >= 0, with --contact coulomb (incline: the collider's) "
+                          + _defaults("friction"))
     run.add_argument("--separation", type=float, default=None, metavar="S",
                      help="contact separation criterion in cells: the bodies touch where their nodal centres of "
                           "mass are closer than S h along the normal " + _defaults("separation"))
@@ -216,6 +217,25 @@ def build_parser() -> argparse.ArgumentParser:
                           + _defaults("gravity"))
     run.add_argument("--theta", type=float, default=None, metavar="DEG",
                      help="tilt of gravity in degrees, [0, 90): the slope of slide's incline " + _defaults("theta"))
+    run.add_argument("--angle", type=float, default=None, metavar="DEG",
+                     help="angle of incline's collider slope in degrees, [0, 90) " + _defaults("angle"))
+    run.add_argument("--aspect", type=float, default=None, metavar="A",
+                     help="aspect ratio H0/L0 of the granular column " + _defaults("aspect"))
+    run.add_argument("--friction-angle", type=float, default=None, metavar="DEG",
+                     help="Drucker-Prager friction angle of the sand in degrees, [0, 90) "
+                          + _defaults("friction_angle"))
+    run.add_argument("--cohesion", type=float, default=None, metavar="C",
+                     help="Drucker-Prager cohesion c >= 0 of the sand " + _defaults("cohesion"))
+    run.add_argument("--geometry", default=None, choices=["axisymmetric", "3d"],
+                     help="the Taylor bar's model: an r-z grid or a 3D quarter rod " + _defaults("geometry"))
+    run.add_argument("--v0", type=float, default=None, metavar="V",
+                     help="impact speed of the Taylor bar, m/s " + _defaults("v0"))
+    run.add_argument("--yield-stress", type=float, default=None, metavar="SY",
+                     help="von Mises yield stress sigma_y > 0 of the Taylor bar, Pa " + _defaults("yield_stress"))
+    run.add_argument("--hardening", type=float, default=None, metavar="H",
+                     help="linear hardening modulus H >= 0 of the Taylor bar, Pa " + _defaults("hardening"))
+    run.add_argument("--viscosity", type=float, default=None, metavar="ETA",
+                     help="dynamic viscosity eta >= 0 of a viscous fluid, Pa s " + _defaults("viscosity"))
     run.add_argument("--conventions", default=None, choices=["jaxmpm", "nairnmpm"],
                      help="whose rules where MPM codes differ: jaxmpm (default) or nairnmpm (NairnMPM 19.0: "
                           "the reaction force on fixed nodes, XPIC's series start, the XPIC/PIC position update, "
@@ -481,8 +501,9 @@ def options_of(args) -> dict:
 
 
 def totals(sim, state) -> dict:
-    """The model's terms' totals of a state (thermal energy, solute), as floats."""
-    return {name: float(value) for term in sim.terms for name, value in term.totals(sim, state).items()}
+    """The model's totals of a state (the terms' thermal energy, solute; the material's dissipated
+    energy: ``Simulation.totals``), as floats."""
+    return {name: float(value) for name, value in sim.totals(state).items()}
 
 
 def energy_rows(sim, initial, final) -> list:

@@ -57,7 +57,9 @@ def test_part_defaults_are_what_the_scenes_build(scene):
              "rings": dict(spacing=1.0), "mpm88": dict(n_particles=64, n_grid=8), "mms": dict(cells=4),
              "vortex": dict(spacing=0.25), "bars_impact": dict(cells=4), "slide": dict(spacing=0.1),
              "heat1d": dict(cells=4), "heat_step": dict(cells=4), "diffusion2d": dict(cells=4),
-             "thermal_bar": dict(cells=4), "cylinder": dict(cells=4)}[scene]
+             "thermal_bar": dict(cells=4), "cylinder": dict(cells=4),
+             "column_collapse": dict(cells=2, aspect=1.0), "dam_break": dict(cells=2),
+             "incline": dict(spacing=0.05), "taylor_bar": dict(cells=1)}[scene]
     setup = jm.scene(scene, t_end=1e-3, frames=1, **small)
     assert jm.scheme_from_name(PART_DEFAULTS[scene]["scheme"]).__class__ is type(setup.sim.scheme)
     ppc = getattr(setup.sim.shape, "ppc", None)
@@ -69,12 +71,11 @@ def test_help_shows_each_scenes_default():
     text = build_parser()._subparsers._group_actions[0].choices["run"].format_help()
     flat = " ".join(text.split())
     assert ("(default: bar 16, mms 16, bars_impact 32, heat1d 32, heat_step 64, diffusion2d 16, thermal_bar 32, "
-            "cylinder 32; "
-            "other scenes do not take it)") in flat  # --cells
+            "dam_break 8, cylinder 32") in flat  # --cells (then the scenes registered after cylinder)
     assert "(default: heat1d 1, heat_step 1; other scenes do not take it)" in flat  # --conductivity
     assert "mpm88 apic" in flat and "disks ugimp" in flat
     assert "(default: disks none, rings none, bars_impact frictionless, slide coulomb; other scenes" in flat
-    assert "(default: disks 0, rings 0, slide 0.2; other scenes do not take it)" in flat  # --friction
+    assert "(default: disks 0, rings 0, slide 0.2, incline 0.2; other scenes do not take it)" in flat  # --friction
 
 
 def test_python_m_jaxmpm_scenes():

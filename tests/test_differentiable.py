@@ -205,7 +205,7 @@ def test_calibrate_rejects_bad_input():
     with pytest.raises(jm.InputError, match="beta"):
         jm.calibrate(lambda p: p["beta"] ** 2, {"beta": 1.5})
     with pytest.raises(jm.InputError, match="unknown parameter"):
-        jm.set_params(jm.scene("bar").sim, gamma=1.0)
+        jm.set_params(jm.scene("bar").sim, zeta=1.0)
 
 
 # -------------------------------------------------------------------------------- ensembles

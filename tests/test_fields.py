@@ -230,12 +230,20 @@ def test_vtk_reads_the_fields(disks_file):
 
 def test_each_scene_s_default_fields_are_fields_every_model_offers():
     """FIELD_DEFAULTS (what `jaxmpm run SCENE` saves without --fields) names scenes and the fields
-    any model has (no scene's terms declare one of these names: ParticleField names are theirs)."""
+    any model has (no scene's terms declare one of these names: ParticleField names are theirs),
+    or, for a scene whose material is fixed (no ``material`` option: the plastic scenes), the
+    entries its material saves (``saved_state``: plastic_strain)."""
+    import inspect
+
     from jaxmpm.scenes._common import FIELD_DEFAULTS
 
     assert set(FIELD_DEFAULTS) <= set(jm.SCENES)
     for name, fields in FIELD_DEFAULTS.items():
-        assert fields and set(fields) <= set(frame_fields.FRAME_FIELDS), name
+        own = set(fields) - set(frame_fields.FRAME_FIELDS)
+        assert fields, name
+        if own:
+            assert "material" not in inspect.signature(jm.SCENES[name][0]).parameters, name
+            assert own <= set(jm.scene(name).sim.material.saved_state), name
     assert FIELD_DEFAULTS["cylinder"] == ("stress",) and FIELD_DEFAULTS["mpm88"] == ("pressure",)
 
 

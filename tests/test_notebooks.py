@@ -17,9 +17,10 @@ def code_cells(nb):
     return [cell for cell in nb.cells if cell.cell_type == "code"]
 
 
-def test_the_five_notebooks_exist():
+def test_the_six_notebooks_exist():
     names = [p.stem for p in NOTEBOOKS]
-    assert names == ["01_quickstart", "02_schemes_compared", "03_calibrate_damping", "04_ensembles", "05_contact"]
+    assert names == ["01_quickstart", "02_schemes_compared", "03_calibrate_damping", "04_ensembles", "05_contact",
+                     "06_friction_angle_calibration"]
 
 
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.stem)

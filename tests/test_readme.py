@@ -47,6 +47,8 @@ BLOCKS = {
     "Transport (heat conduction and diffusion)": Block([("sim.run(state, dt, 800, 80)", "sim.run(state, dt, 8, 4)",
                                                          1)]),
     "Materials, fluids, boundary conditions": Block([("steps=1200, save_every=60", "steps=20, save_every=10", 1)]),
+    "Plasticity, viscous fluids, rigid colliders": Block([("steps=4000, save_every=400", "steps=20, save_every=10",
+                                                           1)]),
     "Your own scene": Block([("E=E, dtype=dtype)\n",  # the file's scene, built and run
                               "E=E, dtype=dtype)\n\n\nscene(cells=8, t_end=0.5, frames=2).run()\n", 1)]),
     "Outputs: HDF5, XDMF, pictures": Block([("t_end=2.0, frames=4", "t_end=0.5, frames=2", 1)]),

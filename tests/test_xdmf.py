@@ -28,6 +28,10 @@ SMALL = {
     "diffusion2d": dict(cells=4, t_end=0.01),
     "thermal_bar": dict(cells=4, t_end=0.01),
     "cylinder": dict(cells=4, t_end=0.01),
+    "column_collapse": dict(cells=2, aspect=1.0, t_end=0.01),
+    "incline": dict(spacing=0.05, t_end=0.005),
+    "taylor_bar": dict(cells=1, t_end=2e-6),
+    "dam_break": dict(cells=2, t_end=0.005),
 }
 
 

@@ -11,7 +11,8 @@ in place).
                               J (T,N), F (T,N,d,d); jaxmpm.model.frame_fields)
 /particles/material (N,)      multimaterial mode: the material id of each particle (int32)
 /materials/<name> (T,M[,D])   multimaterial mode: kinetic, strain, momentum, contact_force per material
-/totals/<name> (T,)           the terms' totals: thermal_energy (jm.Heat), solute (jm.Diffusion)
+/totals/<name> (T,)           the model's totals: thermal_energy (jm.Heat), solute (jm.Diffusion), the
+                              material's (viscous_dissipation of jm.NewtonianFluid; Material.totals)
 /state/<leaf>                 the state a chunked run reached, saved with every chunk's frames
                               (H5Writer.write_state; jaxmpm.resume); attributes start step, steps,
                               save every, complete

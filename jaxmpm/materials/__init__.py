@@ -7,3 +7,8 @@ from .hypoelastic import HypoElastic  # noqa: F401
 from .incremental import IncrementalElastic  # noqa: F401
 from .neohookean import NeoHookean  # noqa: F401
 from .fluid import NoStress, VolumetricFluid  # noqa: F401
+from .plastic import HenckyPlastic  # noqa: F401
+from .von_mises import VonMises  # noqa: F401
+from .drucker_prager import DruckerPrager  # noqa: F401
+from .cam_clay import CamClay  # noqa: F401
+from .newtonian import NewtonianFluid  # noqa: F401

@@ -11,7 +11,10 @@ energy per reference volume for the strain-energy diagnostic.  The step talks to
   the :class:`Increment` (the mechanical deformation increment dF, thermal stretch removed, and
   dt) and the state the material owns (``State.material_state``: e.g. an elastic F and plastic
   variables; None for the elastic laws);
-* :meth:`Material.stored_energy_density`, :meth:`Material.wave_speed`, :meth:`Material.keep_deformation`.
+* :meth:`Material.stored_energy_density`, :meth:`Material.wave_speed`, :meth:`Material.keep_deformation`;
+* :meth:`Material.time_step_limit` (a stable-dt bound of the law's own, e.g. viscous diffusion) and
+  :meth:`Material.totals` (sums of its state saved per frame in ``History.totals``, e.g. the
+  dissipated energy of a viscous or plastic law); both optional.
 
 Two bases implement it: :class:`ElasticMaterial` (stress a function of F; no state) and
 :class:`InelasticMaterial` (history-dependent: owns its state, integrates the increments).  A new
@@ -69,11 +72,35 @@ class Increment(eqx.Module):
             s_old / s_new, 001 eq. 26).
         F: the particle's total deformation gradient after the increment, (N, D, D).
         dt: the time the increment spans.
+        kinematics: how dF was formed from the velocity gradient, the model's ``kinematics``:
+            "linear" (default, dF = I + grad v dt) or "exponential" (dF = exp(grad v dt)).
     """
 
     dF: jnp.ndarray
     F: jnp.ndarray
     dt: jnp.ndarray
+    kinematics: str = eqx.field(static=True, default="linear")
+
+    def velocity_gradient(self, terms: int = 6):
+        """The velocity gradient L (N, D, D) the increment integrates, for a rate law (a viscous
+        stress from D = sym L): the inverse of the kinematics that formed dF, so L is the grid's
+        grad v (the terms' isotropic stretch removed).  "linear": L = (dF - I) / dt, exact.
+        "exponential": L = log(dF) / dt, the principal logarithm by the Gregory series
+        log dF = 2 sum_k Z^(2k+1) / (2k+1), Z = (dF - I)(dF + I)^-1 (Higham 2008, "Functions of
+        Matrices", ch. 11), ``terms`` terms: with |Z| ~ |L dt| / 2 the truncation is
+        ~2 |Z|^(2 terms + 1) / (2 terms + 1), below 1e-9 for |L dt| <= 0.5 with the default 6,
+        far beyond a step within the CFL limit.  Differentiable; dF + I is invertible for any dF
+        near I."""
+        eye = identity(self.dF)
+        if self.kinematics != "exponential":
+            return (self.dF - eye) / self.dt
+        Z = jnp.linalg.solve(jnp.swapaxes(self.dF + eye, -1, -2), jnp.swapaxes(self.dF - eye, -1, -2))
+        Z = jnp.swapaxes(Z, -1, -2)  # (dF - I)(dF + I)^-1; the two factors commute
+        Z2, power, log = Z @ Z, Z, Z
+        for k in range(1, terms):
+            power = power @ Z2
+            log = log + power / (2 * k + 1)
+        return 2.0 * log / self.dt
 
 
 class Material(eqx.Module):
@@ -133,6 +160,26 @@ class Material(eqx.Module):
         """The deformation gradient carried to the next step: F itself for solids;
         :class:`~jaxmpm.VolumetricFluid` overrides it."""
         return F
+
+    def time_step_limit(self, h, dim: int):
+        """The largest stable dt the law itself sets besides the CFL limit h / max_p(c + |V_p|), for
+        cells of size ``h`` in a ``dim``-D model (e.g. a viscous fluid's diffusion limit
+        ~ rho h^2 / eta), or None: no limit of its own (the default).
+        :meth:`jaxmpm.Simulation.stable_dt` takes the smallest of the CFL limit, the terms' limits
+        and this one (named after the material's class in :meth:`jaxmpm.Simulation.time_step_limits`)."""
+        return None
+
+    def totals(self, state, volume0) -> dict:
+        """{name: scalar}: the material's sums over the particles, saved with every frame in
+        ``History.totals`` (HDF5 ``/totals/<name>``) next to the terms' totals -- e.g. the energy a
+        viscous or plastic law has dissipated, sum_p V0_p w_p with w_p a density per reference
+        volume kept in ``state``; {} by default.
+
+        Args:
+            state: the material's state (``State.material_state``).
+            volume0: the particles' reference volumes V0_p, (N,).
+        """
+        return {}
 
     def wave_speed(self, dim: int):
         """Dilatational wave speed: sqrt(E/rho) for a uniaxial 1D law, sqrt((lambda + 2 mu)/rho)

@@ -11,6 +11,15 @@ from .linear import DENSITY, E
 from .neohookean import log_det
 
 
+def volumetric_part(F):
+    """J^(1/D) I, J = det F: the deformation a fluid keeps after each step (its stress depends on J
+    alone); F itself where J <= 0, so that the instability check still sees it."""
+    J = jnp.linalg.det(F)
+    positive = J > 0
+    iso = (jnp.where(positive, J, 1.0) ** (1.0 / F.shape[-1]))[..., None, None] * identity(F)
+    return jnp.where(positive[..., None, None], iso, F)  # J <= 0 stays visible to the instability check
+
+
 class VolumetricFluid(ElasticMaterial):
     """The weakly compressible fluid of Taichi's mpm88: Kirchhoff stress tau = E (J - 1) I
     (mpm88: ``stress = -dt * 4 * E * p_vol * (J - 1) / dx**2``, i.e. V0 tau D^-1 with D = dx^2/4),
@@ -45,10 +54,7 @@ class VolumetricFluid(ElasticMaterial):
         only, so this changes no stress, but it drops the shear a fluid accumulates without bound,
         which otherwise makes det F of a float32 F meaningless within t ~ 0.3 of mpm88 (|F| ~ 1e3
         and growing; J = det F then comes out <= 0)."""
-        J = jnp.linalg.det(F)
-        positive = J > 0
-        iso = (jnp.where(positive, J, 1.0) ** (1.0 / F.shape[-1]))[..., None, None] * identity(F)
-        return jnp.where(positive[..., None, None], iso, F)  # J <= 0 stays visible to the instability check
+        return volumetric_part(F)
 
     def wave_speed(self, dim: int):
         return jnp.sqrt(self.E / self.density)

@@ -459,10 +459,15 @@ class Simulation(eqx.Module):
         return limits[0] if len(limits) == 1 else jnp.min(jnp.stack(limits))
 
     def time_step_limits(self, state: State, cfl: float = 1.0) -> dict:
-        """{name: largest stable dt, times ``cfl``}: "CFL" (h / max_p(c + |V_p|)) and one per term
-        that limits it (e.g. "heat": h^2 / (2 D a), jaxmpm.physics.transport)."""
+        """{name: largest stable dt, times ``cfl``}: "CFL" (h / max_p(c + |V_p|)), the material's own
+        limit when it has one (:meth:`jaxmpm.Material.time_step_limit`, named after its class: e.g.
+        "newtonianfluid", the viscous limit) and one per term that limits it (e.g. "heat":
+        h^2 / (2 D a), jaxmpm.physics.transport)."""
         model = self.in_precision(state.x.dtype)
         limits = {"CFL": diag.stable_dt(self.grid, model.material, state.v, cfl)}
+        limit = model.material.time_step_limit(self.grid.h, self.grid.dim)
+        if limit is not None:
+            limits[type(model.material).__name__.lower()] = cfl * limit
         for term in model.terms:
             limit = term.time_step_limit(model, state)
             if limit is not None:
@@ -531,9 +536,19 @@ class Simulation(eqx.Module):
             fields={**{k: v for k, v in state.fields.items() if k in saved}, **chosen} if save_particles else {},
             by_material={} if materials == 1 else
             diag.by_material(state, self.material, self.field_index(state), materials),
-            totals={name: value for term in self.terms for name, value in term.totals(self, state).items()},
+            totals=self.totals(state),
             **self._frame_diagnostics(state),
         )
+
+    def totals(self, state: State) -> dict:
+        """{name: scalar} saved with every frame (``History.totals``): the terms' sums (thermal
+        energy of jm.Heat, solute of jm.Diffusion) and the material's (:meth:`jaxmpm.Material.totals`:
+        e.g. the energy a viscous or plastic law has dissipated)."""
+        out = {name: value for term in self.terms for name, value in term.totals(self, state).items()}
+        material = self.material.totals(state.material_state, state.volume0)
+        check(not set(out) & set(material), f"Simulation: the material's totals {sorted(material)} and the terms' "
+                                            f"{sorted(out)} share a name; rename one")
+        return {**out, **material}
 
     def check_frame_fields(self, state: State, fields, where: str = "fields") -> tuple:
         """``fields`` as a tuple, checked: names of the per-frame fields a run of this model from
@@ -543,9 +558,10 @@ class Simulation(eqx.Module):
 
     # ----------------------------------------------------- the driver's entry points
     def rollout(self, state: State, dt, frames: int, save_every: int = 1, save_particles: bool = True,
-                checkpoint=True, history_gradients: bool = True, fields: tuple = ()):
+                checkpoint="auto", history_gradients: bool = True, fields: tuple = (), memory=None):
         """See :func:`jaxmpm.run.driver.rollout`."""
-        return rollout(self, state, dt, frames, save_every, save_particles, checkpoint, history_gradients, fields)
+        return rollout(self, state, dt, frames, save_every, save_particles, checkpoint, history_gradients, fields,
+                       memory)
 
     def run(self, state: State, dt, steps: int, save_every: int = 1, **options):
         """See :func:`jaxmpm.run.driver.run`."""

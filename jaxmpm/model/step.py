@@ -14,7 +14,9 @@
       (003 eqs. 3.9, 3.12, 3.19);
    c. **velocity conditions**: v = p/m, a = f/m, v_tilde = v + a dt with the conditions imposed
       (:func:`impose_conditions`: the model's one :class:`jaxmpm.Constraint`);
-   d. **readers**: named results for later stages (reaction forces, a transport's nodal fields)
+   d. **colliders**: rigid level-set solids (:class:`jaxmpm.Collider`) on v_tilde, a taking the
+      change (:func:`collide`);
+   e. **readers**: named results for later stages (reaction forces, a transport's nodal fields)
 4. ``g2p``: the scheme's particle update (000 eq. 3.28, 003 eq. 2.17, 002 eq. 4) with the terms'
    damping; the strain update (USL-: the update's grid velocity; MUSL: re-extrapolated, with the
    exchange and the conditions, 003 §2.1.6); the terms' particle actions; the material's state
@@ -26,7 +28,8 @@ USL-'s resp. MUSL's (003 §2.2).
 
 The forces add up, so their order does not matter; a model has at most one exchanging term; the
 readers only add names.  So a model's physics does not depend on the order its terms were given
-in, except for the particle actions, which run in term order (each term owns what it changes).
+in, except for the particle actions, which run in term order (each term owns what it changes), and
+colliders whose solids overlap (each acts on the velocity the one before left).
 """
 
 from __future__ import annotations
@@ -268,15 +271,45 @@ def exchange_dv(term, dp, mass, constraint):
     return constraint.zero(safe_divide(dp, mass)) if term.series_correction else None
 
 
-def grid_phases(sim, fields: GridFields, dt, constraint) -> GridSolution:
-    """The grid solve of one step: the phases forces -> exchange -> velocity conditions -> readers
-    (docs/architecture.md), each term acting in the phase its hooks name.
+def collide(sim, fields: GridFields, solution: GridSolution, dt, time, results: dict) -> GridSolution:
+    """Phase "colliders": each term's rigid solid (``Term.collide``, in term order) sets the updated
+    velocity v_tilde on its nodes; the lumped v stays free and a takes the change,
+    a <- a + (v_tilde' - v_tilde)/dt, so that v + a dt = v_tilde' and FLIP's V + S a dt feels the
+    solid as PIC's S v_tilde does -- the convention of the one-sided jm.Wall
+    (:meth:`jaxmpm.Constraint.contact`).  The terms' named results go to ``results``."""
+    colliders = [term for term in sim.terms if overrides(term, "collide")]
+    if not colliders:
+        return solution
+    v_tilde = before = solution.v_tilde
+    for term in colliders:
+        v_tilde, out = term.collide(sim, fields, v_tilde, dt, time)
+        _add_results(results, out, term)
+    values = {**solution.values, "v_tilde": v_tilde}
+    if solution.a is not None:
+        values["a"] = solution.a + (v_tilde - before) / jnp.where(dt > 0, dt, 1.0)
+    return GridSolution(values)
+
+
+def collided_velocity(sim, fields: GridFields, v, dt, time):
+    """A lumped velocity (USF's start-of-step one, MUSL's re-extrapolated one) with the colliders'
+    conditions, as it has the walls'; their results are not kept."""
+    for term in sim.terms:
+        if overrides(term, "collide"):
+            v, _ = term.collide(sim, fields, v, 0.0 if dt is None else dt, time)
+    return v
+
+
+def grid_phases(sim, fields: GridFields, dt, constraint, time=None) -> GridSolution:
+    """The grid solve of one step: the phases forces -> exchange -> velocity conditions ->
+    colliders -> readers (docs/architecture.md), each term acting in the phase its hooks name.
 
     Args:
         sim: the :class:`jaxmpm.Simulation`.
         fields: the :class:`jaxmpm.GridFields` of :func:`p2g`.
         dt: the time step.
         constraint: the velocity conditions, ``sim.constraint(dtype)``.
+        time: the step's start time, where moving colliders stand (:class:`jaxmpm.Collider`);
+            None (the default): 0.
 
     Returns:
         The :class:`jaxmpm.GridSolution` with the terms' named results.
@@ -295,7 +328,8 @@ def grid_phases(sim, fields: GridFields, dt, constraint) -> GridSolution:
         fields, out = exchange(sim, exchanger, fields, dt, constraint)
         _add_results(results, out, exchanger)
     solution = impose_conditions(fields, dt, constraint)  # 3. velocity conditions
-    for term in sim.terms:  # 4. readers
+    solution = collide(sim, fields, solution, dt, 0.0 if time is None else time, results)  # 4. colliders
+    for term in sim.terms:  # 5. readers
         _add_results(results, term.read_grid(sim, fields, solution, dt), term)
     solution = GridSolution({**solution.values, **results})
     for term in sim.terms:  # deprecated whole-solution hooks, after the readers
@@ -304,9 +338,10 @@ def grid_phases(sim, fields: GridFields, dt, constraint) -> GridSolution:
     return solution
 
 
-def lumped_velocity(sim, fields: GridFields, momentum, constraint, dt=None):
+def lumped_velocity(sim, fields: GridFields, momentum, constraint, dt=None, time=None):
     """(v, Dv): the lumped grid velocity of nodal momenta (USF's start-of-step velocity, MUSL's
-    re-extrapolated one) after the momentum exchange and with the velocity conditions, and the
+    re-extrapolated one) after the momentum exchange and with the velocity conditions and the
+    colliders (standing where they are at ``time``; None: 0), and the
     exchange's change as a velocity (None without an exchange or its series term) -- or, where the
     term applies the exchange to the series' increments, its hook (``Term.exchange_increments``,
     cached from this first application; ``dt`` the step's)."""
@@ -318,7 +353,8 @@ def lumped_velocity(sim, fields: GridFields, momentum, constraint, dt=None):
         if dv is None:
             dv = exchange_dv(exchanger, dp, fields.mass, constraint)
         momentum = after
-    return constraint.apply(safe_divide(momentum, fields.mass)), dv
+    v = constraint.apply(safe_divide(momentum, fields.mass))
+    return collided_velocity(sim, fields, v, dt, 0.0 if time is None else time), dv
 
 
 def strain_velocity(sim, v, transfer, constraint, exchange_dv=None):
@@ -338,7 +374,7 @@ def material_update(sim, F_new, dF, material_state, old, new, dt):
     s_old, s_new = sim.stretch(old), sim.stretch(new)
     if s_old is not None:
         dF = dF * (s_old / s_new)[:, None, None]
-    return sim.material.update_state(Increment(dF, F_new, dt), material_state)
+    return sim.material.update_state(Increment(dF, F_new, dt, sim.kinematics), material_state)
 
 
 def step(sim, state, dt):
@@ -348,7 +384,7 @@ def step(sim, state, dt):
     if sim.update in ("USF", "USAVG-", "USAVG+"):  # stress first, with the start-of-step velocity
         fields = p2g(sim, state, force=False)
         transfer = fields.transfer
-        v0, dv = lumped_velocity(sim, fields, fields.momentum, constraint, dt)
+        v0, dv = lumped_velocity(sim, fields, fields.momentum, constraint, dt, state.time)
         v_strain = strain_velocity(sim, v0, transfer, constraint, dv)
         dF = deformation_increment(strain_rate(sim, transfer, v_strain), strain_dt(sim, dt), sim.kinematics)
         F = dF @ state.F
@@ -358,7 +394,7 @@ def step(sim, state, dt):
         fields = GridFields(transfer, {**fields.values, **nodal_terms(sim, state, transfer)})
     else:  # USL, MUSL: the stress of the step's start, scattered with the mass and momentum
         fields = p2g(sim, state, dt=dt if folds_force(sim) else None)
-    solution = grid_phases(sim, fields, dt, constraint)
+    solution = grid_phases(sim, fields, dt, constraint, state.time)
     return g2p(sim, state, fields.transfer, constraint, solution, dt, fields)
 
 
@@ -397,7 +433,7 @@ def g2p(sim, state, transfer: Transfer, constraint, grid: GridSolution, dt, fiel
             check(sim.exchange_term is None, f"g2p: under {sim.update} a model whose terms exchange momentum "
                                              "(jm.Contact) needs the step's P2G fields: g2p(..., fields=...)")
             fields = GridFields(transfer, {})
-        v_new, dv = lumped_velocity(sim, fields, momentum, constraint, dt)
+        v_new, dv = lumped_velocity(sim, fields, momentum, constraint, dt, state.time + dt)
         v_strain = strain_velocity(sim, v_new, transfer, constraint, dv)
         dF = deformation_increment(strain_rate(sim, transfer, v_strain), strain_dt(sim, dt), sim.kinematics)
     if dF is not None:

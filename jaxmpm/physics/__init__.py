@@ -1,6 +1,7 @@
 """Physics terms, one physical effect per module: ``stress`` (internal force), ``body_force``,
 ``damping``, ``contact`` (multimaterial contact), ``transport`` (heat conduction, diffusion),
-``loads`` (tractions, point forces), ``reaction`` (reaction forces), and ``conditions`` (the
+``loads`` (tractions, point forces), ``reaction`` (reaction forces), ``collider`` (rigid level-set
+colliders), and ``conditions`` (the
 velocity boundary conditions and their :class:`Constraint`); ``term`` is the :class:`Term`
 interface with the grid phases."""
 
@@ -12,4 +13,6 @@ from .damping import Damping  # noqa: F401
 from .contact import Contact  # noqa: F401
 from .loads import ParticleForce, Traction  # noqa: F401
 from .reaction import Reaction  # noqa: F401
+from .collider import (Collider, HalfSpace, LevelSet, SolidBox, SolidCylinder, SolidSphere,  # noqa: F401
+                       SolidUnion)
 from .transport import Diffusion, Dirichlet, Heat, Neumann, Transport  # noqa: F401

@@ -18,7 +18,12 @@ default to "nothing":
      ``exchange_increments(...)`` may give XPIC/FMPM's series a hook that applies the exchange to
      every increment of the series (contact's NairnMPM rule) in place of the separate series term.
   3. **velocity conditions** -- the model's :class:`jaxmpm.Constraint`, one operator.
-  4. **readers** -- ``read_grid(sim, fields, solution, dt)``: named results for later stages
+  4. **colliders** -- ``collide(sim, fields, v, dt, time)``: a rigid solid's condition on the updated
+     velocity v_tilde at the step's start time (:class:`jaxmpm.Collider`), in term order, each on
+     the one before's result; the pipeline keeps v + a dt = v_tilde (a takes the change, the
+     convention of the one-sided jm.Wall) and records the term's named results.  USF's and MUSL's
+     lumped velocities meet the same hook (their results dropped), as they meet the walls.
+  5. **readers** -- ``read_grid(sim, fields, solution, dt)``: named results for later stages
      (reaction forces, a transport's nodal fields).  They add names; they cannot change v, a or
      v_tilde, and a name two terms add is an error.
 
@@ -122,6 +127,11 @@ class Term(eqx.Module):
     def in_conventions(self, conventions: str) -> "Term":
         """The term in another code's rules (``Simulation(conventions=...)``): itself by default."""
         return self
+
+    def collide(self, sim, fields, v, dt, time):
+        """Phase "colliders": (the nodal velocity ``v`` (field_nodes, D) after this term's rigid
+        solid acts on it at ``time``, {name: array} results), or None (the default): no solid."""
+        return None
 
     def read_grid(self, sim, fields, solution, dt) -> dict:
         """Phase "readers": {name: array} added to the grid solution."""

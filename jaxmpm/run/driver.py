@@ -18,6 +18,7 @@ from ..core.errors import InstabilityError, ParticlesLeftGrid, check
 from ..core.limits import require_memory, require_steps
 from ..core.state import State
 from ..core.warn import warn
+from .memory import _segment_length, choose_checkpoint, parse_memory  # noqa: F401  (_segment_length: tests)
 
 CAUSES = {
     1: "NaN or Inf in the particle state",
@@ -35,7 +36,8 @@ class History(eqx.Module):
     the per-particle fields the terms declare and those the run chose (``fields``: stress,
     pressure, J, F, ..., see :mod:`jaxmpm.model.frame_fields`; empty if particles are not saved) and,
     in multimaterial mode, per-material sums (``by_material``: kinetic, strain, momentum,
-    contact_force), and the terms' totals (``totals``: thermal energy, solute).  Runs build it
+    contact_force), and the model's totals (``totals``: thermal energy, solute, a material's
+    dissipated energy).  Runs build it
     (``Simulation.diagnostics_frame``); ``jaxmpm.load_h5`` reads one back.
 
     Args:
@@ -52,8 +54,8 @@ class History(eqx.Module):
             default ``{}``.
         by_material: multimaterial mode: per-material kinetic and strain energy (T, M), momentum
             and contact force (T, M, D); default ``{}``.
-        totals: the terms' totals ``{name: (T,)}`` (thermal_energy of jm.Heat, solute of
-            jm.Diffusion); default ``{}``.
+        totals: the model's totals ``{name: (T,)}`` (thermal_energy of jm.Heat, solute of
+            jm.Diffusion, viscous_dissipation of jm.NewtonianFluid: ``Simulation.totals``); default ``{}``.
     """
 
     time: jnp.ndarray
@@ -67,7 +69,7 @@ class History(eqx.Module):
     fields: dict = eqx.field(default_factory=dict)  # saved per-particle fields, the terms' and chosen, (T, N, ...)
     # multimaterial mode: per-material kinetic, strain (T, M), momentum and contact force (T, M, D)
     by_material: dict = eqx.field(default_factory=dict)
-    # the terms' totals (T,): thermal_energy (jm.Heat), solute (jm.Diffusion)
+    # the model's totals (T,): thermal_energy (jm.Heat), solute (jm.Diffusion), the material's (Material.totals)
     totals: dict = eqx.field(default_factory=dict)
 
     @property
@@ -104,7 +106,7 @@ def check_state(state) -> None:
 
 
 def rollout(sim, state: State, dt, frames: int, save_every: int = 1, save_particles: bool = True,
-            checkpoint=True, history_gradients: bool = True, fields: tuple = ()):
+            checkpoint="auto", history_gradients: bool = True, fields: tuple = (), memory=None):
     """Pure ``lax.scan`` rollout of ``frames * save_every`` steps.  Returns
     ``(final_state, history, failure)``; ``history`` holds the initial frame and one frame
     every ``save_every`` steps (``frames + 1`` in all), each with the per-particle ``fields``
@@ -113,6 +115,11 @@ def rollout(sim, state: State, dt, frames: int, save_every: int = 1, save_partic
 
     ``checkpoint`` (reverse mode only; the forward pass is unchanged):
 
+    * ``"auto"`` (default): one of the three below, chosen at trace time from the budget
+      ``memory`` (bytes or a string such as ``"4 GiB"``; default half the device's free memory)
+      and the backend's measured preference (:mod:`jaxmpm.run.memory`): on the CPU ``True``
+      unless its states outgrow the budget (then ``"low_memory"``); on a GPU ``False`` where every
+      step's residuals fit in 64 MiB and the budget, else as on the CPU.
     * ``True`` (default): two levels.  The forward pass keeps the state at the start of every
       segment of L steps (L a divisor of ``save_every``, chosen to minimise the states kept,
       frames * save_every / L + L: about 2 sqrt(T) for T steps); the backward pass recomputes
@@ -133,6 +140,8 @@ def rollout(sim, state: State, dt, frames: int, save_every: int = 1, save_partic
     fields = _chosen_fields(sim, state, fields, save_particles)
     dt = jnp.asarray(dt, state.x.dtype)
     none = Failure(jnp.array(-1, jnp.int32), jnp.array(0, jnp.int32), jnp.array(-1, jnp.int32))
+    if isinstance(checkpoint, str) and checkpoint == "auto":
+        checkpoint, _ = choose_checkpoint(sim, state, dt, frames, save_every, memory)
     segment = _segment_length(save_every, checkpoint, frames)
     remat = (lambda f: f) if segment is None else jax.checkpoint  # noqa: E731
     remat_frames = jax.checkpoint if isinstance(checkpoint, str) else (lambda f: f)  # noqa: E731  ("low_memory")
@@ -182,7 +191,8 @@ def run(
     progress: bool = False,
     writer=None,
     frames_per_chunk: int | None = None,
-    checkpoint=True,
+    checkpoint="auto",
+    memory=None,
     history_gradients: bool = True,
     start_step: int | None = None,
     fields: tuple | None = None,
@@ -196,8 +206,9 @@ def run(
     :class:`jaxmpm.H5Writer`) or ``progress=True`` it runs in chunks of ``frames_per_chunk``
     frames, writing/reporting each before the next, and returns ``(final_state, None)`` when
     a writer holds the frames.  ``checkpoint`` controls rematerialisation for reverse-mode
-    gradients and ``history_gradients=False`` makes the saved frames constants to autodiff (see
-    :func:`rollout`); neither changes the forward results.
+    gradients (by default chosen from the memory budget ``memory``) and ``history_gradients=False``
+    makes the saved frames constants to autodiff (see :func:`rollout`); neither changes the forward
+    results.
 
     Chunks are sized by wall time (about :data:`CHUNK_SECONDS`); ``frames_per_chunk`` caps them.
     A writer's file receives every chunk's frames with the state reached, so that whatever stops
@@ -224,6 +235,7 @@ def run(
     check(isinstance(history_gradients, bool),
           f"run: history_gradients = {history_gradients!r} must be True (frames carry gradients) or False")
     frames = steps // save_every
+    parse_memory(memory)  # checked before anything runs
     check_state(state)
     check(start_step is None or writer is not None or progress,
           "run: start_step continues a chunked run; pass writer=... (see jaxmpm.resume)")
@@ -244,7 +256,9 @@ def run(
         name = min(limits, key=limits.get)
         limit = limits[name]
         if dtc > limit:
-            what = "h / max(c + |V|)" if name == "CFL" else f"the {name} term's limit h^2 / (2 D k / (rho C_p))"
+            material = type(sim.material).__name__
+            what = ("h / max(c + |V|)" if name == "CFL" else f"{material}'s own limit, Material.time_step_limit"
+                    if name == material.lower() else f"the {name} term's limit h^2 / (2 D k / (rho C_p))")
             warn(f"dt = {dtc:.6g} exceeds the stable limit {limit:.6g} (= {what}); "
                  f"use dt <= {0.5 * limit:.6g} (CFL 0.5) to stay stable", StableTimeStepWarning)
         first = int(state.step) if start_step is None else int(start_step)
@@ -252,7 +266,7 @@ def run(
         _require_frame_memory(sim, state, frames, save_particles, writer is None, fields)
     if traced or (writer is None and not progress):
         final, history, failure = _jit_rollout(sim, state, dt, frames, save_every, save_particles,
-                                               checkpoint, history_gradients, fields)
+                                               checkpoint, history_gradients, fields, memory)
         if not traced and check_stability:
             _raise_if_failed(failure, dt, state, None, sim.grid)
         return final, history
@@ -488,7 +502,8 @@ def _run_chunked(sim, state, dt, frames, save_every, save_particles, check_stabi
     :class:`_Clock`'s."""
     import time
 
-    _segment_length(save_every, checkpoint, frames)  # validated; the chunked runner is forward only
+    if not (isinstance(checkpoint, str) and checkpoint == "auto"):
+        _segment_length(save_every, checkpoint, frames)  # validated; the chunked runner is forward only
     start_step = int(state.step) if start_step is None else int(start_step)
     done_steps = int(state.step) - start_step
     total = frames * save_every
@@ -661,25 +676,9 @@ def _jit_frame(sim, state, save_particles, fields=()):
 
 
 @eqx.filter_jit
-def _jit_rollout(sim, state, dt, frames, save_every, save_particles, checkpoint=True, history_gradients=True,
-                 fields=()):
-    return sim.rollout(state, dt, frames, save_every, save_particles, checkpoint, history_gradients, fields)
-
-
-def _segment_length(save_every: int, checkpoint, frames: int = 1):
-    """Steps per rematerialised segment, or None for no checkpointing (see :func:`rollout`)."""
-    if checkpoint is False or checkpoint is None:
-        return None
-    divisors = [d for d in range(1, save_every + 1) if save_every % d == 0]
-    if checkpoint is True:  # two levels: fewest states kept, frames * save_every / L segment starts + L steps
-        return min(divisors, key=lambda d: (frames * save_every // d + d, d))
-    if isinstance(checkpoint, str) and checkpoint == "low_memory":  # three levels: segments of ~sqrt(save_every)
-        return min(divisors, key=lambda d: abs(d - math.sqrt(save_every)))
-    check(isinstance(checkpoint, (int, np.integer)) and not isinstance(checkpoint, (bool, str)) and checkpoint >= 1
-          and save_every % checkpoint == 0,
-          f"checkpoint = {checkpoint!r} must be True, False, 'low_memory' or a positive divisor of "
-          f"save_every = {save_every}")
-    return int(checkpoint)
+def _jit_rollout(sim, state, dt, frames, save_every, save_particles, checkpoint="auto", history_gradients=True,
+                 fields=(), memory=None):
+    return sim.rollout(state, dt, frames, save_every, save_particles, checkpoint, history_gradients, fields, memory)
 
 
 def _raise_if_failed(failure: Failure, dt, state0, reached=None, grid=None):

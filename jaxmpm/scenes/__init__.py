@@ -18,13 +18,17 @@ from ..core.errors import InputError, check
 from ._common import Setup, cast_state, resolve_dtype
 from .bar import bar
 from .bars_impact import bars_impact
+from .column_collapse import column_collapse
 from .cylinder import cylinder
+from .dam_break import dam_break
 from .disks import disks
+from .incline import incline
 from .mms import mms
 from .mpm88 import mpm88
 from .rings import rings
 from .slide import slide
 from .spin import spin
+from .taylor_bar import taylor_bar
 from .transport import diffusion2d, heat1d, heat_step, thermal_bar
 from .vortex import vortex
 
@@ -44,8 +48,16 @@ SCENES = {
     "heat_step": (heat_step, "rod whose end is held hot from t = 0: T = T_s erfc(x / (2 sqrt(a t)))"),
     "diffusion2d": (diffusion2d, "unit square, boundary held at mu = 1: double sine series (001 §9)"),
     "thermal_bar": (thermal_bar, "free bar heated by dT expands by alpha_T dT L"),
+    "dam_break": (dam_break, "Martin & Moyce 1952: a 2D water column (a x 2a) collapses in a slip-walled tank; "
+                             "surge front Z(T) against their measurements"),
     "cylinder": (cylinder, "axisymmetric thick-walled cylinder under internal pressure, damped to Lame's "
                            "u_r(r) and sigma_tt(r) (001 §7)"),
+    "incline": (incline, "elastic block slides down a rigid collider incline of angle theta: "
+                         "s = g (sin theta - mu cos theta) t^2 / 2"),
+    "taylor_bar": (taylor_bar, "Taylor impact: a copper rod (von Mises) at 190 m/s into a rigid wall, axisymmetric "
+                               "or 3D; final length and foot radius vs the MPM literature (Wilkins & Guinan 1973)"),
+    "column_collapse": (column_collapse, "2D granular column of aspect ratio a = H0/L0 (Drucker-Prager sand) "
+                                         "collapses on a rough floor: run-out and height vs Lube et al. 2005"),
 }
 
 

@@ -57,11 +57,15 @@ PART_DEFAULTS = {
     "vortex": {"scheme": "flip", "shape": "quadratic"},
     "bars_impact": {"scheme": "flip", "shape": "linear"},
     "slide": {"scheme": "flip", "shape": "ugimp"},
+    "incline": {"scheme": "flip", "shape": "ugimp"},
+    "column_collapse": {"scheme": "apic", "shape": "quadratic"},
     "heat1d": {"scheme": "flip", "shape": "linear"},
     "heat_step": {"scheme": "flip", "shape": "linear"},
     "diffusion2d": {"scheme": "flip", "shape": "linear"},
     "thermal_bar": {"scheme": "flip", "shape": "ugimp"},
     "cylinder": {"scheme": "flip", "shape": "ugimp"},
+    "dam_break": {"scheme": "apic", "shape": "quadratic"},
+    "taylor_bar": {"scheme": "flip", "shape": "linear"},
 }
 
 #: what a default the builder derives (``None``, or a damping the scene adds itself) amounts to, as
@@ -75,6 +79,8 @@ DERIVED_DEFAULTS = {
     "bars_impact": {"t_end": "4 L/c (twice the contact time)"},
     "thermal_bar": {"alpha_p": "20"},
     "cylinder": {"alpha_g": "the breathing mode's frequency"},
+    "dam_break": {"t_end": "T = t sqrt(2 g / a) = 5.5"},
+    "column_collapse": {"t_end": "5 sqrt(H0/g)"},
 }
 
 #: the ``contact`` option of the multimaterial scenes: "none" keeps one velocity field (the model of a
@@ -96,6 +102,9 @@ FIELD_DEFAULTS = {
     "slide": ("stress",),
     "thermal_bar": ("stress", "J"),
     "cylinder": ("stress",),
+    "dam_break": ("pressure",),
+    "column_collapse": ("stress", "plastic_strain"),
+    "taylor_bar": ("stress", "plastic_strain"),
 }
 
 

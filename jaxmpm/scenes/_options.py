@@ -118,12 +118,25 @@ OPTION_CHECKS = {
     "ramp": _range(NON_NEGATIVE, "the time over which the load rises from 0 (0: at once)"),
     # material constants
     "E": _range(POSITIVE), "density": _range(POSITIVE), "nu": _range(POISSON, POISSON.fix),
+    "viscosity": _range(NON_NEGATIVE, "the dynamic viscosity eta in Pa s; 0 is inviscid"),
+    "sound_speed": _range(POSITIVE, "the speed of sound c_0, e.g. 10 times the flow's largest velocity"),
+    "width": _range(POSITIVE), "tank": _range(POSITIVE, "the tank's length in column widths"),
     # motions and loads (any sign)
     "speed": _range(FINITE), "v0": _range(FINITE), "omega": _range(FINITE), "amplitude": _range(FINITE),
     "gravity": _gravity,
     "pressure": _range(FINITE, "the pressure, force per area"),
     "phases": _finite_list,
     "theta": _range(Range(0, 90, high_open=True), "the slope angle in degrees"),
+    "angle": _range(Range(0, 90, high_open=True), "the incline's angle in degrees"),
+    # granular column (column_collapse): its aspect ratio and the sand's Drucker-Prager constants
+    "aspect": _range(POSITIVE, "the column's aspect ratio H0/L0, e.g. 2"),
+    "friction_angle": _range(Range(0, 90, high_open=True), "the friction angle phi in degrees, in [0, 90)"),
+    "cohesion": _range(NON_NEGATIVE, "the cohesion c >= 0 (stress units)"),
+    # the Taylor bar (taylor_bar): its von Mises constants and model
+    "yield_stress": _range(POSITIVE, "the initial yield stress sigma_y (stress units)"),
+    "hardening": _range(NON_NEGATIVE, "the linear hardening modulus H >= 0 (stress units)"),
+    "geometry": lambda scene, name, value: value if value in ("axisymmetric", "3d") else fail(
+        scene, f"{name} = {show(value)}; choose 'axisymmetric' or '3d'"),
     # contact between the bodies of a two-body scene (jaxmpm/_contact.py)
     "contact": _contact,
     "friction": _range(NON_NEGATIVE, "the Coulomb friction coefficient mu"),

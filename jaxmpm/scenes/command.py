@@ -51,6 +51,15 @@ SCENE_OPTIONS = {
     "--expansion": "expansion",
     "--gravity": "gravity",
     "--theta": "theta",
+    "--viscosity": "viscosity",
+    "--angle": "angle",
+    "--aspect": "aspect",
+    "--friction-angle": "friction_angle",
+    "--cohesion": "cohesion",
+    "--geometry": "geometry",
+    "--v0": "v0",
+    "--yield-stress": "yield_stress",
+    "--hardening": "hardening",
 }
 
 #: the function of a scene file that builds the scene

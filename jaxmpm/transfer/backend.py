@@ -95,6 +95,17 @@ def evaluate_once(fn, *args):
     return _held_computation(closed, tuple(consts), args)
 
 
+# Residual bytes up to which a reverse-mode rollout stores every step's residuals rather than
+# recomputing the steps (``checkpoint="auto"``, jaxmpm.run.memory), per policy, from
+# benchmarks/gradient_memory.py (1000 steps; gradient time with residuals stored / recomputed):
+# * cpu: never -- recomputing won everywhere: bar 256 particles 51 MiB stored 2.2x slower, disks
+#   14-21x against 5-6x, mpm88 8k needs ~31 GiB (2 cores, float64);
+# * gpu (H200, jax 0.11.2, float32): stored won only for the bar (25-30 MiB: 0.73-0.75x the
+#   recomputing gradient's time); from disks (327-469 MiB: 1.05-1.22x) to mpm88 8k (7-17 GiB:
+#   1.12-1.34x) and 131k particles (11-14 GiB for 100 steps: 1.12-1.36x) recomputing won.
+STORE_RESIDUALS_UP_TO = {"cpu": 0, "gpu": 64 * 2**20}
+
+
 def scatter_row_width(width: int) -> int:
     """How many columns a scatter-add of ``width`` columns per (node) row is given: under the CPU
     policy the next power of two (the extra columns are zeros, sliced off after), ``width``

@@ -1,0 +1,119 @@
+"""The checkpoint schedule of a reverse-mode rollout, chosen from a memory budget (issue 30 item 3).
+
+A gradient through T steps needs, for the backward pass, what each step's pullback reads (its
+residuals, R bytes per step).  Three schedules trade that memory against recomputation
+(:func:`jaxmpm.run.driver.rollout`, ``checkpoint=``):
+
+* ``False`` -- every step's residuals stored: T R bytes, no recomputation;
+* ``True`` -- two levels: T / L + L states of S bytes kept (L ~ sqrt T), each segment recomputed
+  once and each step once more for its pullback: about (2 sqrt T) S + R bytes;
+* ``"low_memory"`` -- three levels: about (frames + 2 sqrt(save_every)) S + R bytes, a third
+  forward pass.
+
+``checkpoint="auto"`` (the default) picks one from the budget ``memory`` (bytes, or a string such
+as ``"4 GiB"``; default: half the device's free memory) and the backend's measured preference
+(:data:`jaxmpm.transfer.backend.STORE_RESIDUALS_UP_TO`): store the residuals where they fit and the
+backend gains by storing them; else two levels where the kept states fit; else three.  On the
+CPU storing has never paid (the recomputing schedule was faster in every case measured), so
+"auto" is ``True`` there unless the states outgrow the budget -- the numbers are those of the
+schedule it picks (every schedule gives the same gradient to round-off).
+"""
+
+from __future__ import annotations
+
+import math
+import re
+
+import jax
+import numpy as np
+
+from ..core.errors import check
+from ..core.limits import available_bytes
+from ..transfer.backend import STORE_RESIDUALS_UP_TO, resolve
+
+_UNITS = {"": 1, "b": 1, "kb": 10**3, "mb": 10**6, "gb": 10**9, "tb": 10**12,
+          "kib": 2**10, "mib": 2**20, "gib": 2**30, "tib": 2**40}
+
+
+def parse_memory(memory) -> int | None:
+    """Bytes of a budget: an int, a float, ``"4 GiB"``, ``"500MB"``; None (the default budget)."""
+    if memory is None:
+        return None
+    if isinstance(memory, str):
+        match = re.fullmatch(r"\s*([0-9.]+(?:e[+-]?[0-9]+)?)\s*([a-zA-Z]*)\s*", memory)
+        check(match is not None and match.group(2).lower() in _UNITS,
+              f"memory = {memory!r}: give bytes (an int) or a size such as '4 GiB', '500 MB'")
+        memory = float(match.group(1)) * _UNITS[match.group(2).lower()]
+    check(isinstance(memory, (int, float, np.integer, np.floating)) and not isinstance(memory, bool)
+          and math.isfinite(memory) and memory > 0,
+          f"memory = {memory!r}: give a positive number of bytes or a size such as '4 GiB'")
+    return int(memory)
+
+
+def free_memory(device=None) -> int:
+    """Free bytes of ``device`` (default: the first device): the accelerator's allocator limit less
+    what is in use, or the host's available memory (:func:`jaxmpm.core.limits.available_bytes`) for
+    the CPU and any backend without memory statistics."""
+    device = device or jax.devices()[0]
+    try:
+        stats = device.memory_stats()
+    except Exception:  # backends without memory statistics  # noqa: BLE001
+        stats = None
+    if stats and "bytes_limit" in stats:
+        return int(stats["bytes_limit"] - stats.get("bytes_in_use", 0))
+    return available_bytes()
+
+
+def default_budget() -> int:
+    """Half the device's free memory (the rest is the forward pass's and the user's)."""
+    return free_memory() // 2
+
+
+def tree_bytes(tree) -> int:
+    """Bytes of a pytree's array leaves (arrays, tracers or shape structs)."""
+    return sum(int(np.prod(np.shape(leaf))) * np.dtype(leaf.dtype).itemsize
+               for leaf in jax.tree_util.tree_leaves(tree) if hasattr(leaf, "dtype"))
+
+
+def residual_bytes(step, state, dt) -> int:
+    """Bytes one step's pullback keeps: the leaves of ``jax.vjp``'s pullback (a pytree of the
+    residuals), by shape only (``jax.eval_shape``: traced, not compiled)."""
+    pullback = jax.eval_shape(lambda s: jax.vjp(lambda s: step(s, dt), s)[1], state)
+    return tree_bytes(pullback)
+
+
+def choose_checkpoint(sim, state, dt, frames: int, save_every: int, memory=None):
+    """``(checkpoint, why)``: the schedule ``checkpoint="auto"`` runs (module docstring)."""
+    budget = parse_memory(memory)
+    budget = default_budget() if budget is None else budget
+    steps = frames * save_every
+    state_bytes = tree_bytes(state)
+    limit = STORE_RESIDUALS_UP_TO[resolve(sim.backend)]
+    if limit > 0:
+        stored = steps * residual_bytes(sim.step, state, dt)
+        if stored <= min(limit, budget):
+            return False, f"every step's residuals stored ({stored / 2**20:.1f} MiB)"
+    segment = _segment_length(save_every, True, frames)
+    two_levels = (steps // segment + segment) * state_bytes
+    if two_levels <= budget:
+        return True, f"two levels, segments of {segment} steps ({two_levels / 2**20:.1f} MiB of states)"
+    segment = _segment_length(save_every, "low_memory", frames)
+    three_levels = (frames + save_every // segment + segment) * state_bytes
+    return "low_memory", (f"three levels ({three_levels / 2**20:.1f} MiB of states; two levels would keep "
+                          f"{two_levels / 2**20:.1f} MiB, over the budget of {budget / 2**20:.1f} MiB)")
+
+
+def _segment_length(save_every: int, checkpoint, frames: int = 1):
+    """Steps per rematerialised segment, or None for no checkpointing (see :func:`rollout`)."""
+    if checkpoint is False or checkpoint is None:
+        return None
+    divisors = [d for d in range(1, save_every + 1) if save_every % d == 0]
+    if checkpoint is True:  # two levels: fewest states kept, frames * save_every / L segment starts + L steps
+        return min(divisors, key=lambda d: (frames * save_every // d + d, d))
+    if isinstance(checkpoint, str) and checkpoint == "low_memory":  # three levels: segments of ~sqrt(save_every)
+        return min(divisors, key=lambda d: abs(d - math.sqrt(save_every)))
+    check(isinstance(checkpoint, (int, np.integer)) and not isinstance(checkpoint, (bool, str)) and checkpoint >= 1
+          and save_every % checkpoint == 0,
+          f"checkpoint = {checkpoint!r} must be 'auto', True, False, 'low_memory' or a positive divisor of "
+          f"save_every = {save_every}")
+    return int(checkpoint)

@@ -1,12 +1,12 @@
 """The plastic-material base and von Mises (J2) plasticity, at the material point, float64.
 
 * :func:`jaxmpm.materials.principal.principal_map`: the derivative of an isotropic matrix function
-  U diag(g(sigma)) V^T (Stomakhin et al. 2012 §4; Xu et al. 2015 eqs. (10)-(12)) against central
+  U diag(g(sigma)) V^T (Stomakhin et al. 2012; Xu et al. 2015) against central
   differences, at F = I and at repeated singular values, where autodiff of an SVD divides by zero.
 * :class:`jaxmpm.HenckyPlastic`: the elastic limit is the Hencky law tau = lambda tr(eps) I +
-  2 mu eps with eps = ln(V) = 1/2 ln(F F^T) (Klar et al. 2016 eq. (25)); plane strain and uniaxial
+  2 mu eps with eps = ln(V) = 1/2 ln(F F^T) (Klar et al. 2016); plane strain and uniaxial
   strain equal the 3D law on the same path (the out-of-plane elastic stretch kept in the state).
-* :class:`jaxmpm.VonMises`: the radial return (Simo 1992 Box 1; de Souza Neto et al. 2008 Box 7.4)
+* :class:`jaxmpm.VonMises`: the radial return (Simo 1992; de Souza Neto et al. 2008)
   lands on q = sigma_y + H alpha to round-off; simple shear plateaus at tau_xy = sigma_y / sqrt(3);
   a rigid rotation of a yielded state keeps its invariants; the dissipation per step is
   sigma_y d_alpha to first order; gradients through the return equal central differences.

@@ -1,25 +1,25 @@
 """Finite-strain elastoplasticity in Hencky (logarithmic) strain: the base of the plastic laws.
 
 The deformation gradient splits multiplicatively, F = F_e F_p; the material keeps the elastic part
-F_e in its state (Simo 1992; Klar et al. 2016 §4).  Each strain update:
+F_e in its state (Simo 1992; Klar et al. 2016).  Each strain update:
 
 1. trial:   F_e* = dF F_e                     (dF the mechanical increment, 001 eq. 26)
 2. return:  F_e* = U diag(sigma*) V^T,  eps* = ln sigma*   (principal Hencky strains)
             eps  = Z(eps*, plastic state)     the law's return mapping (:meth:`return_mapping`)
             F_e  = U diag(exp eps) V^T
 3. stress:  tau = U diag(t) U^T,  t = lambda tr(eps) 1 + 2 mu eps      (Kirchhoff stress of the
-            Hencky energy W = mu |eps|^2 + lambda/2 (tr eps)^2; Klar et al. 2016 eq. (25))
+            Hencky energy W = mu |eps|^2 + lambda/2 (tr eps)^2; Klar et al. 2016)
 
 Because the Hencky law is linear in eps, the return mapping of a yield surface in principal
 Kirchhoff stress is a closed-form projection in eps (Simo 1992, "Algorithms for static and dynamic
-multiplicative plasticity", Box 1; de Souza Neto, Peric & Owen 2008 §14.7).  Every law is written in
+multiplicative plasticity"; de Souza Neto, Peric & Owen 2008).  Every law is written in
 three principal strains: in 3D and on an axisymmetric grid (F 3x3 in (r, z, theta), 001 §7) they are
 F_e's singular values; in 2D (plane strain, total F_zz = 1) and 1D (uniaxial strain) the elastic
 stretches along the unresolved axes are part of the state (``stretch_out``), since plastic flow
 changes them (F_e,zz = 1 / F_p,zz).
 
 The plastic work of the step, tau : d_eps_p = sum_i t_i (eps*_i - eps_i) with t the returned
-stress (the backward-Euler dissipation, de Souza Neto et al. 2008 §7.2), is kept per particle
+stress (the backward-Euler dissipation; de Souza Neto et al. 2008), is kept per particle
 (``plastic_dissipation``, per reference volume) and summed over the particles (times V0_p) into
 ``History.totals["plastic_dissipation"]``.  It is not the energy the return removes,
 W(eps*) - W(eps) = tau : d_eps_p + d_eps_p : C : d_eps_p / 2: the second term is the overshoot

@@ -3,16 +3,16 @@ NaN-free derivatives.
 
 A plastic return mapping in Hencky strain works on the singular values of the elastic deformation
 gradient, F = U diag(sigma) V^T: the principal logarithmic strains are eps = ln sigma, the law maps
-them to new ones, and F_new = U diag(exp(eps_new)) V^T (Klar et al. 2016 §4-5, Stomakhin et al.
-2013 §6).  Such a map G(F) = U diag(g(sigma)) V^T is an isotropic matrix function; so is the
+them to new ones, and F_new = U diag(exp(eps_new)) V^T (Klar et al. 2016, Stomakhin et al.
+2013).  Such a map G(F) = U diag(g(sigma)) V^T is an isotropic matrix function; so is the
 Kirchhoff stress, tau = U diag(t(sigma)) U^T = G(F) F^T with g_i = t_i / sigma_i.
 
 Differentiating through a singular value decomposition breaks where singular values coincide
 (autodiff's rule divides by sigma_i^2 - sigma_j^2), and they coincide at the very start of every run
 (F = I) and in every state of equal principal stretches.  :func:`principal_map` therefore carries
 its own derivative, the closed form of an isotropic function's derivative in the rotated frame
-(dF^ = U^T dF V; Stomakhin et al. 2012 "Energetically consistent invertible elasticity" §4, Xu,
-Sin, Zhu & Barbic 2015 "Nonlinear material design using principal stretches" eqs. (10)-(12)):
+(dF^ = U^T dF V; Stomakhin et al. 2012 "Energetically consistent invertible elasticity"; Xu,
+Sin, Zhu & Barbic 2015 "Nonlinear material design using principal stretches"):
 
     dG^_ii                   = sum_k dg_i/dsigma_k dF^_kk       (+ the parameters' part)
     (dG^_ij + dG^_ji) / 2    = (g_i - g_j) / (sigma_i - sigma_j) (dF^_ij + dF^_ji) / 2
@@ -40,8 +40,8 @@ def svd(F):
     Written out for the small matrices of a deformation gradient, branch-free and vectorised over
     the particles (a library SVD runs one LAPACK call per particle on the CPU: measured 26x slower
     plastic steps on mpm88): 1D trivial; 2D and 3D by cyclic Jacobi rotations of F^T F (Golub & Van
-    Loan 2013 §8.4.2-8.4.3) with U = F V diag(1 / sigma).  Only values are computed here;
-    derivatives are :func:`principal_map`'s.
+    Loan 2013, the symmetric Schur rotation and cyclic Jacobi) with U = F V diag(1 / sigma).  Only
+    values are computed here; derivatives are :func:`principal_map`'s.
     """
     D = F.shape[-1]
     if D == 1:

@@ -21,8 +21,8 @@ class VonMises(HenckyPlastic):
 
     on the Kirchhoff stress (the von Mises equivalent stress), alpha the equivalent plastic strain.
     The flow is associated (along dev tau) and isochoric.  With the Hencky law dev tau = 2 mu dev eps,
-    so the return is radial in principal strain space and exact in one step (Simo 1992 Box 1;
-    de Souza Neto et al. 2008 Box 7.4, the radial return with linear hardening):
+    so the return is radial in principal strain space and exact in one step (Simo 1992;
+    de Souza Neto et al. 2008, the radial return with linear hardening):
 
         q* = 2 mu sqrt(3/2) |dev eps*|,  f* = q* - (sigma_y + H alpha)
         d_gamma = max(f*, 0) / (3 mu + H)

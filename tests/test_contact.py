@@ -536,7 +536,7 @@ def test_normals_are_antisymmetric_and_nan_safe(normal):
     """Every option: the two-material normal and the M-material one for M = 2 agree, n^1 = -n^0
     (bit for bit except "average", whose M-material form 2 g^a - sum_b g^b rounds differently),
     the changes of the law sum to zero on every node, and reverse-mode derivatives through the
-    normals are finite where gradients vanish or tie (the _safe_unit/_safe_norm guards)."""
+    normals are finite where gradients vanish or tie (the guards of jaxmpm.core.safe)."""
     g0, g1, m = random_gradients()
     contact = jm.Contact(law="coulomb", friction=0.3, normal=normal)
     grad_m, mass = jnp.asarray(np.concatenate([g0, g1])), jnp.asarray(m.reshape(-1))

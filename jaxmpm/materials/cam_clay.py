@@ -8,9 +8,10 @@ import jax
 import jax.numpy as jnp
 
 from ..core.registry import Parameter, register_material
+from ..core.safe import safe_norm
 from ..core.validate import NON_NEGATIVE, POISSON, POSITIVE
 from .linear import DENSITY, NU, E
-from .plastic import HenckyPlastic, deviator, safe_norm
+from .plastic import HenckyPlastic, deviator
 
 SQRT_6 = math.sqrt(6.0)
 SQRT_2_3 = math.sqrt(2.0 / 3.0)

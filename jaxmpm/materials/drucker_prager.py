@@ -59,10 +59,11 @@ import math
 import jax.numpy as jnp
 
 from ..core.registry import Parameter, register_material
+from ..core.safe import safe_norm, safe_unit
 from ..core.validate import NON_NEGATIVE, POISSON, POSITIVE, Range, concrete, fail
 from .base import lame
 from .linear import DENSITY, NU, E
-from .plastic import HenckyPlastic, deviator, safe_direction, safe_norm
+from .plastic import HenckyPlastic, deviator
 
 SQRT2 = math.sqrt(2.0)
 SQRT_2_3 = math.sqrt(2.0 / 3.0)
@@ -199,7 +200,7 @@ class DruckerPrager(HenckyPlastic):
         sqrt_j2 = SQRT2 * mu * dev_norm  # sqrt(J2) = |2 mu dev eps| / sqrt(2)
         f_trial = sqrt_j2 + eta * K * 3.0 * mean - xi * self.cohesion
         d_gamma = jnp.maximum(f_trial, 0.0) / (mu + K * eta * eta_bar)  # de Souza Neto et al. 2008 ch. 8
-        flow = safe_direction(dev) / SQRT2 + (eta_bar / 3.0)[..., None]
+        flow = safe_unit(dev) / SQRT2 + (eta_bar / 3.0)[..., None]
         eps_cone = eps_trial - d_gamma[..., None] * flow
         # beyond the apex: the return would carry the deviator through zero (Klar: "project to the tip")
         beyond = mu * d_gamma > sqrt_j2

@@ -179,19 +179,3 @@ def deviator(eps):
     """The deviatoric part of principal values (..., 3) and their mean."""
     mean = jnp.mean(eps, axis=-1, keepdims=True)
     return eps - mean, mean[..., 0]
-
-
-def safe_norm(x, axis=-1):
-    """|x| with a derivative that is 0, not NaN, at x = 0."""
-    sq = jnp.sum(x * x, axis=axis)
-    positive = sq > 0
-    return jnp.where(positive, jnp.sqrt(jnp.where(positive, sq, 1.0)), 0.0)
-
-
-def safe_direction(x, axis=-1):
-    """x / |x|, and 0 at x = 0 (value and derivative)."""
-    norm = safe_norm(x, axis)
-    positive = norm > 0
-    return jnp.where(positive[..., None], x / jnp.where(positive, norm, 1.0)[..., None], 0.0)
-
-

@@ -7,9 +7,10 @@ import math
 import jax.numpy as jnp
 
 from ..core.registry import Parameter, register_material
+from ..core.safe import safe_norm, safe_unit
 from ..core.validate import NON_NEGATIVE, POISSON, POSITIVE
 from .linear import DENSITY, NU, E
-from .plastic import HenckyPlastic, deviator, safe_direction, safe_norm
+from .plastic import HenckyPlastic, deviator
 
 SQRT_3_2 = math.sqrt(1.5)
 
@@ -66,7 +67,7 @@ class VonMises(HenckyPlastic):
         q_trial = 2.0 * mu * SQRT_3_2 * safe_norm(dev)
         f_trial = q_trial - (self.yield_stress + self.hardening * alpha)
         d_gamma = jnp.maximum(f_trial, 0.0) / (3.0 * mu + self.hardening)
-        eps = eps_trial - (d_gamma * SQRT_3_2)[..., None] * safe_direction(dev)
+        eps = eps_trial - (d_gamma * SQRT_3_2)[..., None] * safe_unit(dev)
         return eps, {"plastic_strain": alpha + d_gamma}
 
 

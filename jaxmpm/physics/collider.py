@@ -54,6 +54,7 @@ from ..core.errors import check
 from ..core.fields import ParticleField
 from ..core.particles import Ball, Box
 from ..core.registry import Parameter, register_term
+from ..core.safe import safe_norm
 from ..core.validate import FINITE, NON_NEGATIVE, POSITIVE, finite_vector, show
 from .term import Term
 
@@ -61,13 +62,6 @@ CONDITIONS = ("sticky", "slip", "friction")
 AXES = "xyz"
 # 8-point Gauss-Legendre rule on [-1, 1]: the integral of a callable motion over [0, t]
 _GAUSS_NODES, _GAUSS_WEIGHTS = np.polynomial.legendre.leggauss(8)
-
-
-def _norm(v):
-    """|v| over the last axis, with a derivative that is finite at v = 0 (the double-where rule)."""
-    s = jnp.sum(v * v, axis=-1)
-    positive = s > 0
-    return jnp.where(positive, jnp.sqrt(jnp.where(positive, s, 1.0)), 0.0)
 
 
 # ------------------------------------------------------------------------------------- level sets
@@ -158,7 +152,7 @@ class SolidBox(LevelSet):
             c, s = math.cos(math.radians(self.angle)), math.sin(math.radians(self.angle))
             r = jnp.stack([c * r[0] + s * r[1], -s * r[0] + c * r[1]])  # R^T r
         q = jnp.abs(r) - 0.5 * (upper - lower)
-        return _norm(jnp.maximum(q, 0.0)) + jnp.minimum(jnp.max(q), 0.0)
+        return safe_norm(jnp.maximum(q, 0.0)) + jnp.minimum(jnp.max(q), 0.0)
 
 
 class SolidSphere(LevelSet):
@@ -181,7 +175,7 @@ class SolidSphere(LevelSet):
         return len(self.center)
 
     def distance(self, x):
-        return _norm(x - jnp.asarray(self.center, x.dtype)) - self.radius
+        return safe_norm(x - jnp.asarray(self.center, x.dtype)) - self.radius
 
 
 class SolidCylinder(LevelSet):
@@ -216,7 +210,7 @@ class SolidCylinder(LevelSet):
     def distance(self, x):
         r = x - jnp.asarray(self.point, x.dtype)
         a = jnp.asarray(self.axis, x.dtype)
-        return _norm(r - jnp.dot(r, a) * a) - self.radius
+        return safe_norm(r - jnp.dot(r, a) * a) - self.radius
 
 
 class SolidUnion(LevelSet):
@@ -287,7 +281,7 @@ def _rotation(turn, dim: int):
     if dim == 2:
         c, s = jnp.cos(turn[0]), jnp.sin(turn[0])
         return jnp.array([[c, -s], [s, c]])
-    angle = _norm(turn)
+    angle = safe_norm(turn)
     small = angle < 1e-12
     safe = jnp.where(small, 1.0, angle)
     k = turn / safe
@@ -407,7 +401,7 @@ class Collider(Term):
         check(one.shape == (), f"Collider: the level set {type(self.shape).__name__} returned shape {one.shape} for "
                                "one point; its distance(x) of a point (D,) must return one number, phi(x)")
         values, grads = jax.vmap(jax.value_and_grad(phi))(x)
-        return values, grads / jnp.where(_norm(grads) > 0, _norm(grads), 1.0)[:, None]
+        return values, grads / jnp.where(safe_norm(grads) > 0, safe_norm(grads), 1.0)[:, None]
 
     def solid_velocity(self, x, t):
         """The solid's velocity u(t) + omega(t) x (x - c - d(t)) at points x (n, D)."""
@@ -433,7 +427,7 @@ class Collider(Term):
         if self.condition == "slip":
             after = tangential
         else:  # Coulomb: |v_t| reduced by mu |v_n|, clamped at zero (the node sticks)
-            vt = _norm(tangential)[:, None]
+            vt = safe_norm(tangential)[:, None]
             mu = self.friction.astype(v.dtype)
             scale = jnp.maximum(vt + mu * vn, 0.0) / jnp.where(vt > 0, vt, 1.0)
             after = scale * tangential

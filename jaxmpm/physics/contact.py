@@ -147,6 +147,7 @@ import numpy as np
 from ..core.errors import check
 from ..core.fields import ParticleField
 from ..core.registry import Parameter, register_term
+from ..core.safe import safe_norm, safe_unit
 from ..core.validate import FINITE, NON_NEGATIVE, concrete, fail, finite_vector, positive_int, show
 from ..transfer.contractions import Gradient, Weighted
 from ..transfer.operators import safe_divide
@@ -184,19 +185,6 @@ def normal_option(owner: str, value):
         fail(owner, f"normal = {show(value)} must be a non-zero vector of 1 to 3 components",
              "a unit vector from material 0 into material 1, e.g. (0, 1)")
     return tuple(c / length for c in items)
-
-
-def _safe_unit(u):
-    """u / |u| along the last axis, 0 where u = 0 (NaN-safe under autodiff)."""
-    sq = jnp.sum(u * u, axis=-1, keepdims=True)
-    positive = sq > 0
-    return jnp.where(positive, u / jnp.sqrt(jnp.where(positive, sq, 1.0)), 0.0)
-
-
-def _safe_norm(u):
-    sq = jnp.sum(u * u, axis=-1)
-    positive = sq > 0
-    return jnp.where(positive, jnp.sqrt(jnp.where(positive, sq, 1.0)), 0.0)
 
 
 class Contact(Term):
@@ -371,15 +359,15 @@ class Contact(Term):
             return self.specified_normal(g0)
         if self.normal_rule == "max_gradient":  # the larger |g^a| defines it; material 0's on a tie
             own = jnp.sum(g0 * g0, axis=-1) >= jnp.sum(g1 * g1, axis=-1)
-            return _safe_unit(jnp.where(own[:, None], g0, -g1))
-        return _safe_unit(g0 if self.normal_rule == "first" else g0 - g1)
+            return safe_unit(jnp.where(own[:, None], g0, -g1))
+        return safe_unit(g0 if self.normal_rule == "first" else g0 - g1)
 
     def material_normals(self, grad_m, m):
         """M materials: the unit normal n^a from material a into the rest on every node, (M, n, D)
         (module docstring); for two materials (n^0, -n^0) with n^0 = :meth:`contact_normal`."""
         g = self.per_material(grad_m)
         if self.normal_rule == "average":
-            return _safe_unit(2.0 * g - jnp.sum(g, axis=0, keepdims=True))  # g^a - sum_{b != a} g^b
+            return safe_unit(2.0 * g - jnp.sum(g, axis=0, keepdims=True))  # g^a - sum_{b != a} g^b
         first = jnp.argmax(self.per_material(m) > 0, axis=0)  # the lowest-numbered material present
         own = first[None, :] == jnp.arange(self.materials)[:, None]  # (M, n): a is that material
         if self.normal_rule == "max_gradient":
@@ -389,11 +377,11 @@ class Contact(Term):
             rest = jnp.sum(jnp.where(others, g[None], 0.0), axis=1)
             g_sq, rest_sq = jnp.sum(g * g, axis=-1), jnp.sum(rest * rest, axis=-1)
             mine = (g_sq > rest_sq) | ((g_sq == rest_sq) & own)  # a tie goes to the lowest-numbered material's side
-            return _safe_unit(jnp.where(mine[..., None], g, -rest))
+            return safe_unit(jnp.where(mine[..., None], g, -rest))
         if self.direction is not None:
             direction = self.specified_normal(g[0])[None]
         else:  # "first"
-            direction = _safe_unit(jnp.take_along_axis(g, first[None, :, None], axis=0)[0])[None]
+            direction = safe_unit(jnp.take_along_axis(g, first[None, :, None], axis=0)[0])[None]
         return jnp.where(own[..., None], 1.0, -1.0) * direction
 
     def momentum_change(self, m0, m1, p0, p1, normal, touching=None):
@@ -419,10 +407,10 @@ class Contact(Term):
         if self.law == "frictionless":
             return jnp.where(approach[:, None], normal_part, 0.0)
         tangential = stick - normal_part
-        t_norm = _safe_norm(tangential)
+        t_norm = safe_norm(tangential)
         limit = self.friction * jnp.abs(dpn)
         slides = t_norm > limit
-        sliding = normal_part + limit[:, None] * _safe_unit(tangential)
+        sliding = normal_part + limit[:, None] * safe_unit(tangential)
         return jnp.where(approach[:, None], jnp.where(slides[:, None], sliding, stick), 0.0)
 
     def apply(self, p, m, normal, touching=None):

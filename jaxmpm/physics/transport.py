@@ -67,6 +67,7 @@ import numpy as np
 from ..core.errors import check
 from ..core.fields import ParticleField
 from ..core.registry import Parameter, register_term
+from ..core.safe import safe_norm
 from ..core.validate import FINITE, FRACTION, NON_NEGATIVE, POSITIVE, concrete, positive_int, traced
 from ..transfer.contractions import Divergence, Gradient, Weighted
 from ..transfer.operators import Transfer, gather, p2g, safe_divide
@@ -158,13 +159,6 @@ def _parse_update(owner: str, update: str, name: str = "update") -> tuple:
         return order, 0.0
     check(False, f"{owner}: {name} = {update!r}; choose 'flip' (001 §8), 'pic' (a comparison) or 'xpic:M' "
                  "(000 §3.6)")
-
-
-def _norm(u):
-    """|u| along the last axis, NaN-safe under autodiff (0 where u = 0)."""
-    sq = jnp.sum(u * u, axis=-1)
-    positive = sq > 0
-    return jnp.where(positive, jnp.sqrt(jnp.where(positive, sq, 1.0)), 0.0)
 
 
 class Transport(Term):
@@ -381,7 +375,7 @@ class Transport(Term):
         H = (C * t_nodes.reshape(M, n))
         C_rest, H_rest = jnp.sum(C, 0)[None] - C, jnp.sum(H, 0)[None] - H
         T_rest = safe_divide(H_rest, C_rest)
-        area = 0.5 * _norm(g - (jnp.sum(g, 0)[None] - g))
+        area = 0.5 * safe_norm(g - (jnp.sum(g, 0)[None] - g))
         both = (C > 0) & (C_rest > 0)
         reduced = jnp.where(both, C * C_rest / jnp.where(both, C + C_rest, 1.0), 0.0)
         rate_k = jnp.where(both, self.conductance * area * (C + C_rest) / jnp.where(both, C * C_rest, 1.0), 0.0)

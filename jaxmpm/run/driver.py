@@ -18,7 +18,7 @@ from ..core.errors import InstabilityError, ParticlesLeftGrid, check
 from ..core.limits import require_memory, require_steps
 from ..core.state import State
 from ..core.warn import warn
-from .memory import _segment_length, choose_checkpoint, parse_memory  # noqa: F401  (_segment_length: tests)
+from .memory import _segment_length, choose_checkpoint, parse_memory, tree_bytes  # noqa: F401  (_segment_length: tests)
 
 CAUSES = {
     1: "NaN or Inf in the particle state",
@@ -284,13 +284,13 @@ def _chosen_fields(sim, state, fields, save_particles) -> tuple:
 
 def _frame_bytes(sim, state, save_particles, fields=()) -> int:
     shape = jax.eval_shape(lambda s: sim.diagnostics_frame(s, save_particles, fields), state)
-    return sum(math.prod(a.shape) * a.dtype.itemsize for a in jax.tree_util.tree_leaves(shape))
+    return tree_bytes(shape)
 
 
 def _require_frame_memory(sim, state, frames, save_particles, in_memory, fields=()):
     """The saved frames (all of them when kept in memory, twice: the device result and the
     concatenated history) plus the state and its step temporaries, before the run starts."""
-    state_bytes = sum(a.size * a.dtype.itemsize for a in jax.tree_util.tree_leaves(state) if hasattr(a, "size"))
+    state_bytes = tree_bytes(state)
     frame_bytes = _frame_bytes(sim, state, save_particles, fields)
     # a writer holds up to two chunks of frames (the file's two copies lag one publication apart)
     held = 2 * (frames + 1) * frame_bytes if in_memory else min(frames + 1, 3) * frame_bytes + 2 * _CHUNK_BYTES
@@ -516,7 +516,7 @@ def _run_chunked(sim, state, dt, frames, save_every, save_particles, check_stabi
     clock = _Clock(total, done_steps, progress, timings)
     pieces = []
     if writer is not None:
-        state_bytes = sum(a.size * a.dtype.itemsize for a in jax.tree_util.tree_leaves(state) if hasattr(a, "size"))
+        state_bytes = tree_bytes(state)
         publisher = _Publisher(writer, dict(start_step=start_step, steps=total, save_every=save_every), state_bytes)
     none = Failure(jnp.array(-1, jnp.int32), jnp.array(0, jnp.int32), jnp.array(-1, jnp.int32))
 

@@ -99,6 +99,50 @@ def test_the_plastic_flow_is_normal_to_the_ellipse():
     np.testing.assert_array_equal(eps[~yielded], eps_trial[~yielded])  # elastic: untouched
 
 
+@pytest.mark.parametrize("offset", [0.0, 1e-12, -1e-9, 1e-6])
+def test_a_trial_above_the_top_returns_to_the_critical_state(offset):
+    """A trial with p* at the ellipse's centre p_c = p0 / 2 (beta = 0, no hardening) and q* above
+    the top returns along q alone: p = p*, q = M a = M p0 / 2.  There dv and p - p_c both vanish,
+    so d_gamma comes from q (jaxmpm.materials.cam_clay, _plastic_multiplier); trials a relative
+    1e-12..1e-6 beside the centre take the same branch or its neighbour."""
+    m = clay(hardening=0.0)
+    p_star, q_star = 0.5 * P0 * (1.0 + offset), 3.0 * M * P0
+    eps_trial = jnp.asarray([[q_star / (3.0 * MU) - p_star / (3.0 * K), -q_star / (6.0 * MU) - p_star / (3.0 * K),
+                              -q_star / (6.0 * MU) - p_star / (3.0 * K)]])
+    eps, new = jax.jit(lambda m, e, pl: m.return_mapping(e, pl))(m, eps_trial, m.initial_plastic_state(1, jnp.float64))
+    p, q = p_q(hencky_stress(m.E, m.nu, eps))
+    p, q, a = float(p[0]), float(q[0]), 0.5 * P0
+    np.testing.assert_allclose(q, M * np.sqrt(a * a - (p - a) ** 2), rtol=1e-13)  # on the ellipse
+    d_gamma = (q_star / q - 1.0) / (6.0 * MU)  # q = q* / (1 + 6 mu d_gamma)
+    np.testing.assert_allclose(p - a, (p_star - a) / (1.0 + 2.0 * K * M ** 2 * d_gamma), rtol=1e-12, atol=1e-14 * P0)
+    dv = float(new["volumetric_plastic_strain"][0])
+    np.testing.assert_allclose(dv, (p - p_star) / K, atol=1e-15)  # p = p* + K dv
+
+
+@pytest.mark.parametrize("scale, xi, beta", [(0.1, 20.0, 0.0), (0.5, 5.0, 0.3)])
+def test_large_increments_satisfy_the_return_equations(scale, xi, beta):
+    """Random trial strains far outside the ellipse (a tenth and a half in one step), hardening and
+    softening: the returned state satisfies the three backward-Euler equations that define it --
+    on the ellipse of the updated p0, the flow normal to it, p0 = p0_n exp(-xi dv) -- measured
+    against the trial's size, not the (possibly much shrunken) ellipse's."""
+    m = clay(hardening=xi, beta=beta)
+    rng = np.random.default_rng(5)
+    eps_trial = jnp.asarray(rng.normal(size=(300, 3)) * scale)
+    plastic = m.initial_plastic_state(300, jnp.float64)
+    eps, new = jax.jit(lambda m, e, pl: m.return_mapping(e, pl))(m, eps_trial, plastic)
+    tau, tau_trial = hencky_stress(m.E, m.nu, eps), hencky_stress(m.E, m.nu, eps_trial)
+    p0 = new["preconsolidation_pressure"]
+    size = jnp.max(jnp.abs(tau_trial), -1) + P0  # the trial's stress scale
+    np.testing.assert_allclose(p0, P0 * jnp.exp(-xi * new["volumetric_plastic_strain"]), rtol=1e-14)
+    p, q = p_q(tau)
+    a = 0.5 * (1.0 + beta) * p0
+    rho = jnp.sqrt((1.0 + 2.0 * beta) * q * q + M ** 2 * (p - 0.5 * (1.0 - beta) * p0) ** 2)
+    assert float(jnp.max(jnp.abs(rho - M * a) / size)) < 1e-13
+    d_eps_p, normal = eps_trial - eps, m.flow_direction(tau, p0)
+    cos = jnp.sum(d_eps_p * normal, -1) / (jnp.linalg.norm(d_eps_p, axis=-1) * jnp.linalg.norm(normal, axis=-1))
+    assert float(jnp.max(1.0 - cos)) < 1e-12
+
+
 def test_isotropic_compression_follows_the_closed_form():
     """On the p axis the return is onto the right apex, p = p0 = p0_init exp(-xi eps_v^p), with
     eps_v^p = eps_v - eps_v^e = eps_v + p / K (coaxial Hencky strains add), so
@@ -212,7 +256,8 @@ def test_gradients_match_central_differences():
 
 
 @pytest.mark.parametrize("kwargs, name", [({"M": 0.0}, "M"), ({"p0": -1.0}, "p0"), ({"hardening": -0.5}, "hardening"),
-                                          ({"beta": -0.1}, "beta"), ({"nu": 0.5}, "nu"), ({"E": 0.0}, "E")])
+                                          ({"beta": -0.1}, "beta"), ({"beta": 2.0}, "beta"),
+                                          ({"nu": 0.5}, "nu"), ({"E": 0.0}, "E")])
 def test_bad_parameters_raise_one_line_input_errors(kwargs, name):
     with pytest.raises(jm.InputError, match=rf"^CamClay: {name} = ") as info:
         jm.CamClay(**{"E": E, **kwargs})

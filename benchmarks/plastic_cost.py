@@ -10,6 +10,7 @@ compile time apart.
 
     python benchmarks/plastic_cost.py                  # 8192 particles, 200 steps, float32
     python benchmarks/plastic_cost.py --particles 32768 --float64
+    python benchmarks/plastic_cost.py --only von_mises drucker_prager
 """
 
 from __future__ import annotations
@@ -51,6 +52,9 @@ def main(argv=None) -> int:
     parser.add_argument("--repeat", type=int, default=5)
     parser.add_argument("--float64", action="store_true")
     parser.add_argument("--csv", default=str(DEFAULT_CSV))
+    parser.add_argument("--only", nargs="+", metavar="NAME",
+                        help="time only these materials (the neo-Hookean reference always runs), "
+                             "e.g. --only von_mises drucker_prager")
     args = parser.parse_args(argv)
 
     import jax
@@ -68,8 +72,14 @@ def main(argv=None) -> int:
     class Points:
         x = setup.state.x
 
+    laws = materials(jm, 400.0, 0.2)
+    unknown = sorted(set(args.only or ()) - set(laws))
+    if unknown:
+        parser.error(f"--only {' '.join(unknown)}: choose from {', '.join(laws)}")
     programs, compile_s = {}, {}
-    for name, material in materials(jm, 400.0, 0.2).items():
+    for name, material in laws.items():
+        if args.only and name != "neohookean" and name not in args.only:
+            continue
         sim = eqx.tree_at(lambda s: s.material, setup.sim, material)
         state = eqx.tree_at(lambda s: s.material_state, setup.state, material.initial_state(Points),
                             is_leaf=lambda x: x is None)

@@ -44,6 +44,23 @@ def test_dilatancy_angle_of_90_degrees():
     assert message.startswith("DruckerPrager: dilatancy_angle = 90.0 must lie in [0, 90); ")
 
 
+@pytest.mark.parametrize("law, kwargs, expected", [
+    ("VonMises", dict(E=1e5, yield_stress=-200.0),
+     "yield_stress = -200.0 must be positive; the uniaxial yield stress sigma_y, positive (stress units)"),
+    ("VonMises", dict(E=-1.0), "E = -1.0 must be positive; Young's modulus, positive (stress units)"),
+    ("VonMises", dict(E=1e5, density=0.0),
+     "density = 0.0 must be positive; the reference density rho_0, positive (mass per volume)"),
+    ("DruckerPrager", dict(E=0.0), "E = 0.0 must be positive; Young's modulus, positive (stress units)"),
+    ("DruckerPrager", dict(E=1e5, density=-1.0),
+     "density = -1.0 must be positive; the reference density rho_0, positive (mass per volume)"),
+], ids=["von_mises-yield_stress", "von_mises-E", "von_mises-density", "drucker_prager-E", "drucker_prager-density"])
+def test_plastic_law_moduli_out_of_range_name_the_fix(law, kwargs, expected):
+    """The plastic laws' stiffness, yield stress and density: the one-line message names the
+    argument, its value and what it must be."""
+    message = one_line_error(lambda: getattr(jm, law)(**kwargs))
+    assert message == f"{law}: {expected}"
+
+
 def test_a_plain_function_is_not_a_collider_level_set():
     """A level set is a jm.LevelSet (its ``distance`` of one point is one number, checked when the
     step is traced: tests/test_collider.py); a bare function is refused at once, with the fix."""

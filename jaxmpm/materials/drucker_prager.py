@@ -59,8 +59,9 @@ import math
 import jax.numpy as jnp
 
 from ..core.registry import Parameter, register_material
-from ..core.safe import safe_norm, safe_unit
+from ..core.safe import safe_norm
 from ..core.validate import NON_NEGATIVE, POISSON, POSITIVE, Range, concrete, fail
+from ..transfer.backend import materialise
 from .base import lame
 from .linear import DENSITY, NU, E
 from .plastic import HenckyPlastic, deviator
@@ -134,7 +135,7 @@ class DruckerPrager(HenckyPlastic):
     def __init__(self, E, nu=0.3, friction_angle=30.0, dilatancy_angle=0.0, cohesion=0.0, density=1.0,
                  friction_hardening=0.0, hardening_strain=0.1):
         owner = "DruckerPrager"
-        self.E = POSITIVE.leaf(owner, "E", E)
+        self.E = POSITIVE.leaf(owner, "E", E, fix="Young's modulus, positive (stress units)")
         self.nu = POISSON.leaf(owner, "nu", nu)
         self.friction_angle = ANGLE.leaf(owner, "friction_angle", friction_angle,
                                          fix="the friction angle phi in degrees, in [0, 90); dry sand ~30-35")
@@ -142,7 +143,8 @@ class DruckerPrager(HenckyPlastic):
                                           fix="the dilatancy angle psi in degrees, 0 <= psi <= friction_angle")
         self.cohesion = NON_NEGATIVE.leaf(owner, "cohesion", cohesion,
                                           fix="c >= 0 (stress units); 0 is a cohesionless (dry) sand")
-        self.density = POSITIVE.leaf(owner, "density", density)
+        self.density = POSITIVE.leaf(owner, "density", density,
+                                     fix="the reference density rho_0, positive (mass per volume)")
         self.friction_hardening = Range(-90, 90, low_open=True, high_open=True).leaf(
             owner, "friction_hardening", friction_hardening,
             fix="the change of the friction angle in degrees (0: no hardening)")
@@ -194,23 +196,28 @@ class DruckerPrager(HenckyPlastic):
         lam, mu = lame(self.E, self.nu)
         K = lam + 2.0 * mu / 3.0
         alpha = plastic["plastic_strain"]
-        eta, xi, eta_bar = (jnp.broadcast_to(c, jnp.shape(alpha)) for c in self.cone(alpha))  # one per particle
+        # the cone at each particle's plastic strain, evaluated once per particle: a stage boundary,
+        # or XLA recomputes its sine and cosine in every consumer (and per principal strain)
+        eta, xi, eta_bar = materialise(tuple(jnp.broadcast_to(c, jnp.shape(alpha)) for c in self.cone(alpha)))
         dev, mean = deviator(eps_trial)
         dev_norm = safe_norm(dev)
         sqrt_j2 = SQRT2 * mu * dev_norm  # sqrt(J2) = |2 mu dev eps| / sqrt(2)
         f_trial = sqrt_j2 + eta * K * 3.0 * mean - xi * self.cohesion
         d_gamma = jnp.maximum(f_trial, 0.0) / (mu + K * eta * eta_bar)  # de Souza Neto et al. 2008 ch. 8
-        flow = safe_unit(dev) / SQRT2 + (eta_bar / 3.0)[..., None]
-        eps_cone = eps_trial - d_gamma[..., None] * flow
         # beyond the apex: the return would carry the deviator through zero (Klar: "project to the tip")
         beyond = mu * d_gamma > sqrt_j2
         positive = eta > 0
         apex_volume = jnp.where(positive, xi * self.cohesion / (K * jnp.where(positive, eta, 1.0)), 0.0)
-        eps_apex = jnp.broadcast_to((apex_volume / 3.0)[..., None], eps_trial.shape)
-        eps = jnp.where(beyond[..., None], eps_apex, eps_cone)
+        # eps = eps* - d_gamma (n / sqrt(2) + eta_bar / 3 (1, 1, 1)) on the cone, the apex beyond it:
+        # a new mean strain and the deviator scaled, eps = mean + shrink dev eps* (0 at the apex)
+        sheared = dev_norm > 0  # dev eps* = 0 and not beyond the apex: d_gamma = 0, shrink = 1
+        shrink = jnp.where(beyond, 0.0, 1.0 - d_gamma / (SQRT2 * jnp.where(sheared, dev_norm, 1.0)))
+        new_mean = jnp.where(beyond, apex_volume / 3.0, mean - eta_bar * d_gamma / 3.0)
         # the plastic strain increment d eps_p = eps* - eps: its deviatoric size and its trace
         d_dev = jnp.where(beyond, dev_norm, d_gamma / SQRT2)
         d_vol = jnp.where(beyond, 3.0 * mean - apex_volume, eta_bar * d_gamma)
+        new_mean, shrink = materialise((new_mean, shrink))  # once per particle, not per principal strain
+        eps = new_mean[..., None] + shrink[..., None] * dev
         return eps, {"plastic_strain": alpha + SQRT_2_3 * d_dev,
                      "volumetric_plastic_strain": plastic["volumetric_plastic_strain"] + d_vol}
 

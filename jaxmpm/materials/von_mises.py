@@ -7,8 +7,9 @@ import math
 import jax.numpy as jnp
 
 from ..core.registry import Parameter, register_material
-from ..core.safe import safe_norm, safe_unit
+from ..core.safe import safe_norm
 from ..core.validate import NON_NEGATIVE, POISSON, POSITIVE
+from ..transfer.backend import materialise
 from .linear import DENSITY, NU, E
 from .plastic import HenckyPlastic, deviator
 
@@ -46,12 +47,14 @@ class VonMises(HenckyPlastic):
     saved_state = ("plastic_strain",)
 
     def __init__(self, E, nu=0.3, yield_stress=1.0, hardening=0.0, density=1.0):
-        self.E = POSITIVE.leaf("VonMises", "E", E)
+        self.E = POSITIVE.leaf("VonMises", "E", E, fix="Young's modulus, positive (stress units)")
         self.nu = POISSON.leaf("VonMises", "nu", nu)
-        self.yield_stress = POSITIVE.leaf("VonMises", "yield_stress", yield_stress)
+        self.yield_stress = POSITIVE.leaf("VonMises", "yield_stress", yield_stress,
+                                          fix="the uniaxial yield stress sigma_y, positive (stress units)")
         self.hardening = NON_NEGATIVE.leaf(
             "VonMises", "hardening", hardening, fix="H >= 0: softening (H < 0) makes the return ill-posed")
-        self.density = POSITIVE.leaf("VonMises", "density", density)
+        self.density = POSITIVE.leaf("VonMises", "density", density,
+                                     fix="the reference density rho_0, positive (mass per volume)")
 
     def initial_plastic_state(self, n, dtype):
         return {"plastic_strain": jnp.zeros((n,), dtype)}
@@ -63,12 +66,16 @@ class VonMises(HenckyPlastic):
     def return_mapping(self, eps_trial, plastic):
         mu = self.E / (2.0 * (1.0 + self.nu))
         alpha = plastic["plastic_strain"]
-        dev, _ = deviator(eps_trial)
-        q_trial = 2.0 * mu * SQRT_3_2 * safe_norm(dev)
+        dev, mean = deviator(eps_trial)
+        dev_norm = safe_norm(dev)
+        q_trial = 2.0 * mu * SQRT_3_2 * dev_norm
         f_trial = q_trial - (self.yield_stress + self.hardening * alpha)
         d_gamma = jnp.maximum(f_trial, 0.0) / (3.0 * mu + self.hardening)
-        eps = eps_trial - (d_gamma * SQRT_3_2)[..., None] * safe_unit(dev)
-        return eps, {"plastic_strain": alpha + d_gamma}
+        # eps = eps* - d_gamma sqrt(3/2) dev eps* / |dev eps*| = mean + shrink dev eps*, the radial
+        # return; shrink once per particle (a stage boundary), not per principal strain
+        sheared = dev_norm > 0  # else d_gamma = 0 (sigma_y > 0): shrink = 1
+        shrink = materialise(1.0 - d_gamma * SQRT_3_2 / jnp.where(sheared, dev_norm, 1.0))
+        return mean[..., None] + shrink[..., None] * dev, {"plastic_strain": alpha + d_gamma}
 
 
 YIELD_STRESS = Parameter("yield_stress", lambda m: m.yield_stress, "initial yield stress", "positive", valid=POSITIVE)

@@ -23,6 +23,7 @@ which a busy machine disturbs less than wall time.
     python benchmarks/series_cost.py              # full run
     python benchmarks/series_cost.py --quick      # fewer steps/orders/repeats: a smoke test
     python benchmarks/series_cost.py --csv out.csv
+    python benchmarks/series_cost.py --backend gpu  # the GPU policy's program (boundaries as identities), on the CPU
 
 Writes ``benchmarks/results/series_cost.csv`` (the folder is created at run time).
 """
@@ -45,7 +46,8 @@ import equinox as eqx  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
 import jaxmpm as jm  # noqa: E402
-from jaxmpm.model.simulation import CAUSES  # noqa: E402
+from jaxmpm.run.driver import CAUSES  # noqa: E402
+from jaxmpm.transfer.backend import POLICIES  # noqa: E402
 from jaxmpm.transfer.operators import Transfer  # noqa: E402
 
 DEFAULT_CSV = Path(__file__).resolve().parent / "results" / "series_cost.csv"
@@ -62,7 +64,7 @@ CASES = {
 FIELDS = ["case", "dim", "particles", "grid_nodes", "what", "order", "calls", "first_call_s", "compile_s",
           "best_s", "median_s", "per_call_us", "ratio_to_flip_step", "extra_order_ratio", "meets_aim",
           "cpu_per_call_us", "cpu_ratio_to_flip_step", "cpu_extra_order_ratio",
-          "repeats", "backend", "device", "jax", "cpus", "load_avg"]
+          "repeats", "policy", "backend", "device", "jax", "cpus", "load_avg"]
 
 
 @eqx.filter_jit
@@ -91,17 +93,20 @@ def environment() -> dict:
                 load_avg=f"{os.getloadavg()[0]:.2f}" if hasattr(os, "getloadavg") else "")
 
 
-def measure_case(case: str, orders, quick: bool, repeats: int) -> list[dict]:
+def measure_case(case: str, orders, quick: bool, repeats: int, policy: str = "auto") -> list[dict]:
     """Compile and warm up every job, then time them in ``repeats`` interleaved rounds (so a burst of
-    load from other processes hits all jobs alike) and keep each job's best round."""
+    load from other processes hits all jobs alike) and keep each job's best round.  ``policy``: the
+    fusion policy the steps are traced under (``Simulation.with_backend``: "auto", "cpu", "gpu")."""
     scene, options, steps, applications = CASES[case]
     if quick:
         steps, applications = max(10, steps // 4), max(10, applications // 4)
     setup = jm.scene(scene, scheme=jm.FLIP(), dtype="f64", t_end=1e-6, frames=1, **options)
+    setup.sim = setup.sim.with_backend(policy)
     state = setup.state
     dt = jnp.asarray(setup.dt, state.x.dtype)
     n_particles, grid = int(state.x.shape[0]), setup.sim.grid
-    base = dict(case=case, dim=grid.dim, particles=n_particles, grid_nodes=grid.num_nodes, repeats=repeats)
+    base = dict(case=case, dim=grid.dim, particles=n_particles, grid_nodes=grid.num_nodes, repeats=repeats,
+                policy=policy)
 
     jobs = []  # (label, order, calls, function, arguments)
     for label, order, scheme in step_schemes(orders):
@@ -204,16 +209,19 @@ def main(argv=None):
     parser.add_argument("--quick", action="store_true", help="orders 1, 2, 4; a quarter of the steps; 2 repeats")
     parser.add_argument("--repeats", type=int, default=None, help="timed rounds after the warm-up (default 7)")
     parser.add_argument("--cases", nargs="+", choices=list(CASES), default=list(CASES))
+    parser.add_argument("--backend", choices=POLICIES, default="auto",
+                        help="the fusion policy the steps are traced under (Simulation(backend=...)): 'gpu' on a CPU "
+                             "traces the program a GPU runs (stage boundaries as identities); default auto")
     parser.add_argument("--csv", type=Path, default=DEFAULT_CSV)
     args = parser.parse_args(argv)
     orders = (1, 2, 4) if args.quick else (1, 2, 4, 8)
     repeats = args.repeats or (2 if args.quick else 7)
     env = environment()
-    print(f"backend {env['backend']} ({env['device']}), jax {env['jax']}, {env['cpus']} cpus, "
-          f"{platform.machine()}, load average {env['load_avg']}")
+    print(f"backend {env['backend']} ({env['device']}), fusion policy {args.backend}, jax {env['jax']}, "
+          f"{env['cpus']} cpus, {platform.machine()}, load average {env['load_avg']}")
     rows = []
     for case in args.cases:
-        rows += measure_case(case, orders, args.quick, repeats)
+        rows += measure_case(case, orders, args.quick, repeats, args.backend)
     env["load_avg"] = f"{env['load_avg']}->{os.getloadavg()[0]:.2f}" if hasattr(os, "getloadavg") else ""
     args.csv.parent.mkdir(parents=True, exist_ok=True)
     with args.csv.open("w", newline="") as f:

@@ -1,0 +1,102 @@
+"""Taichi's mpm88 substep in any dimension (2D: Taichi's 88-line demo; 3D: the same physics on a cube), the peer
+reference of ``benchmarks/gpu.py``.
+
+The same physics as jaxmpm's ``mpm88`` scene: MLS/APIC transfers with quadratic B-splines, the J-fluid of E = 400,
+gravity 9.8 along axis 1, one-sided walls 3 cells wide, dt = 2e-4, particle volume (dx/2)^dim and density 1,
+float32.  Taken from ``../shared/gpu/taichi_mpm.py`` (ours), which wrote ``python -m taichi example mpm88``'s
+substep with the dimension as a parameter; ``benchmarks/vs_taichi.py`` keeps its own 2D copy.  Taichi is not a
+dependency of jaxmpm: the callers import it and skip with a message when it is missing.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+E, GRAVITY, BOUND, DT = 400.0, 9.8, 3, 2e-4
+
+
+def run(ti, x0, v0, n_grid: int, steps: int, warmup: int = 20, repeats: int = 3, dt: float = DT):
+    """``steps`` substeps from positions ``x0`` and velocities ``v0`` ((N, dim) NumPy arrays) on an ``n_grid``^dim
+    grid of [0, 1]^dim, after ``warmup`` substeps that compile the kernel, timed ``repeats`` times from the same
+    start.  ``ti`` must be initialised (``ti.init(arch=...)``).  Returns (best wall seconds, final x, final v)."""
+    n, dim = x0.shape
+    dx = 1 / n_grid
+    p_vol = (dx * 0.5) ** dim
+    p_mass = p_vol
+    x = ti.Vector.field(dim, ti.f32, n)
+    v = ti.Vector.field(dim, ti.f32, n)
+    C = ti.Matrix.field(dim, dim, ti.f32, n)
+    J = ti.field(ti.f32, n)
+    grid_v = ti.Vector.field(dim, ti.f32, (n_grid,) * dim)
+    grid_m = ti.field(ti.f32, (n_grid,) * dim)
+    neighbour = (3,) * dim
+
+    @ti.kernel
+    def substep():
+        for node in ti.grouped(grid_m):
+            grid_v[node] = ti.zero(grid_v[node])
+            grid_m[node] = 0
+        ti.loop_config(block_dim=n_grid)
+        for p in x:  # P2G
+            Xp = x[p] / dx
+            base = int(Xp - 0.5)
+            fx = Xp - base
+            w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1) ** 2, 0.5 * (fx - 0.5) ** 2]
+            stress = -dt * 4 * E * p_vol * (J[p] - 1) / dx**2
+            affine = ti.Matrix.identity(ti.f32, dim) * stress + p_mass * C[p]
+            for offset in ti.static(ti.grouped(ti.ndrange(*neighbour))):
+                dpos = (offset - fx) * dx
+                weight = 1.0
+                for d in ti.static(range(dim)):
+                    weight *= w[offset[d]][d]
+                grid_v[base + offset] += weight * (p_mass * v[p] + affine @ dpos)
+                grid_m[base + offset] += weight * p_mass
+        for node in ti.grouped(grid_m):  # grid update: momentum to velocity, gravity, walls
+            if grid_m[node] > 0:
+                grid_v[node] /= grid_m[node]
+            grid_v[node][1] -= dt * GRAVITY
+            cond = (node < BOUND) & (grid_v[node] < 0) | (node > n_grid - BOUND) & (grid_v[node] > 0)
+            grid_v[node] = ti.select(cond, 0, grid_v[node])
+        ti.loop_config(block_dim=n_grid)
+        for p in x:  # G2P
+            Xp = x[p] / dx
+            base = int(Xp - 0.5)
+            fx = Xp - base
+            w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1) ** 2, 0.5 * (fx - 0.5) ** 2]
+            new_v = ti.zero(v[p])
+            new_C = ti.zero(C[p])
+            for offset in ti.static(ti.grouped(ti.ndrange(*neighbour))):
+                dpos = (offset - fx) * dx
+                weight = 1.0
+                for d in ti.static(range(dim)):
+                    weight *= w[offset[d]][d]
+                g_v = grid_v[base + offset]
+                new_v += weight * g_v
+                new_C += 4 * weight * g_v.outer_product(dpos) / dx**2
+            v[p] = new_v
+            x[p] += dt * v[p]
+            J[p] *= 1 + dt * new_C.trace()
+            C[p] = new_C
+
+    def reset():
+        x.from_numpy(np.asarray(x0, np.float32))
+        v.from_numpy(np.asarray(v0, np.float32))
+        J.fill(1)
+        C.fill(0)
+
+    reset()
+    for _ in range(warmup):
+        substep()
+    ti.sync()
+    best = float("inf")
+    for _ in range(repeats):
+        reset()
+        ti.sync()
+        start = time.perf_counter()
+        for _ in range(steps):
+            substep()
+        ti.sync()
+        best = min(best, time.perf_counter() - start)
+    return best, x.to_numpy(), v.to_numpy()

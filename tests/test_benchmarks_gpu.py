@@ -1,0 +1,59 @@
+"""benchmarks/gpu.py (issue 32 item 4) runs its --quick mode at each part's smallest size and writes its markdown
+table and CSV; every jaxmpm run it times ends stable, and Taichi, where importable, ends where jaxmpm does."""
+
+import csv
+import importlib.util
+import sys
+from pathlib import Path
+
+import pytest
+
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+
+
+@pytest.fixture(scope="module")
+def gpu():
+    sys.path.insert(0, str(BENCHMARKS))  # the scripts import their helpers (_results, ...) by name
+    try:
+        spec = importlib.util.spec_from_file_location("gpu_benchmark", BENCHMARKS / "gpu.py")
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        yield module
+    finally:
+        sys.path.remove(str(BENCHMARKS))
+
+
+@pytest.mark.slow
+def test_quick_run_writes_every_part(gpu, tmp_path):
+    assert gpu.main(["--quick", "--smallest", "--repeats", "1", "--no-taichi", "--out", str(tmp_path)]) == 0
+    with open(tmp_path / "gpu.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert {r["part"] for r in rows} == set(gpu.PARTS)
+    assert all(float(r["particle_steps_per_s"]) > 0 and r["device"] and r["jax"] for r in rows)
+
+    jaxmpm = [r for r in rows if r["part"] in ("mpm88", "mpm3d", "schemes")]
+    assert all(r["check"].startswith("ok") for r in jaxmpm), [r["check"] for r in jaxmpm]  # no NaN run timed
+    assert all(float(r["state_bytes_per_particle"]) > 0 and float(r["program_bytes_per_particle"]) > 0 for r in jaxmpm)
+    assert all(r["kernel"] in ("xla", "pallas") for r in rows)  # the kernel each run used (--kernel auto)
+    schemes = [r for r in rows if r["part"] == "schemes"]
+    assert [r["engine"] for r in schemes] == [label for label, _, _ in gpu.SCHEMES]
+    assert float(schemes[0]["ratio"]) == 1.0 and schemes[0]["ratio_to"] == "FLIP"
+    gradient = next(r for r in rows if r["part"] == "gradient" and r["engine"] == "gradient")
+    assert float(gradient["ratio"]) > 0 and "central difference" in gradient["check"]
+    assert [r["case"] for r in rows if r["part"] == "ensemble"] == ["single rollout", "4 members"]
+
+    table = (tmp_path / "gpu.md").read_text()
+    assert table.startswith("# benchmarks/gpu.py --quick") and "Taichi skipped: --no-taichi" in table
+    assert all(f"## {part}" in table for part in gpu.PARTS)
+
+
+@pytest.mark.slow
+def test_taichi_side_by_side(gpu):
+    """Taichi's substep (its CPU backend here) from the same particles as jaxmpm's mpm88 scene: the centres of
+    mass fall alike.  (The 3D substep is the same code; Taichi compiles it in ~15 s on this machine's CPU.)"""
+    pytest.importorskip("taichi")
+    jaxmpm, taichi = gpu.part_side_by_side("mpm88", (1024,), 40, "f32", 1, gpu.Taichi(True), {})
+    assert taichi["engine"].startswith("Taichi") and jaxmpm["ratio_to"] == taichi["engine"]
+    assert jaxmpm["ratio"] == pytest.approx(jaxmpm["particle_steps_per_s"] / taichi["particle_steps_per_s"])
+    height, start = (float(v) for v in jaxmpm["check"].split("y_cm ")[1].split(" from "))
+    assert start - height == pytest.approx(start - float(taichi["check"].split("y_cm ")[1]), rel=2e-3)

@@ -54,6 +54,8 @@ BLOCKS = {
     "Outputs: HDF5, XDMF, pictures": Block([("t_end=2.0, frames=4", "t_end=0.5, frames=2", 1)]),
     "Interrupt and resume": Block([('jm.scene("bar", t_end=4.0, frames=20)', 'jm.scene("bar", t_end=0.5, frames=2)',
                                     1)]),
+    "Transfer kernels: XLA or fused Pallas": Block(),  # one model, no run
+    "One simulation on several devices": Block([("setup.dt, 200)", "setup.dt, 20)", 1)]),
     "Extending jaxmpm": Block(
         [('scheme="newpic:0.3")', 'scheme="newpic:0.3", t_end=0.5, frames=2); setup.run()', 1)],  # run the new scheme
     ),

@@ -30,7 +30,17 @@ from ..physics.stress import StressDivergence
 from ..physics.term import Term, overrides
 from ..run.driver import History, StableTimeStepWarning, rollout, run  # noqa: F401  (re-exported)
 from ..schemes.base import Scheme
-from ..transfer.backend import ADJOINTS, POLICIES, use_adjoint, use_policy
+from ..transfer.backend import (
+    ADJOINTS,
+    KERNEL_CHOICES,
+    POLICIES,
+    choose_kernel,
+    resolve,
+    use_adjoint,
+    use_kernel,
+    use_policy,
+)
+from ..transfer.kernels.windowed import active_window
 from ..transfer.shapes import UGIMP, ShapeFunction, field_stencil
 from . import frame_fields
 from .step import step as _step
@@ -90,6 +100,9 @@ class Simulation(eqx.Module):
     derivative rules of reverse mode: "structured" (default; the transfer layer's own rules, whose
     transposes are the cheap adjoint operations) or "autodiff" (JAX differentiates the forward code
     as written, the reference); it too changes speed, never results (``jaxmpm.transfer.backend``).
+    ``kernel`` picks the transfer kernel: "auto" (default; the table of ``jaxmpm.transfer.backend``
+    by backend, dimension, particles per cell and dtype; :func:`backend_info` says which and why),
+    "xla" or "pallas" (fused Pallas kernels; on the CPU in interpret mode, for checking): speed only.
 
     ``conventions`` picks whose rules the step follows where MPM codes differ: "jaxmpm" (default)
     or "nairnmpm", NairnMPM 19.0's (J. A. Nairn's code, the seeds' reference implementation):
@@ -135,6 +148,8 @@ class Simulation(eqx.Module):
             "nairnmpm".
         constrained_force: the constrained nodes' force, "zero" or "reaction"; None (the
             default): the one ``conventions`` picks.
+        kernel: the transfer kernel, "auto" (default: by the backend table), "xla" or "pallas":
+            speed only.
     """
 
     grid: Grid
@@ -149,6 +164,7 @@ class Simulation(eqx.Module):
     adjoint: str = eqx.field(static=True, default="structured")
     conventions: str = eqx.field(static=True, default="jaxmpm")
     constrained_force: str = eqx.field(static=True, default="zero")
+    kernel: str = eqx.field(static=True, default="auto")
 
     def __init__(
         self,
@@ -167,6 +183,7 @@ class Simulation(eqx.Module):
         adjoint: str = "structured",
         conventions: str = "jaxmpm",
         constrained_force: str | None = None,
+        kernel: str = "auto",
     ):
         check(isinstance(grid, Grid), f"Simulation: grid must be a jm.Grid, got {type(grid).__name__}")
         # a step holds a few nodal fields of 1 + D (mass, momentum) up to D^2 columns per node
@@ -237,6 +254,8 @@ class Simulation(eqx.Module):
         self.adjoint = adjoint
         self.conventions = conventions
         self.constrained_force = constrained_force
+        check(kernel in KERNEL_CHOICES, f"Simulation: kernel = {kernel!r}; choose one of {', '.join(KERNEL_CHOICES)}")
+        self.kernel = kernel
         self._check_terms()
 
     def _check_terms(self):
@@ -284,6 +303,11 @@ class Simulation(eqx.Module):
         """A copy differentiated with other derivative rules ("structured", "autodiff"; jaxmpm.transfer.backend)."""
         check(adjoint in ADJOINTS, f"Simulation: adjoint = {adjoint!r}; choose one of {', '.join(ADJOINTS)}")
         return self._with_static(adjoint=adjoint)
+
+    def with_kernel(self, kernel: str):
+        """A copy whose transfers run on another kernel ("auto", "xla", "pallas"; :func:`backend_info`)."""
+        check(kernel in KERNEL_CHOICES, f"Simulation: kernel = {kernel!r}; choose one of {', '.join(KERNEL_CHOICES)}")
+        return self._with_static(kernel=kernel)
 
     def with_conventions(self, conventions: str, constrained_force: str | None = None):
         """A copy of a model built in jaxmpm's conventions that follows another code's rules where
@@ -360,8 +384,19 @@ class Simulation(eqx.Module):
         return stencil if field is None else field_stencil(stencil, field, self.grid.num_nodes)
 
     def constraint(self, dtype):
-        """The velocity conditions on every velocity field's nodes."""
-        return build_constraint(self.grid, self.boundary, dtype, self.constrained_force).tile(self.velocity_fields)
+        """The velocity conditions on every velocity field's nodes (on the sharded path, on the
+        device's window of them: :mod:`jaxmpm.parallel`)."""
+        constraint = build_constraint(self.grid, self.boundary, dtype, self.constrained_force)
+        constraint = constraint.tile(self.velocity_fields)
+        window = active_window()
+        if window is None:
+            return constraint
+        check(constraint.mirror is None, "Simulation: mirror planes (jm.Mirror) are not supported on the sharded path "
+              "yet; run on one device")
+        rows = self.velocity_fields * self.grid.num_nodes
+        return jax.tree_util.tree_map(
+            lambda a: window.restrict(a, self.velocity_fields) if getattr(a, "shape", (0,))[:1] == (rows,) else a,
+            constraint)
 
     def init(self, particles: Particles, fields: dict | None = None) -> State:
         """Initial state from :func:`jaxmpm.fill` output (or any :class:`Particles`); the fields
@@ -439,8 +474,21 @@ class Simulation(eqx.Module):
         """Advance one time step (pure).  The model computes in its state's precision: float
         parameters of another precision (a float64 model built in a 64-bit process, stepped with a
         float32 state) are cast to the state's dtype on entry."""
-        with use_policy(self.backend), use_adjoint(self.adjoint):
+        name, options, _ = self._kernel_row(state.x.shape[0], state.x.dtype)
+        with use_policy(self.backend), use_adjoint(self.adjoint), use_kernel(name, options):
             return _step(self.in_precision(state.x.dtype), state, dt)
+
+    def _kernel_row(self, num_particles: int, dtype) -> tuple:
+        """(kernel name or None, options, why) for a step of ``num_particles`` particles in
+        ``dtype``: None (the kernel registered for the policy) where "auto" finds the XLA kernel,
+        so the default path is the one it always was (:func:`backend_info`)."""
+        per_cell = num_particles / max(1, int(np.prod(self.grid.cells)))
+        name, options, why = choose_kernel(self.backend, self.grid.dim, per_cell, dtype)
+        if self.kernel == "auto":
+            return (None if name == "xla" else name), options, why
+        if self.kernel == name:
+            return name, options, why + " (forced)"
+        return self.kernel, {}, f"kernel={self.kernel!r} forced (the table's choice: {name}: {why})"
 
     def in_precision(self, dtype):
         """The model with its float leaves cast to ``dtype`` (itself if they already are)."""
@@ -570,3 +618,25 @@ class Simulation(eqx.Module):
     @property
     def dim(self) -> int:
         return self.grid.dim
+
+
+def backend_info(sim: Simulation, state: State) -> dict:
+    """Which transfer kernel ``sim`` steps ``state`` with, and why: the row of the kernel table
+    (``jaxmpm.transfer.backend.KERNEL_TABLE``) that matches the model's backend, dimension,
+    particles per cell and dtype, or the kernel forced by ``Simulation(kernel=...)``.
+
+    Args:
+        sim: the model (:class:`Simulation`).
+        state: a state it steps (its particle count and dtype decide).
+
+    Returns:
+        {"kernel": "xla" or "pallas", "options": the kernel's options, "policy": "cpu" or "gpu",
+        "dimension", "particles_per_cell", "dtype", "reason": the table row's reason}.
+    """
+    check(isinstance(sim, Simulation), f"backend_info: sim must be a jm.Simulation, got {type(sim).__name__}")
+    check(isinstance(state, State), f"backend_info: state must be a jm.State, got {type(state).__name__}")
+    n, dtype = state.x.shape[-2], state.x.dtype
+    name, options, why = sim._kernel_row(n, dtype)
+    return {"kernel": name or "xla", "options": dict(options), "policy": resolve(sim.backend),
+            "dimension": sim.grid.dim, "particles_per_cell": n / max(1, int(np.prod(sim.grid.cells))),
+            "dtype": jnp.dtype(dtype).name, "reason": why}

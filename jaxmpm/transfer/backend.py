@@ -33,6 +33,12 @@ transfer layer; it too changes speed, never results (tests/test_adjoint.py, 1e-1
   the scatter's tangent, so that its transpose evaluates the nodal cotangent once before the
   gather.  JAX transposes the rest as usual.
 * ``"autodiff"``: JAX differentiates the forward code as written (the reference path).
+
+The *kernel* (``Simulation(..., kernel="auto" | "xla" | "pallas")``) picks what runs P2G and G2P
+(:mod:`jaxmpm.transfer.kernels`); it too changes speed, never results (tests/test_pallas_kernel.py,
+1e-12).  ``"auto"`` looks the model up in :data:`KERNEL_TABLE` -- by backend, dimension, particles
+per cell and dtype, each row with the measurement behind it -- the one place to retune when a
+device is measured (``jm.backend_info(sim, state)`` names the row in force).
 """
 
 from __future__ import annotations
@@ -125,8 +131,30 @@ def _barrier(fn, operands, witness=None):
     if witness is None:
         witness = next(leaf for leaf in jax.tree_util.tree_leaves(operands) if jnp.issubdtype(leaf.dtype, jnp.floating))
     out = jax.eval_shape(fn, operands)
-    return jax.lax.cond(_always_true(witness), fn,
-                        lambda _: jax.tree_util.tree_map(lambda o: jnp.zeros(o.shape, o.dtype), out), operands)
+    return jax.lax.cond(_always_true(witness), fn, lambda ops: _untaken(out, ops), operands)
+
+
+def _varies(x) -> bool:
+    """Whether ``x`` varies over a mesh axis of an enclosing ``shard_map`` (jax 0.10: the type's
+    ``manual_axis_type.varying``; later versions: its ``vma``)."""
+    aval = jax.typeof(x)
+    manual = getattr(aval, "manual_axis_type", None)
+    return bool(getattr(manual, "varying", None) or getattr(aval, "vma", None))
+
+
+def _untaken(out, operands):
+    """The boundary conditional's other branch: zeros of the types of ``out``.  Inside
+    ``shard_map`` both branches must vary over the same mesh axes, so the zeros take the operands'
+    (a zero of each varying operand is added, which only retypes them); elsewhere plain zeros."""
+    varying = [leaf for leaf in jax.tree_util.tree_leaves(operands) if _varies(leaf)]
+
+    def zeros(o):
+        z = jnp.zeros(o.shape, o.dtype)
+        for leaf in varying:
+            z = z + jnp.zeros_like(leaf, shape=()).astype(o.dtype)
+        return z
+
+    return jax.tree_util.tree_map(zeros, out)
 
 
 def _always_true(x):
@@ -229,3 +257,72 @@ def derivative_rule(plain, ruled):
         return (ruled if structured() else plain)(*args)
 
     return dispatch
+
+
+# ------------------------------------------------------------------ the transfer kernel
+# Which kernel (jaxmpm.transfer.kernels) runs P2G and G2P: ``Simulation(..., kernel="auto" |
+# "xla" | "pallas")``.  "auto" looks the model up in KERNEL_TABLE; "xla" and "pallas" force one.
+KERNEL_CHOICES = ("auto", "xla", "pallas")
+
+# Particles per cell (particles / grid cells) from which a 2D model counts as dense.
+DENSE_PARTICLES_PER_CELL = 4.0
+
+# (policy, dimension or None for any, dense or None for any, dtype or None for any) ->
+# (kernel, its options, why).  The first row that matches wins; whoever measures on a device
+# updates it (benchmarks/gpu.py).  Numbers: ../shared/gpu/README.md (H100, jax 0.11.2, float32,
+# particle-steps/s; the Pallas numbers are the fused prototype's, pallas_spike.py).
+KERNEL_TABLE = (
+    # CPU: XLA.  Pallas runs on the CPU only in interpret mode, a checking tool (tests), far slower.
+    (("cpu", None, None, None), ("xla", {}, "CPU: the XLA kernel; Pallas runs on the CPU only in interpret mode "
+                                            "(verification, far slower)")),
+    # 3D on the GPU: fused atomics.  1.05M particles, 128^3: Pallas 4.1e8 random order (2.5 ms/step)
+    # against plain JAX 1.89e8 (5.5 ms) and jaxmpm's XLA step 1.30e8 (8.1 ms); block 128 / 4 warps
+    # best (6.5e8 sorted; 256/8 6.2e8, 256/4 4.8e8).  float32 only: float64 atomics not measured.
+    # The fused kernel should win here, but PallasKernel itself has not run on a device yet (the CPU
+    # tests emulate its atomic adds in interpret mode and only compile it for Triton), so "auto"
+    # keeps the XLA kernel until benchmarks/gpu.py --kernel pallas has checked and timed it; then
+    # this row becomes ("pallas", {"block": 128, "reduce": False}, ...).
+    (("gpu", 3, None, "float32"), ("xla", {}, "3D on a GPU: the XLA kernel until the Pallas kernel has run on a "
+                                              "device (the fused prototype: 4.1e8 particle-steps/s against 1.3e8 "
+                                              "on an H100 at 1M particles, ../shared/gpu/README.md); "
+                                              "kernel='pallas' opts in")),
+    # dense 2D on the GPU: XLA's scatter.  mpm88 (10-200 particles per cell): the Pallas prototype
+    # 2.7e8 / 1.0e9 / 1.32e9 / 1.21e9 at 8k / 131k / 524k / 2.1M against plain JAX 4.0e8 / 1.96e9
+    # / 1.98e9 / 1.53e9 -- per-slot atomics on few nodes contend (sorted by cell: worse still).
+    (("gpu", 2, True, None), ("xla", {}, "dense 2D on a GPU: XLA's scatter (H100 mpm88: the fused Pallas kernel "
+                                         "0.55-0.79x plain JAX, atomics contend; ../shared/gpu/README.md)")),
+    # everything else on the GPU (1D, sparse 2D, float64 3D): not measured; the XLA kernel
+    (("gpu", None, None, None), ("xla", {}, "GPU: the XLA kernel (this case is not measured with Pallas yet)")),
+)
+
+
+def choose_kernel(policy: str, dim: int, particles_per_cell: float, dtype) -> tuple:
+    """(kernel name, options, why): the first row of :data:`KERNEL_TABLE` that matches a model
+    traced under ``policy`` ("cpu", "gpu" or "auto") in ``dim`` dimensions, with
+    ``particles_per_cell`` particles per grid cell, computing in ``dtype``."""
+    policy, dtype = resolve(policy), jnp.dtype(dtype).name
+    dense = dim == 2 and particles_per_cell >= DENSE_PARTICLES_PER_CELL
+    for (p, d, dn, dt), row in KERNEL_TABLE:
+        if p == policy and d in (None, dim) and dn in (None, dense) and dt in (None, dtype):
+            return row
+    return "xla", {}, "no row of KERNEL_TABLE matches: the XLA kernel"
+
+
+_kernel = contextvars.ContextVar("jaxmpm_transfer_kernel", default=None)
+
+
+@contextlib.contextmanager
+def use_kernel(name, options=None):
+    """Trace the enclosed transfers with kernel ``name`` ("xla" or "pallas", with ``options`` for
+    it); None: the kernel registered for the policy (``jaxmpm.transfer.kernels.register_kernel``)."""
+    check(name is None or name in KERNEL_CHOICES[1:], f"kernel = {name!r}; choose one of {', '.join(KERNEL_CHOICES)}")
+    token = _kernel.set(None if name is None else (name, tuple(sorted((options or {}).items()))))
+    try:
+        yield
+    finally:
+        _kernel.reset(token)
+
+
+def kernel_in_force():
+    """(name, options as sorted items) of the kernel forced for the code being traced, or None."""
+    return _kernel.get()

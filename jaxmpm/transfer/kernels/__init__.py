@@ -8,10 +8,13 @@ ask for nodal fields back at the particles (``Transfer.gather``, ``velocity_grad
 kernel brings its own derivative rules: P2G's transpose is a G2P gather and vice versa, so
 ``jax.grad``, ``jax.vmap`` and the XPIC/FMPM series run through the same kernel.
 
-Today's kernel, :class:`~jaxmpm.transfer.kernels.xla.XLAKernel`, forms the per-slot values
+The default kernel, :class:`~jaxmpm.transfer.kernels.xla.XLAKernel`, forms the per-slot values
 from the stencil's per-axis factors and scatters every column in one ``lax.scatter_add``; it is
-registered for both policies.  A new kernel (a Pallas GPU kernel, say) is one file defining a
-:class:`Kernel` subclass and one :func:`register_kernel` call.
+registered for both policies.  :class:`~jaxmpm.transfer.kernels.pallas.PallasKernel` runs P2G and
+G2P as fused Pallas kernels with atomic adds (interpret mode on the CPU); a model uses it where
+``Simulation(kernel=...)`` forces it or the kernel table of :mod:`jaxmpm.transfer.backend` picks
+it (``jm.backend_info`` says which and why).  A new kernel is one file defining a :class:`Kernel`
+subclass and one :func:`register_kernel` call.
 """
 
 from __future__ import annotations
@@ -20,7 +23,7 @@ import equinox as eqx
 import jax
 
 from ...core.errors import check
-from ..backend import POLICIES, active
+from ..backend import POLICIES, active, kernel_in_force
 
 
 class Kernel(eqx.Module):
@@ -76,10 +79,31 @@ def register_kernel(policy: str, kernel: Kernel) -> Kernel:
 
 
 def kernel() -> Kernel:
-    """The kernel of the policy in force for the code being traced."""
-    return _KERNELS[active()]
+    """The kernel for the code being traced: the one forced by ``Simulation(kernel=...)``
+    (:func:`jaxmpm.transfer.backend.use_kernel`), else the one registered for the policy in force."""
+    forced = kernel_in_force()
+    base = _KERNELS[active()] if forced is None else _stock_kernel(forced[0], forced[1], active())
+    return in_window(base)  # on the sharded path, the device's window of the grid (jaxmpm.parallel)
 
 
+_STOCK: dict = {}
+
+
+def _stock_kernel(name: str, options: tuple, policy: str) -> Kernel:
+    """The library's own kernel ``name`` ("xla": the XLA kernel in the policy's layout; "pallas":
+    :class:`~jaxmpm.transfer.kernels.pallas.PallasKernel` with ``options``), one instance per key."""
+    key = (name, options, policy)
+    if key not in _STOCK:
+        if name == "pallas":
+            from .pallas import PallasKernel  # imported on first use: Pallas is not needed otherwise
+
+            _STOCK[key] = PallasKernel(**dict(options))
+        else:
+            _STOCK[key] = XLAKernel(layout="planar" if policy == "cpu" else "rows")
+    return _STOCK[key]
+
+
+from .windowed import in_window  # noqa: E402
 from .xla import XLAKernel  # noqa: E402  (registers itself for both policies)
 
 __all__ = ["Kernel", "XLAKernel", "kernel", "register_kernel"]

@@ -28,9 +28,9 @@ def run_check(script: str, devices: int, *args) -> dict:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("dim, shape", [(2, "quadratic"), (3, "cubic")])
-def test_slab_transfers_equal_one_device(dim, shape):
-    out = run_check("slabs_check.py", 4, dim, shape)
+@pytest.mark.parametrize("devices, dim, shape", [(4, 2, "quadratic"), (4, 3, "cubic"), (8, 2, "linear")])
+def test_slab_transfers_equal_one_device(devices, dim, shape):
+    out = run_check("slabs_check.py", devices, dim, shape)
     assert out["p2g_rel_err"] < 1e-14  # every plane of every window: the global sums
     assert out["g2p_abs_err"] < 1e-14
     assert out["grad_rel_err"] < 1e-13  # d/d(x, v) through the exchange

@@ -10,7 +10,8 @@ contiguous range of node numbers) and keep a *window* of node planes around it:
 Particles live on the device whose slab holds their cell; with H at least the shape function's
 reach, a particle's whole stencil lies in its device's window.  The stencil is computed on the
 *global* grid, exactly as on one device, and only its node numbers are shifted into the window
-(:meth:`Slabs.local_stencil`: integer arithmetic, so the weights are bitwise those of one device).
+(:meth:`jaxmpm.transfer.kernels.windowed.Window.local_stencil`: integer arithmetic, so the weights are
+bitwise those of one device).
 
 **One exchange per P2G.** After a device's particles are scattered into its window, the planes it
 shares with a neighbour, [(k + 1) S - H, (k + 1) S + H] (2 H + 1 planes), hold only its own
@@ -45,9 +46,9 @@ class Slabs(eqx.Module):
     Args:
         grid: the global :class:`jaxmpm.Grid`.
         devices: the number of devices (slabs), at least 1; ``grid.cells[0]`` must be a multiple.
-        halo: the halo width H in node planes, at least the shape function's reach (2 for linear
-            and uGIMP... the number of nodes per axis minus one covers every shape); the slabs
-            must be wider than 2 H cells.
+        halo: the halo width H in node planes, at least the shape function's nodes per axis minus
+            one (:func:`halo_for`: 1 for linear, 2 for uGIMP and quadratic, 3 for cubic B-splines);
+            the slabs must be wider than 2 H cells.
         axis_name: the mesh axis the slabs are laid along (the name ``shard_map`` binds).
     """
 
@@ -107,12 +108,6 @@ class Slabs(eqx.Module):
         cell = jnp.floor((x[:, 0] - lower_x) / spacing_x).astype(jnp.int32)
         return jnp.clip(cell // self.cells_per_slab, 0, self.devices - 1)
 
-    def local_stencil(self, stencil, k):
-        """``stencil`` (computed on the global grid) with its node numbers shifted into device
-        ``k``'s window: index - (k S - H) x plane_nodes.  Integer arithmetic only."""
-        shift = (self.window_start(k) * self.plane_nodes).astype(stencil.index.dtype)
-        return eqx.tree_at(lambda s: s.index, stencil, stencil.index - shift)
-
     # ------------------------------------------------------------------ nodal data
     def window(self, nodal, k, fields: int = 1):
         """Device ``k``'s window of a global per-node array ``nodal`` (fields x num_nodes, ...), field
@@ -124,14 +119,6 @@ class Slabs(eqx.Module):
         start = (zero, jnp.asarray(k * self.cells_per_slab, jnp.int32)) + (zero,) * (planes.ndim - 2)
         sizes = (fields, self.window_planes) + planes.shape[2:]
         return jax.lax.dynamic_slice(padded, start, sizes).reshape((fields * self.window_nodes,) + nodal.shape[1:])
-
-    def owned(self, nodal_window, k):
-        """The owned planes of a window array, (S + 1) planes (the last device's top plane is real,
-        the others' is the next device's first), and a mask (S + 1,) of which planes count."""
-        planes = nodal_window.reshape((self.window_planes, self.plane_nodes) + nodal_window.shape[1:])
-        core = planes[self.halo:self.halo + self.cells_per_slab + 1]
-        counts = jnp.arange(self.cells_per_slab + 1) < self.cells_per_slab + (k == self.devices - 1)
-        return core, counts
 
     def halo_sum(self, nodal, fields: int = 1):
         """Complete a window's P2G sums: each device adds its neighbours' shares on the planes it
@@ -157,11 +144,6 @@ class Slabs(eqx.Module):
         return Window(num_nodes, self.window_nodes, self.window_start(k) * self.plane_nodes,
                       complete=lambda nodal, fields: self.halo_sum(nodal, fields),
                       restrict=lambda nodal, fields: self.window(nodal, k, fields), fields=fields)
-
-    def bytes_per_exchange(self, columns: int, itemsize: int) -> int:
-        """The bytes one device sends per :meth:`halo_sum` of ``columns`` values per node: the
-        overlap both ways."""
-        return 2 * self.overlap_planes * self.plane_nodes * columns * itemsize
 
 
 def halo_for(shape) -> int:

@@ -86,6 +86,13 @@ def run(ti, x0, v0, n_grid: int, steps: int, warmup: int = 20, repeats: int = 3,
         J.fill(1)
         C.fill(0)
 
+    return timed(ti, substep, reset, steps, warmup, repeats), x.to_numpy(), v.to_numpy()
+
+
+def timed(ti, substep, reset, steps: int, warmup: int, repeats: int) -> float:
+    """Best wall seconds of ``steps`` calls of the Taichi kernel ``substep`` from the state ``reset()``
+    restores, over ``repeats`` timings, after ``warmup`` calls that compile it (``ti.sync()`` around
+    each timing: Taichi launches kernels asynchronously)."""
     reset()
     for _ in range(warmup):
         substep()
@@ -99,4 +106,4 @@ def run(ti, x0, v0, n_grid: int, steps: int, warmup: int = 20, repeats: int = 3,
             substep()
         ti.sync()
         best = min(best, time.perf_counter() - start)
-    return best, x.to_numpy(), v.to_numpy()
+    return best

@@ -12,7 +12,7 @@ from ..core.safe import safe_norm
 from ..core.validate import NON_NEGATIVE, POISSON, POSITIVE, Range
 from ..transfer.backend import materialise
 from .linear import DENSITY, NU, E
-from .plastic import HenckyPlastic, deviator, principal_sum
+from .plastic import HenckyPlastic, deviator, principal_norm
 
 # beta <= 1: the ellipse's centre (1 - beta) p0 / 2 stays on the compressive side, so that p - p_c grows
 # with the plastic volume change (the return's bracket, CamClay._project) and tension is no stronger than
@@ -279,13 +279,6 @@ class CamClay(HenckyPlastic):
         dv = jnp.where(dv == 0.0, 0.0, newton(dv)[1])  # dv = 0: only a trial on the ellipse's top (p* = p_c)
         d_gamma = self._return_point(dv, p_star, q_star, p0_n, K, mu)[1]
         return d_gamma, dv
-
-def principal_norm(values):
-    """|v| of principal values (..., 3), 0 at 0 with a derivative that is 0 there (not NaN), written
-    out like :func:`~jaxmpm.materials.plastic.principal_sum` (no reduction kernel on the CPU)."""
-    sq = principal_sum(values * values)
-    return jnp.where(sq > 0.0, jnp.sqrt(jnp.where(sq > 0.0, sq, 1.0)), 0.0)
-
 
 M_SLOPE = Parameter("M", lambda m: m.M, "slope of the critical state line", "positive", valid=POSITIVE)
 P0 = Parameter("p0", lambda m: m.p0, "initial pre-consolidation pressure", "positive", valid=POSITIVE)

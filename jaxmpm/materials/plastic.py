@@ -182,6 +182,13 @@ def principal_sum(values):
     return values[..., 0] + values[..., 1] + values[..., 2]
 
 
+def principal_norm(values):
+    """|v| of principal values (..., 3), 0 at 0 with a derivative that is 0 there (not NaN), written
+    out like :func:`principal_sum` (no reduction kernel on the CPU)."""
+    sq = principal_sum(values * values)
+    return jnp.where(sq > 0.0, jnp.sqrt(jnp.where(sq > 0.0, sq, 1.0)), 0.0)
+
+
 def deviator(eps):
     """The deviatoric part of principal values (..., 3) and their mean."""
     mean = principal_sum(eps) / 3.0

@@ -41,8 +41,9 @@ def migrate(particles, valid, destination, exchange: int, axis_name: str, device
         devices: the number of devices along it.
 
     Returns:
-        (particles, valid, overflow): the buffer after the exchange and the number of particles
-        that did not fit (0 when nothing was lost; the caller stops the run otherwise).
+        (particles, valid, overflow, moving): the buffer after the exchange, the number of particles
+        that did not fit (0 when nothing was lost; the caller stops the run otherwise) and the
+        number that changed device, both over every device.
     """
     here = jax.lax.axis_index(axis_name)
     stray = valid & (jnp.abs(destination - here) > 1)  # more than one slab in a step: not supported
@@ -56,7 +57,7 @@ def migrate(particles, valid, destination, exchange: int, axis_name: str, device
     else:
         lost = jnp.zeros((), jnp.int32)
     lost = lost + jnp.sum(stray.astype(jnp.int32))
-    return particles, valid, jax.lax.psum(lost.astype(jnp.int32), axis_name)
+    return particles, valid, jax.lax.psum(lost.astype(jnp.int32), axis_name), moving
 
 
 def _exchange(particles, valid, destination, here, exchange: int, axis_name: str, devices: int):

@@ -193,9 +193,7 @@ class ShardedSimulation:
                 # the energy the scheme dissipated is a sum over particles: every device's share
                 new = _replace(new, dissipated=state.dissipated + jax.lax.psum(new.dissipated - state.dissipated, axis))
                 particles = {"state": _particles(new, capacity), "ids": ids}
-                destination = self.owner(new.x)
-                moving = jax.lax.psum(jnp.sum((valid & (destination != k)).astype(jnp.int32)), axis)
-                moved, new_valid, lost = migrate(particles, valid, destination, exchange, axis, D)
+                moved, new_valid, lost, moving = migrate(particles, valid, self.owner(new.x), exchange, axis, D)
                 new = _with_particles(new, moved["state"], capacity)
                 new = reset(new, new_valid)
                 ok = (overflow == 0) & (lost == 0)

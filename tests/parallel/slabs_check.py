@@ -137,7 +137,8 @@ for k in range(D):
 
 
 def local_migrate(x, ident, valid, dest):
-    (x, ident), valid, overflow = migrate((x[0], ident[0]), valid[0], dest[0], exchange=32, axis_name="x", devices=D)
+    (x, ident), valid, overflow, _ = migrate((x[0], ident[0]), valid[0], dest[0], exchange=32, axis_name="x",
+                                             devices=D)
     return x[None], ident[None], valid[None], overflow[None]
 
 

@@ -39,7 +39,7 @@ class Window:
     """
 
     def __init__(self, num_nodes: int, window_nodes: int, first_node, complete, restrict, fields: int = 1):
-        self.fields_ = fields
+        self.velocity_fields = fields
         self.num_nodes = num_nodes
         self.window_nodes = window_nodes
         self.first_node = first_node
@@ -56,7 +56,7 @@ class Window:
         sharded run reports before its values are used)."""
         index = stencil.index
         first = self.first_node.astype(index.dtype)
-        if self.fields_ == 1:
+        if self.velocity_fields == 1:
             local = jnp.clip(index - first, 0, self.window_nodes - 1)
         else:
             field, node = index // self.num_nodes, index % self.num_nodes

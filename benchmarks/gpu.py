@@ -28,7 +28,9 @@ process when ``taichi`` is importable (CUDA on a GPU, its CPU backend on a CPU; 
 jaxmpm first and Taichi's runtime shut down after each run (its worker threads would slow what follows).
 ``--quick`` runs every part at small sizes and few steps; ``--smallest`` keeps only each part's first size.
 ``--kernel xla|pallas|auto`` picks jaxmpm's transfer kernel (``Simulation.with_kernel``; default "auto", the
-library's table); each row records the kernel its run used (``jm.backend_info``).
+library's table) and ``--sort-every K`` how often the particles are sorted by cell (``Simulation.with_sorting``; 0
+never, default "auto", the library's table); each row records the kernel and sorting its run used
+(``jm.backend_info``).
 
 Writes ``benchmarks/results/gpu.md`` and ``gpu.csv`` (``--out`` another folder).
 """
@@ -56,7 +58,7 @@ import numpy as np  # noqa: E402
 
 import jaxmpm as jm  # noqa: E402
 from jaxmpm.run.driver import CAUSES  # noqa: E402
-from jaxmpm.run.memory import tree_bytes  # noqa: E402
+from jaxmpm.run.memory import choose_checkpoint, tree_bytes  # noqa: E402
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "results"
 PARTS = ("mpm88", "mpm3d", "schemes", "gradient", "ensemble")
@@ -78,14 +80,20 @@ FIELDS = ["part", "case", "particles", "grid", "steps", "dtype", "engine", "kern
 
 
 # ------------------------------------------------------------------------------------------- scenes
+SORT_EVERY = "auto"  # --sort-every: steps between sorts of the particles by cell ("auto": the library's table)
+
+
 def with_kernel(sim, kernel: str):
-    """``sim`` with its transfers on ``kernel`` ("xla", "pallas"), or as the library chooses ("auto")."""
-    return sim if kernel == "auto" else sim.with_kernel(kernel)
+    """``sim`` with its transfers on ``kernel`` ("xla", "pallas"), or as the library chooses ("auto"), sorting its
+    particles by cell as ``--sort-every`` says."""
+    sim = sim if kernel == "auto" else sim.with_kernel(kernel)
+    return sim.with_sorting(SORT_EVERY)
 
 
 def kernel_of(sim, state) -> str:
-    """The transfer kernel ``sim`` steps ``state`` with (``jm.backend_info``)."""
-    return jm.backend_info(sim, state)["kernel"] if hasattr(jm, "backend_info") else "xla"
+    """The transfer kernel ``sim`` steps ``state`` with (``jm.backend_info``), and its sorting if any."""
+    info = jm.backend_info(sim, state)
+    return info["kernel"] + (f", sorted/{info['sort_every']}" if info.get("sort_every") else "")
 
 
 def mpm88(n: int, dtype: str, scheme=None, dt: float = DT, kernel: str = "auto"):
@@ -121,7 +129,16 @@ def compile_rollout(sim, state, dt, steps: int):
 
     def rollout(arrays):
         sim, state, dt = eqx.combine(arrays, static)
-        return jax.lax.fori_loop(0, steps, lambda _, s: sim.step(s, dt), state)
+        sorting = sim.sorting(state)  # particles sorted by cell every K steps (jaxmpm.run.sorting), or None
+        if sorting is None:
+            return jax.lax.fori_loop(0, steps, lambda _, s: sim.step(s, dt), state)
+
+        def step(_, carry):
+            state, order = sorting.renew(*carry)
+            return sim.step(state, dt), order
+
+        state, order = jax.lax.fori_loop(0, steps, step, (state, sorting.start(state)))
+        return sorting.in_user_order(state, order)
 
     program, compile_s = compiled(rollout, arrays)
     memory = program.memory_analysis()
@@ -240,8 +257,9 @@ def part_schemes(sizes, steps: int, dtype: str, repeats: int, common: dict):
     return rows
 
 
-def part_gradient(sizes, steps: int, dtype: str, repeats: int, common: dict):
-    """d(mean height after ``steps``)/dE through ``sim.run`` against the forward run; a central difference."""
+def part_gradient(sizes, steps: int, dtype: str, repeats: int, common: dict, checkpoint="auto"):
+    """d(mean height after ``steps``)/dE through ``sim.run`` (its ``checkpoint`` policy) against the forward run; a
+    central difference."""
     rows = []
     for n in sizes:
         sim, state, dt = mpm88(n, dtype, kernel=common.get("kernel", "auto"))
@@ -249,7 +267,8 @@ def part_gradient(sizes, steps: int, dtype: str, repeats: int, common: dict):
         every = max(1, steps // 10)
 
         def loss(E):
-            final, _ = jm.set_params(sim, E=E).run(state, dt, steps, every, save_particles=False, progress=False)
+            final, _ = jm.set_params(sim, E=E).run(state, dt, steps, every, save_particles=False, progress=False,
+                                                   checkpoint=checkpoint)
             return jnp.mean(final.x[:, 1])
 
         E0 = jnp.asarray(400.0, state.x.dtype)
@@ -260,11 +279,14 @@ def part_gradient(sizes, steps: int, dtype: str, repeats: int, common: dict):
         eps = 1.0  # 0.25 % of E
         difference = (float(forward(E0 + eps)) - float(forward(E0 - eps))) / (2 * eps)
         check = f"dL/dE {float(gradient(E0)):.4g}, central difference {difference:.4g}"
+        if checkpoint == "auto":  # the schedule "auto" ran (jaxmpm.run.memory.choose_checkpoint)
+            check += "; auto: " + choose_checkpoint(sim, state, dt, steps // every, every)[1]
         base = dict(common, part="gradient", kernel=kernel_of(sim, state), case=f"mpm88 {n}", particles=n,
                     grid="128x128", steps=steps, dtype=dtype)
         rows.append(dict(base, engine="forward", compile_s=forward_compile, run_s=forward_s,
                          particle_steps_per_s=n * steps / forward_s, ms_per_step=1e3 * forward_s / steps))
-        rows.append(dict(base, engine="gradient", compile_s=gradient_compile, run_s=gradient_s,
+        rows.append(dict(base, engine=f"gradient (checkpoint={checkpoint})", compile_s=gradient_compile,
+                         run_s=gradient_s,
                          particle_steps_per_s=n * steps / gradient_s, ms_per_step=1e3 * gradient_s / steps,
                          ratio=gradient_s / forward_s, ratio_to="forward", check=check))
         report(rows[-2:])
@@ -340,8 +362,23 @@ def main(argv=None) -> int:
     parser.add_argument("--no-taichi", dest="taichi", action="store_false", help="skip Taichi")
     parser.add_argument("--kernel", choices=("auto", "xla", "pallas"), default="auto",
                         help="jaxmpm's transfer kernel (Simulation(kernel=...)); default auto: the library's table")
+    parser.add_argument("--reduce", action="store_true",
+                        help="the Pallas kernel with its block reduction before the atomic adds (a row put first in "
+                             "the library's kernel table for this run; implies --kernel auto)")
+    parser.add_argument("--checkpoint", default="auto", type=lambda v: {"true": True, "false": False}.get(v.lower(), v),
+                        help="the gradient part's sim.run(checkpoint=...): auto (default), true, false, low_memory")
+    parser.add_argument("--sort-every", default="auto", type=lambda v: v if v == "auto" else int(v), metavar="K",
+                        help="sort the particles by cell every K steps (0: never; default auto: the library's table)")
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="folder of gpu.md and gpu.csv")
     args = parser.parse_args(argv)
+    global SORT_EVERY
+    SORT_EVERY = args.sort_every
+    if args.reduce:  # what-if row: how whoever measures tries a table entry before writing it into the library
+        from jaxmpm.transfer import backend
+
+        row = ("pallas", {"reduce": True}, "benchmarks/gpu.py --reduce")
+        backend.KERNEL_TABLE = ((("cpu", None, None, None), row), (("gpu", None, None, None), row))
+        args.kernel = "auto"
     sizes = QUICK if args.quick else FULL
     repeats = args.repeats or (2 if args.quick else 3)
     jm.compilation_cache(False)  # compile times: XLA compiling, not a program read back from disk
@@ -354,7 +391,8 @@ def main(argv=None) -> int:
     header = (f"# benchmarks/gpu.py{' --quick' if args.quick else ''}: {common['device']} ({common['backend']}), "
               f"jax {common['jax']}, jaxmpm {jm.__version__}, "
               f"Taichi {taichi.version if taichi.ti else 'skipped: ' + taichi.why}, {common['date']}\n\n"
-              f"jaxmpm {args.dtype}, --kernel {args.kernel} (the kernel each run used in brackets), Taichi f32; "
+              f"jaxmpm {args.dtype}, --kernel {args.kernel}, --sort-every {args.sort_every} "
+              f"(the kernel each run used in brackets), Taichi f32; "
               f"best of {repeats}; {os.cpu_count()} CPUs, {platform.machine()}, "
               f"load {os.getloadavg()[0]:.2f} at the start.")
     print(header, flush=True)
@@ -373,7 +411,7 @@ def main(argv=None) -> int:
         elif part == "schemes":
             rows += part_schemes(first(values), steps, args.dtype, repeats, common)
         elif part == "gradient":
-            rows += part_gradient(first(values), steps, args.dtype, repeats, common)
+            rows += part_gradient(first(values), steps, args.dtype, repeats, common, args.checkpoint)
         else:
             n, batches = values
             rows += part_ensemble(n, first(batches), steps, args.dtype, repeats, common)

@@ -261,9 +261,9 @@ def test_choosing_and_forcing_a_kernel():
     assert info["reason"] == KERNEL_TABLE[0][1][2]  # the CPU row
     forced = jm.backend_info(setup.sim.with_kernel("pallas"), setup.state)
     assert forced["kernel"] == "pallas" and "forced" in forced["reason"]
-    # 3D float32 on a GPU: the XLA kernel until the Pallas kernel has run on a device, with the reason
+    # 3D on a GPU: the XLA kernel, as measured on an H100 (the Pallas kernel lost), with the reason
     name, _, why = choose_kernel("gpu", 3, 8.0, jnp.float32)
-    assert name == "xla" and "kernel='pallas' opts in" in why
+    assert name == "xla" and "H100" in why and "Pallas" in why
     assert choose_kernel("gpu", 2, 50.0, jnp.float32)[0] == "xla"
     assert choose_kernel("gpu", 3, 8.0, jnp.float64)[0] == "xla"
     with pytest.raises(jm.InputError, match="kernel = 'triton'"):

@@ -15,6 +15,8 @@ from __future__ import annotations
 import equinox as eqx
 import jax.numpy as jnp
 
+from .linalg import det
+
 
 class State(eqx.Module):
     """Particle state: a core every model has, plus the state each part of the model owns.  A
@@ -61,7 +63,13 @@ class State(eqx.Module):
     @property
     def volume(self):
         """Current volume V0 det F."""
-        return self.volume0 * jnp.linalg.det(self.F)
+        return self.volume0 * det(self.F)
+
+
+def per_particle(leaf, n: int) -> bool:
+    """Whether a leaf of a state of ``n`` particles holds one row per particle (x, v, F, the masses,
+    the scheme's, material's and terms' per-particle arrays), not a scalar such as the time."""
+    return getattr(leaf, "ndim", 0) >= 1 and leaf.shape[0] == n
 
 
 def with_scheme_state(state: State, value) -> State:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
+from ..core.linalg import det
 from ..core.registry import register_material
 from ..core.validate import POSITIVE
 from .base import ElasticMaterial, identity
@@ -14,7 +15,7 @@ from .neohookean import log_det
 def volumetric_part(F):
     """J^(1/D) I, J = det F: the deformation a fluid keeps after each step (its stress depends on J
     alone); F itself where J <= 0, so that the instability check still sees it."""
-    J = jnp.linalg.det(F)
+    J = det(F)
     positive = J > 0
     iso = (jnp.where(positive, J, 1.0) ** (1.0 / F.shape[-1]))[..., None, None] * identity(F)
     return jnp.where(positive[..., None, None], iso, F)  # J <= 0 stays visible to the instability check
@@ -38,16 +39,16 @@ class VolumetricFluid(ElasticMaterial):
         self.density = POSITIVE.leaf("VolumetricFluid", "density", density)
 
     def kirchhoff_stress(self, F):
-        J = jnp.linalg.det(F)
+        J = det(F)
         return (self.E * (J - 1.0))[..., None, None] * identity(F)
 
     def energy_density(self, F):
-        J = jnp.linalg.det(F)
+        J = det(F)
         return self.E * (J - 1.0 - log_det(F))
 
     def out_of_plane_stress(self, F, state):
         """The stress is isotropic: tau_zz = E (J - 1) too."""
-        return self.E * (jnp.linalg.det(F) - 1.0)
+        return self.E * (det(F) - 1.0)
 
     def keep_deformation(self, F):
         """F <- J^(1/D) I after each step (Taichi mpm99's fluid reset): the stress depends on J

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
+from ..core.linalg import det
 from ..core.registry import register_material
 from ..core.validate import POISSON, POSITIVE
 from .base import Increment, InelasticMaterial, hooke, identity, lame, trace
@@ -48,7 +49,7 @@ class HypoElastic(InelasticMaterial):
         return {"stress": jnp.zeros((n, d, d), jnp.result_type(float))}
 
     def stress(self, F, state):
-        return jnp.linalg.det(F)[..., None, None] * state["stress"]  # tau = J sigma
+        return det(F)[..., None, None] * state["stress"]  # tau = J sigma
 
     def update_state(self, increment: Increment, state):
         dF = increment.dF
@@ -67,7 +68,7 @@ class HypoElastic(InelasticMaterial):
         else:
             lam, mu = lame(self.E, self.nu)
             strain = (sigma - lam / (d * lam + 2.0 * mu) * trace(sigma)[..., None, None] * identity(sigma)) / (2 * mu)
-        return 0.5 * jnp.linalg.det(F) * jnp.sum(sigma * strain, axis=(-1, -2))
+        return 0.5 * det(F) * jnp.sum(sigma * strain, axis=(-1, -2))
 
 
 register_material("hypoelastic", HypoElastic, parameters=[E, NU, DENSITY])

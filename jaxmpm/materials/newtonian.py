@@ -8,6 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..core.errors import check
+from ..core.linalg import det
 from ..core.registry import Parameter, register_material
 from ..core.validate import NON_NEGATIVE, POSITIVE, concrete
 from .base import Increment, InelasticMaterial, identity, trace
@@ -129,7 +130,7 @@ class NewtonianFluid(InelasticMaterial):
         """D = sym(L) of the increment; the dissipation 2 eta J dev D : dev D dt added."""
         L = increment.velocity_gradient()
         D = 0.5 * (L + jnp.swapaxes(L, -1, -2))
-        J = jnp.linalg.det(increment.F)
+        J = det(increment.F)
         rate = 2.0 * self.eta * J * deviator_norm2(D)  # J sigma_v : D, per reference volume
         return {"strain_rate": D, "viscous_dissipation": state["viscous_dissipation"] + rate * increment.dt}
 
@@ -140,7 +141,7 @@ class NewtonianFluid(InelasticMaterial):
 
     def stress(self, F, state):
         """tau = J (-p(J) I + 2 eta dev D), D the state's rate of deformation."""
-        J = jnp.linalg.det(F)
+        J = det(F)
         sigma = -self.pressure(J)[..., None, None] * identity(F) + self.viscous_stress(state["strain_rate"])
         return J[..., None, None] * sigma
 
@@ -148,12 +149,12 @@ class NewtonianFluid(InelasticMaterial):
         """tau_zz (and tau_yy in 1D) = J (-p - 2 eta tr(D) / 3): D has no unresolved normal component."""
         if F.shape[-1] == 3:
             return None
-        J = jnp.linalg.det(F)
+        J = det(F)
         return J * (-self.pressure(J) - 2.0 * self.eta * trace(state["strain_rate"]) / 3.0)
 
     def stored_energy_density(self, F, state):
         """The volumetric energy W(J) only (class docstring); the viscous stress stores nothing."""
-        return self.volumetric_energy(jnp.linalg.det(F))
+        return self.volumetric_energy(det(F))
 
     def keep_deformation(self, F):
         """F <- J^(1/D) I after each step (as :meth:`VolumetricFluid.keep_deformation`)."""

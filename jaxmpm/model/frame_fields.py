@@ -28,6 +28,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from ..core.errors import check
+from ..core.linalg import det
 
 #: the fields every model offers, with what each one is
 FRAME_FIELDS = {
@@ -65,7 +66,7 @@ def chosen(sim, state, fields, where: str = "fields") -> tuple:
 def cauchy_stress(sim, state):
     """sigma = tau / J (N, d, d)."""
     tau = sim.material.stress(sim.elastic_deformation(state), state.material_state)
-    return tau / jnp.linalg.det(state.F)[:, None, None]
+    return tau / det(state.F)[:, None, None]
 
 
 def pressure(sim, state, sigma):
@@ -78,7 +79,7 @@ def pressure(sim, state, sigma):
     tau_out = sim.material.out_of_plane_stress(sim.elastic_deformation(state), state.material_state)
     if tau_out is None:
         return -normal / d
-    return -(normal + (3 - d) * tau_out / jnp.linalg.det(state.F)) / 3.0
+    return -(normal + (3 - d) * tau_out / det(state.F)) / 3.0
 
 
 def frame_fields(sim, state, names: tuple) -> dict:
@@ -92,7 +93,7 @@ def frame_fields(sim, state, names: tuple) -> dict:
         elif name == "pressure":
             out[name] = pressure(sim, state, sigma)
         elif name == "J":
-            out[name] = jnp.linalg.det(state.F)
+            out[name] = det(state.F)
         elif name == "F":
             out[name] = state.F
         else:

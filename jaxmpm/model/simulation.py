@@ -17,6 +17,7 @@ from ..core import measures as diag
 from ..core.errors import check
 from ..core.grid import Grid
 from ..core.limits import require_memory
+from ..core.linalg import det
 from ..core.particles import Particles
 from ..core.registry import MATERIALS, SCHEMES, SHAPES, scheme_from_name, shape_from_name
 from ..core.state import State
@@ -29,12 +30,14 @@ from ..physics.damping import Damping
 from ..physics.stress import StressDivergence
 from ..physics.term import Term, overrides
 from ..run.driver import History, StableTimeStepWarning, rollout, run  # noqa: F401  (re-exported)
+from ..run.sorting import Sorting
 from ..schemes.base import Scheme
 from ..transfer.backend import (
     ADJOINTS,
     KERNEL_CHOICES,
     POLICIES,
     choose_kernel,
+    choose_sorting,
     resolve,
     use_adjoint,
     use_kernel,
@@ -150,6 +153,10 @@ class Simulation(eqx.Module):
             default): the one ``conventions`` picks.
         kernel: the transfer kernel, "auto" (default: by the backend table), "xla" or "pallas":
             speed only.
+        sort_every: a run (``run``, ``rollout``, ``jm.ensemble``) sorts the particles by cell every
+            this many steps (``jaxmpm.run.sorting``; frames and the final state stay in the user's
+            order), 0 never; "auto" (default): as the backend table says (``jm.backend_info``).
+            Speed only: a sorted run equals an unsorted one to round-off.
     """
 
     grid: Grid
@@ -165,6 +172,7 @@ class Simulation(eqx.Module):
     conventions: str = eqx.field(static=True, default="jaxmpm")
     constrained_force: str = eqx.field(static=True, default="zero")
     kernel: str = eqx.field(static=True, default="auto")
+    sort_every: object = eqx.field(static=True, default="auto")
 
     def __init__(
         self,
@@ -184,6 +192,7 @@ class Simulation(eqx.Module):
         conventions: str = "jaxmpm",
         constrained_force: str | None = None,
         kernel: str = "auto",
+        sort_every="auto",
     ):
         check(isinstance(grid, Grid), f"Simulation: grid must be a jm.Grid, got {type(grid).__name__}")
         # a step holds a few nodal fields of 1 + D (mass, momentum) up to D^2 columns per node
@@ -256,6 +265,7 @@ class Simulation(eqx.Module):
         self.constrained_force = constrained_force
         check(kernel in KERNEL_CHOICES, f"Simulation: kernel = {kernel!r}; choose one of {', '.join(KERNEL_CHOICES)}")
         self.kernel = kernel
+        self.sort_every = _checked_sort_every(sort_every)
         self._check_terms()
 
     def _check_terms(self):
@@ -308,6 +318,25 @@ class Simulation(eqx.Module):
         """A copy whose transfers run on another kernel ("auto", "xla", "pallas"; :func:`backend_info`)."""
         check(kernel in KERNEL_CHOICES, f"Simulation: kernel = {kernel!r}; choose one of {', '.join(KERNEL_CHOICES)}")
         return self._with_static(kernel=kernel)
+
+    def with_sorting(self, every):
+        """A copy whose runs sort the particles by cell every ``every`` steps (0: never; "auto": the
+        backend table's choice; ``sort_every`` in the class docstring)."""
+        return self._with_static(sort_every=_checked_sort_every(every))
+
+    def sorting(self, state: State):
+        """The runs' cell sorting for ``state`` (a :class:`jaxmpm.run.sorting.Sorting`), or None
+        when they do not sort (:func:`backend_info` says why)."""
+        every, _ = self._sort_row(state.x.shape[0], state.x.dtype)
+        return Sorting(self.grid, every) if every else None
+
+    def _sort_row(self, num_particles: int, dtype) -> tuple:
+        """(steps between sorts, 0 for never; why) for runs of ``num_particles`` particles in ``dtype``."""
+        if self.sort_every != "auto":
+            return self.sort_every, f"sort_every={self.sort_every} given"
+        per_cell = num_particles / max(1, int(np.prod(self.grid.cells)))
+        kernel = self._kernel_row(num_particles, dtype)[0] or "xla"
+        return choose_sorting(self.backend, self.grid.dim, per_cell, dtype, kernel)
 
     def with_conventions(self, conventions: str, constrained_force: str | None = None):
         """A copy of a model built in jaxmpm's conventions that follows another code's rules where
@@ -545,7 +574,7 @@ class Simulation(eqx.Module):
         for value in state.fields.values():  # the terms' fields too (e.g. a temperature)
             if jnp.issubdtype(value.dtype, jnp.floating):
                 finite = finite & jnp.all(jnp.isfinite(value.reshape(value.shape[0], -1)), -1)
-        positive = jnp.linalg.det(state.F) > 0
+        positive = det(state.F) > 0
         inside = self.shape.inside(self.grid, state.x)
         code = jnp.where(~jnp.all(finite), 1, jnp.where(~jnp.all(positive), 2, jnp.where(~jnp.all(inside), 3, 0)))
         bad = jnp.where(code == 1, ~finite, jnp.where(code == 2, ~positive, ~inside))
@@ -631,12 +660,22 @@ def backend_info(sim: Simulation, state: State) -> dict:
 
     Returns:
         {"kernel": "xla" or "pallas", "options": the kernel's options, "policy": "cpu" or "gpu",
-        "dimension", "particles_per_cell", "dtype", "reason": the table row's reason}.
+        "dimension", "particles_per_cell", "dtype", "reason": the table row's reason,
+        "sort_every": the steps between the runs' sorts of the particles by cell (0: never),
+        "sort_reason": why}.
     """
     check(isinstance(sim, Simulation), f"backend_info: sim must be a jm.Simulation, got {type(sim).__name__}")
     check(isinstance(state, State), f"backend_info: state must be a jm.State, got {type(state).__name__}")
     n, dtype = state.x.shape[-2], state.x.dtype
     name, options, why = sim._kernel_row(n, dtype)
+    every, sort_why = sim._sort_row(n, dtype)
     return {"kernel": name or "xla", "options": dict(options), "policy": resolve(sim.backend),
             "dimension": sim.grid.dim, "particles_per_cell": n / max(1, int(np.prod(sim.grid.cells))),
-            "dtype": jnp.dtype(dtype).name, "reason": why}
+            "dtype": jnp.dtype(dtype).name, "reason": why, "sort_every": every, "sort_reason": sort_why}
+
+
+def _checked_sort_every(every):
+    check(every == "auto" or (isinstance(every, (int, np.integer)) and not isinstance(every, bool) and every >= 0),
+          f"Simulation: sort_every = {every!r}; give the steps between sorts of the particles by cell (a "
+          "non-negative integer, 0 = never) or 'auto' (the backend table's choice)")
+    return every if every == "auto" else int(every)

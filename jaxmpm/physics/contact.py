@@ -146,6 +146,7 @@ import numpy as np
 
 from ..core.errors import check
 from ..core.fields import ParticleField
+from ..core.linalg import det
 from ..core.registry import Parameter, register_term
 from ..core.safe import safe_norm, safe_unit
 from ..core.validate import FINITE, NON_NEGATIVE, concrete, fail, finite_vector, positive_int, show
@@ -299,7 +300,7 @@ class Contact(Term):
         """sum_p M_p G_pi: the material mass gradients, for the contact normals (Nairn contact notes
         §3.2; the stacked scatter sums each material's particles only, S^a of 000 eq. 4.4); with a
         ``separation`` criterion also sum_p S_pi M_p X_p, the materials' nodal mass moments."""
-        weight = state.mass if self.gradient == "mass" else jnp.linalg.det(state.F) * state.volume0  # J_p V0_p
+        weight = state.mass if self.gradient == "mass" else det(state.F) * state.volume0  # J_p V0_p
         out = {"mass_gradient": Gradient(weight)}
         if self.separation is not None:
             out["mass_moment"] = Weighted(state.mass[:, None] * state.x)

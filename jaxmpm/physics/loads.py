@@ -38,6 +38,7 @@ import numpy as np
 from ..core.errors import check
 from ..core.fields import ParticleField
 from ..core.grid import parse_face
+from ..core.linalg import det
 from ..core.registry import register_term
 from ..core.validate import FINITE
 from ..transfer.backend import materialise
@@ -125,7 +126,7 @@ class Traction(Term):
         """The nodes' reach R_i = sum_p V_p |G_ip . n| over every particle (:func:`bounded_shares`),
         in the step's one P2G pass."""
         axis, _ = parse_face(self.face, sim.grid.dim)
-        volume = jnp.linalg.det(state.F) * state.volume0  # V_p (per radian on an r-z grid, 001 §7)
+        volume = det(state.F) * state.volume0  # V_p (per radian on an r-z grid, 001 §7)
         return {self.reach_column: PerSlot(volume[None, :] * jnp.abs(stencil.gradient[axis]))}
 
     def nodal_force(self, sim, state, nodal):
@@ -140,7 +141,7 @@ class Traction(Term):
         half0 = 0.5 * reference ** (1.0 / dim)  # l_p0: the particle domain's half-width
         stretch = state.F[:, axis, axis]
         edge = state.x.at[:, axis].add(side * half0 * stretch)  # x_p + l_p n
-        area = jnp.linalg.det(state.F) * state.volume0 / (2.0 * half0 * stretch)  # A_p = V_p / (2 l_p)
+        area = det(state.F) * state.volume0 / (2.0 * half0 * stretch)  # A_p = V_p / (2 l_p)
         if sim.grid.axisymmetric:  # per radian, at the edge's radius: int T . du r dL (001 eq. 108)
             area = area * edge[:, 0] / state.x[:, 0]
         area = state.fields[self.name] * area  # 0 off the loaded face

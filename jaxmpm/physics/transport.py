@@ -66,6 +66,7 @@ import numpy as np
 
 from ..core.errors import check
 from ..core.fields import ParticleField
+from ..core.linalg import det
 from ..core.registry import Parameter, register_term
 from ..core.safe import safe_norm
 from ..core.validate import FINITE, FRACTION, NON_NEGATIVE, POSITIVE, concrete, positive_int, traced
@@ -259,7 +260,7 @@ class Transport(Term):
     def diffusivity(self, state):
         """a_p = k / (rho_p C_p) per particle (diffusion: D), the largest eigenvalue for a tensor."""
         k = self.conductivity if self.conductivity.ndim == 0 else jnp.max(jnp.linalg.eigvalsh(self.conductivity))
-        volume = state.volume0 * jnp.linalg.det(state.F)
+        volume = state.volume0 * det(state.F)
         return k * volume / self.particle_capacity(state)
 
     def time_step_limit(self, sim, state):
@@ -369,7 +370,7 @@ class Transport(Term):
         k = h_c A (1/C^a + 1/C^rest), so the heat passed is C^a C^rest/(C^a + C^rest) (T^rest - T^a)
         (1 - exp(-k dt)) -- stable for any h_c, and summing to zero over the fields."""
         M, n = sim.velocity_fields, sim.grid.num_nodes
-        volume = state.volume0 * jnp.linalg.det(state.F)
+        volume = state.volume0 * det(state.F)
         g = transfer.p2g({"g": Gradient(volume)})["g"].reshape(M, n, -1)
         C = m_T.reshape(M, n)
         H = (C * t_nodes.reshape(M, n))
@@ -395,7 +396,7 @@ class Transport(Term):
         check(k.ndim == 0 or k.shape == (d, d), f"{type(self).__name__}: the conductivity tensor has shape {k.shape}; "
                                                 f"this model is {d}D: give a scalar or a {d} x {d} tensor")
         flux = -(k * grad if k.ndim == 0 else grad @ k.T)  # 001 eq. (137)
-        volume = state.volume0 * jnp.linalg.det(state.F)
+        volume = state.volume0 * det(state.F)
         heat_flow = (Divergence((volume[:, None] * flux)[:, None, :]),  # sum_p V_p q_p . G_ip (001 eq. 135)
                      Weighted((volume * self.source.astype(m_T.dtype))[:, None]))  # + sum_p V_p q_s,p S_ip
         flow = own.p2g({"flow": heat_flow})["flow"][:, 0] + self.boundary_flow(sim, m_T.dtype)
@@ -547,7 +548,7 @@ class Diffusion(Transport):
                     "diffusivity", interface)
 
     def particle_capacity(self, state):
-        return state.volume0 * jnp.linalg.det(state.F)  # V_p (001 eq. 146)
+        return state.volume0 * det(state.F)  # V_p (001 eq. 146)
 
 
 register_term("heat", Heat, doc="heat conduction, FLIP temperature update (001 §8)", parameters=[

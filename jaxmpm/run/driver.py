@@ -146,18 +146,12 @@ def rollout(sim, state: State, dt, frames: int, save_every: int = 1, save_partic
     remat = (lambda f: f) if segment is None else jax.checkpoint  # noqa: E731
     remat_frames = jax.checkpoint if isinstance(checkpoint, str) else (lambda f: f)  # noqa: E731  ("low_memory")
 
+    sorting = sim.sorting(state)  # particles sorted by cell every K steps, or None (jaxmpm.run.sorting)
+    advance = _stepper(sim, sorting, dt)
+
     @remat
     def one_step(carry, _):
-        s, fail = carry
-        s = sim.step(s, dt)
-        code, particle = sim.instability(jax.lax.stop_gradient(s))
-        new = (fail.step < 0) & (code > 0)
-        fail = Failure(
-            jnp.where(new, s.step, fail.step),
-            jnp.where(new, code, fail.cause),
-            jnp.where(new, particle, fail.particle),
-        )
-        return (s, fail), None
+        return advance(carry), None
 
     seg_len = save_every if segment is None else segment
 
@@ -172,9 +166,11 @@ def rollout(sim, state: State, dt, frames: int, save_every: int = 1, save_partic
     @remat_frames
     def one_frame(carry, _):
         carry, _ = jax.lax.scan(one_segment, carry, None, length=save_every // seg_len)
-        return carry, frame(carry[0])
+        return carry, frame(_in_user_order(sorting, carry))
 
-    (final, failure), frames_hist = jax.lax.scan(one_frame, (state, none), None, length=frames)
+    start = (state, none, None if sorting is None else sorting.start(state))
+    carry, frames_hist = jax.lax.scan(one_frame, start, None, length=frames)
+    final, failure = _in_user_order(sorting, carry), carry[1]
     first = frame(state)
     history = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a[None], b]), first, frames_hist)
     return final, history, failure
@@ -646,28 +642,54 @@ def _advance(sim, state, failure, dt, n_frames, steps_per_frame, buffer_frames: 
     def running(fail):
         return (fail.step < 0) if stop_at_failure else jnp.bool_(True)
 
+    sorting = sim.sorting(state)  # particles sorted by cell every K steps, or None (jaxmpm.run.sorting)
+    advance = _stepper(sim, sorting, dt)
+
     def one_step(carry):
-        s, fail, i = carry
-        s = sim.step(s, dt)
-        code, particle = sim.instability(jax.lax.stop_gradient(s))
-        new = (fail.step < 0) & (code > 0)
-        fail = Failure(jnp.where(new, s.step, fail.step), jnp.where(new, code, fail.cause),
-                       jnp.where(new, particle, fail.particle))
-        return s, fail, i + 1
+        moving, i = carry
+        return advance(moving), i + 1
 
     def one_frame(carry):
-        s, fail, buffer, j = carry
-        s, fail, _ = jax.lax.while_loop(lambda c: (c[2] < steps_per_frame) & running(c[1]), one_step,
-                                        (s, fail, jnp.zeros((), jnp.int32)))
-        frame = sim.diagnostics_frame(s, save_particles, fields)
+        moving, buffer, j = carry
+        moving, _ = jax.lax.while_loop(lambda c: (c[1] < steps_per_frame) & running(c[0][1]), one_step,
+                                       (moving, jnp.zeros((), jnp.int32)))
+        frame = sim.diagnostics_frame(_in_user_order(sorting, moving), save_particles, fields)
         buffer = jax.tree_util.tree_map(lambda b, f: b.at[j].set(f), buffer, frame)
-        return s, fail, buffer, j + 1
+        return moving, buffer, j + 1
 
     shapes = jax.eval_shape(lambda s: sim.diagnostics_frame(s, save_particles, fields), state)
     buffer = jax.tree_util.tree_map(lambda a: jnp.zeros((buffer_frames,) + a.shape, a.dtype), shapes)
-    state, failure, buffer, _ = jax.lax.while_loop(lambda c: (c[3] < n_frames) & running(c[1]), one_frame,
-                                                   (state, failure, buffer, jnp.zeros((), jnp.int32)))
-    return state, failure, buffer
+    moving = (state, failure, None if sorting is None else sorting.start(state))
+    moving, buffer, _ = jax.lax.while_loop(lambda c: (c[2] < n_frames) & running(c[0][1]), one_frame,
+                                           (moving, buffer, jnp.zeros((), jnp.int32)))
+    return _in_user_order(sorting, moving), moving[1], buffer
+
+
+def _stepper(sim, sorting, dt):
+    """One step of a run: (state, failure record, order) -> the same after the step.  ``order`` is
+    the particles' :class:`~jaxmpm.run.sorting.Order` when the run sorts them by cell (``sorting``),
+    else None; the failure record names the user's particle either way."""
+
+    def advance(carry):
+        s, fail, order = carry
+        if sorting is not None:
+            s, order = sorting.renew(s, order)
+        s = sim.step(s, dt)
+        code, particle = sim.instability(jax.lax.stop_gradient(s))
+        if sorting is not None:
+            particle = sorting.user_particle(particle, order)
+        new = (fail.step < 0) & (code > 0)
+        fail = Failure(jnp.where(new, s.step, fail.step), jnp.where(new, code, fail.cause),
+                       jnp.where(new, particle, fail.particle))
+        return s, fail, order
+
+    return advance
+
+
+def _in_user_order(sorting, carry):
+    """The state of a run's carry (state, failure record, order) in the user's particle order."""
+    state, _, order = carry
+    return state if sorting is None else sorting.in_user_order(state, order)
 
 
 @eqx.filter_jit

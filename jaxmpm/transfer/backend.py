@@ -269,30 +269,29 @@ DENSE_PARTICLES_PER_CELL = 4.0
 
 # (policy, dimension or None for any, dense or None for any, dtype or None for any) ->
 # (kernel, its options, why).  The first row that matches wins; whoever measures on a device
-# updates it (benchmarks/gpu.py).  Numbers: ../shared/gpu/README.md (H100, jax 0.11.2, float32,
-# particle-steps/s; the Pallas numbers are the fused prototype's, pallas_spike.py).
+# updates it (benchmarks/gpu.py; benchmarks/gpu_session.sh takes every variant in one lease).
+# Measured 2026-11-27 on an H100 80GB HBM3, jax 0.11.2, float32, particle-steps/s, best of 2
+# (benchmarks/README.md "GPU"): PallasKernel checked against the XLA kernel on the device
+# (tests/test_pallas_kernel.py under Triton: 4 passed) and timed -- it loses everywhere, so every
+# GPU row is the XLA kernel.  The fused prototype of ../shared/gpu/README.md (4.1e8 at 1M in 3D)
+# computed its B-spline weights inside the kernel; PallasKernel reads the stencil's per-slot
+# weights and node numbers that the shape function wrote to memory, which is where it loses.
 KERNEL_TABLE = (
     # CPU: XLA.  Pallas runs on the CPU only in interpret mode, a checking tool (tests), far slower.
     (("cpu", None, None, None), ("xla", {}, "CPU: the XLA kernel; Pallas runs on the CPU only in interpret mode "
                                             "(verification, far slower)")),
-    # 3D on the GPU: fused atomics.  1.05M particles, 128^3: Pallas 4.1e8 random order (2.5 ms/step)
-    # against plain JAX 1.89e8 (5.5 ms) and jaxmpm's XLA step 1.30e8 (8.1 ms); block 128 / 4 warps
-    # best (6.5e8 sorted; 256/8 6.2e8, 256/4 4.8e8).  float32 only: float64 atomics not measured.
-    # The fused kernel should win here, but PallasKernel itself has not run on a device yet (the CPU
-    # tests emulate its atomic adds in interpret mode and only compile it for Triton), so "auto"
-    # keeps the XLA kernel until benchmarks/gpu.py --kernel pallas has checked and timed it; then
-    # this row becomes ("pallas", {"block": 128, "reduce": False}, ...).
-    (("gpu", 3, None, "float32"), ("xla", {}, "3D on a GPU: the XLA kernel until the Pallas kernel has run on a "
-                                              "device (the fused prototype: 4.1e8 particle-steps/s against 1.3e8 "
-                                              "on an H100 at 1M particles, ../shared/gpu/README.md); "
-                                              "kernel='pallas' opts in")),
-    # dense 2D on the GPU: XLA's scatter.  mpm88 (10-200 particles per cell): the Pallas prototype
-    # 2.7e8 / 1.0e9 / 1.32e9 / 1.21e9 at 8k / 131k / 524k / 2.1M against plain JAX 4.0e8 / 1.96e9
-    # / 1.98e9 / 1.53e9 -- per-slot atomics on few nodes contend (sorted by cell: worse still).
-    (("gpu", 2, True, None), ("xla", {}, "dense 2D on a GPU: XLA's scatter (H100 mpm88: the fused Pallas kernel "
-                                         "0.55-0.79x plain JAX, atomics contend; ../shared/gpu/README.md)")),
-    # everything else on the GPU (1D, sparse 2D, float64 3D): not measured; the XLA kernel
-    (("gpu", None, None, None), ("xla", {}, "GPU: the XLA kernel (this case is not measured with Pallas yet)")),
+    # 3D, mpm3d (APIC, quadratic): XLA 2.68e8 / 2.67e8 at 131k (64^3) / 1M (128^3); Pallas 2.01e8 /
+    # 2.06e8 (0.75x / 0.77x), sorted by cell every 16 steps 2.03e8 / 2.15e8; Pallas with its block
+    # reduction slower still.
+    (("gpu", 3, None, None), ("xla", {}, "3D on a GPU: the XLA kernel (H100, 1M particles: 2.67e8 particle-steps/s "
+                                         "against the Pallas kernel's 2.06e8)")),
+    # dense 2D, mpm88 (10-200 particles per cell): XLA 2.97e8 / 6.22e8 / 8.96e8 / 9.99e8 / 1.09e9 at
+    # 8k / 32k / 131k / 524k / 2.1M; Pallas 1.62e8 / 4.33e8 / 6.22e8 / 7.33e8 / 6.88e8 (0.55-0.73x);
+    # Pallas with its block reduction 4.0e7 / 1.2e8 / 1.2e8 at 8k / 32k / 131k (atomics contend).
+    (("gpu", 2, True, None), ("xla", {}, "dense 2D on a GPU: XLA's scatter (H100 mpm88: the Pallas kernel 0.55-0.73x "
+                                         "the XLA kernel, its block reduction 0.14-0.20x)")),
+    # everything else on the GPU (1D, sparse 2D): not measured apart; the XLA kernel
+    (("gpu", None, None, None), ("xla", {}, "GPU: the XLA kernel (the Pallas kernel lost in every case measured)")),
 )
 
 
@@ -306,6 +305,39 @@ def choose_kernel(policy: str, dim: int, particles_per_cell: float, dtype) -> tu
         if p == policy and d in (None, dim) and dn in (None, dense) and dt in (None, dtype):
             return row
     return "xla", {}, "no row of KERNEL_TABLE matches: the XLA kernel"
+
+
+# (policy, dimension or None for any, kernel or None for any) -> (steps between sorts of the particles
+# by cell, 0 for never; why).  The first row that matches wins (jaxmpm.run.sorting; measured with
+# benchmarks/gpu.py --sort-every K and benchmarks/vs_taichi.py).
+SORT_TABLE = (
+    # 3D on a GPU (H100, mpm3d, XLA kernel): 1M particles 2.67e8 -> 2.95e8 particle-steps/s sorted every
+    # 16 steps (2.93e8 every 4, 2.95e8 every 64); 131k 2.68e8 -> 2.71e8.  The G2P gather (a transpose
+    # fusion) falls from 0.735 to 0.155 ms per step at 1M (benchmarks/gpu_profile.py).  The Pallas
+    # kernel: 2.06e8 -> 2.15e8.
+    (("gpu", 3, None), (16, "3D on a GPU: sorted by cell every 16 steps (H100, 1M particles: 2.67e8 -> 2.95e8 "
+                            "particle-steps/s; the G2P gather reads neighbouring rows)")),
+    # 2D on a GPU: the scatter's atomics contend on few nodes once neighbours share them (H100 mpm88,
+    # XLA kernel, sorted every 16: 8k 2.97e8 -> 1.71e8, 131k 8.96e8 -> 7.49e8, 2.1M 1.09e9 -> 5.54e8)
+    (("gpu", 2, None), (0, "2D on a GPU: not sorted (H100 mpm88 sorted by cell: 0.51-0.84x, the scatter's atomics "
+                           "contend on shared nodes)")),
+    # CPU (2 cores, float32, one core pinned): sorted every 16 steps, mpm88 0.96x at 32k and 0.89x at 131k,
+    # mpm3d 0.98x at 131k
+    (("cpu", None, None), (0, "CPU: not sorted (sorted by cell every 16 steps: 0.89-0.98x; XLA:CPU's scatter "
+                              "and gather gain nothing from the order)")),
+    ((None, None, None), (0, "not measured: not sorted")),
+)
+
+
+def choose_sorting(policy: str, dim: int, particles_per_cell: float, dtype, kernel: str) -> tuple:
+    """(steps between sorts of the particles by cell, 0 for never; why): the first row of
+    :data:`SORT_TABLE` that matches a model traced under ``policy`` in ``dim`` dimensions whose
+    transfers run on ``kernel``.  ``particles_per_cell`` and ``dtype`` are for rows to come."""
+    policy = resolve(policy)
+    for (p, d, k), row in SORT_TABLE:
+        if p in (None, policy) and d in (None, dim) and k in (None, kernel):
+            return row
+    return 0, "no row of SORT_TABLE matches: not sorted"
 
 
 _kernel = contextvars.ContextVar("jaxmpm_transfer_kernel", default=None)

@@ -1,0 +1,46 @@
+#!/usr/bin/env bash
+# Every GPU number of issue 32 in one lease of a device: the kernels checked against XLA on the device, then
+# benchmarks/gpu.py with the XLA kernel (next to Taichi CUDA), the Pallas kernel unsorted and sorted by cell, and
+# the scheme / gradient / ensemble parts.  Each stage has its own time limit, so one slow stage cannot take the
+# others' time; every row is printed as it is measured (the log is the record if a stage is cut).
+#
+#   bash benchmarks/gpu_session.sh OUT_DIR          # OUT_DIR receives log.txt, gpu.md and gpu.csv
+#   GPU_SESSION_EXTRA=--quick bash benchmarks/gpu_session.sh /tmp/dry   # the same stages at small sizes (a CPU)
+#
+# Taichi is not a dependency: where pip cannot reach an index, carry its wheel (and dill's) in .whl/ and this script
+# installs them to /tmp/site first.
+set -u
+out=${1:-benchmarks/results/gpu_session}
+mkdir -p "$out"
+export PYTHONUNBUFFERED=1
+if ls .whl/*.whl >/dev/null 2>&1; then
+  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target /tmp/site .whl/*.whl \
+    && export PYTHONPATH=/tmp/site${PYTHONPATH:+:$PYTHONPATH}
+fi
+export PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH}
+log=$out/log.txt
+{
+  nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader
+  python3 -c "import jax, jaxmpm; print('jax', jax.__version__, jax.devices())"
+  # the Pallas kernel on the device (Triton, not interpret mode) against the XLA kernel, float64 and float32
+  timeout 45 python3 -m pytest -q -p no:cacheprovider tests/test_pallas_kernel.py \
+    -k "float32_equals or simulation_steps_equal" -m "not slow" 2>&1 | tail -4
+  stage() {  # stage NAME SECONDS ARGS...: one benchmarks/gpu.py run into $out/NAME
+    local name=$1 seconds=$2; shift 2
+    echo "=== $name (limit ${seconds} s): benchmarks/gpu.py $*"
+    timeout "$seconds" python3 benchmarks/gpu.py --repeats 2 --out "$out/$name" "$@" ${GPU_SESSION_EXTRA:-} 2>&1 \
+      | grep -v "^\[Taichi\]"
+  }
+  stage xla 170 --parts mpm88 mpm3d
+  stage pallas 70 --parts mpm3d mpm88 --kernel pallas --sort-every 0 --no-taichi
+  stage pallas_sorted 35 --parts mpm3d --kernel pallas --sort-every 16 --no-taichi
+  stage pallas_reduce 45 --parts mpm88 mpm3d --reduce --sort-every 0 --no-taichi
+  stage schemes 75 --parts schemes --no-taichi
+  stage gradient 65 --parts gradient --no-taichi
+  stage ensemble 50 --parts ensemble --no-taichi
+} 2>&1 | tee "$log"
+# one table and one CSV for the stages that finished
+cat "$out"/*/gpu.md > "$out/gpu.md" 2>/dev/null
+head -1 -q "$out"/*/gpu.csv 2>/dev/null | head -1 > "$out/gpu.csv"
+for f in "$out"/*/gpu.csv; do tail -n +2 "$f" >> "$out/gpu.csv"; done 2>/dev/null
+rm -rf "${out:?}"/*/

@@ -1,0 +1,29 @@
+"""Determinants of the small matrices MPM carries (F_p, dF_p: 1x1 to 3x3), in closed form.
+
+``jnp.linalg.det`` evaluates 2x2 and 3x3 determinants by these same products, but since jax 0.11 its
+derivative solves with an LU factorisation (``_cofactor_solve``): on a GPU a batched cuBLAS getrf and two
+triangular solves per use, with their pointer set-up kernels and copies -- a third of the GPU kernel time of
+a gradient through mpm88 at 8k particles on an H100 (benchmarks/gpu_profile.py --gradient).  The
+polynomial below is differentiated by JAX term by term, exact and elementwise.  Its values are
+``jnp.linalg.det``'s to the bit for D = 2 and 3 (the same products, in the same order); rows and
+columns of an axisymmetric F (3x3 in r, z, theta) are no different.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+
+def det(a):
+    """det A of a stack of 1x1, 2x2 or 3x3 matrices (..., D, D) -> (...), by cofactor expansion;
+    larger matrices go to ``jnp.linalg.det``."""
+    d = a.shape[-1]
+    if d == 1:
+        return a[..., 0, 0]
+    if d == 2:
+        return a[..., 0, 0] * a[..., 1, 1] - a[..., 0, 1] * a[..., 1, 0]
+    if d == 3:
+        return (a[..., 0, 0] * a[..., 1, 1] * a[..., 2, 2] + a[..., 0, 1] * a[..., 1, 2] * a[..., 2, 0]
+                + a[..., 0, 2] * a[..., 1, 0] * a[..., 2, 1] - a[..., 0, 2] * a[..., 1, 1] * a[..., 2, 0]
+                - a[..., 0, 0] * a[..., 1, 2] * a[..., 2, 1] - a[..., 0, 1] * a[..., 1, 0] * a[..., 2, 2])
+    return jnp.linalg.det(a)

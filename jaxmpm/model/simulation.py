@@ -334,9 +334,8 @@ class Simulation(eqx.Module):
         """(steps between sorts, 0 for never; why) for runs of ``num_particles`` particles in ``dtype``."""
         if self.sort_every != "auto":
             return self.sort_every, f"sort_every={self.sort_every} given"
-        per_cell = num_particles / max(1, int(np.prod(self.grid.cells)))
         kernel = self._kernel_row(num_particles, dtype)[0] or "xla"
-        return choose_sorting(self.backend, self.grid.dim, per_cell, dtype, kernel)
+        return choose_sorting(self.backend, self.grid.dim, num_particles, kernel)
 
     def with_conventions(self, conventions: str, constrained_force: str | None = None):
         """A copy of a model built in jaxmpm's conventions that follows another code's rules where

@@ -8,7 +8,7 @@ to 3.55 ms (benchmarks/gpu_profile.py, gpu.py ``--sort-every 16``). In dense 2D 
 scatter's atomic adds contend on shared nodes (mpm88 0.51-0.84x), and on the CPU it gains nothing
 (0.89-0.98x). Particles drift, so the order is renewed every ``K`` steps (``Simulation(sort_every=K)``;
 the default, "auto", takes K from the backend's table, :data:`jaxmpm.transfer.backend.SORT_TABLE`: 16 for
-3D on a GPU, else never).
+3D on a GPU from 131k particles, else never).
 
 The permutation is part of the run's carry, never of the user's state: ``order[i]`` is the user's index of
 the particle in row ``i`` of the sorted state.  Every frame and the final state are put back in the user's

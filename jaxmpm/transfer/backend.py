@@ -312,30 +312,33 @@ def choose_kernel(policy: str, dim: int, particles_per_cell: float, dtype) -> tu
 # benchmarks/gpu.py --sort-every K and benchmarks/vs_taichi.py).
 SORT_TABLE = (
     # 3D on a GPU (H100, mpm3d, XLA kernel): 1M particles 2.67e8 -> 2.95e8 particle-steps/s sorted every
-    # 16 steps (2.93e8 every 4, 2.95e8 every 64); 131k 2.68e8 -> 2.71e8.  The G2P gather (a transpose
-    # fusion) falls from 0.735 to 0.155 ms per step at 1M (benchmarks/gpu_profile.py).  The Pallas
-    # kernel: 2.06e8 -> 2.15e8.
-    (("gpu", 3, None), (16, "3D on a GPU: sorted by cell every 16 steps (H100, 1M particles: 2.67e8 -> 2.95e8 "
-                            "particle-steps/s; the G2P gather reads neighbouring rows)")),
+    # 16 steps (2.93e8 every 4, 2.95e8 every 64); 131k 2.68e8 -> 2.71e8 (1.01x: from here on).  The G2P
+    # gather (a transpose fusion) falls from 0.735 to 0.155 ms per step at 1M (benchmarks/gpu_profile.py).
+    # Smaller runs are not measured; a renewal's sort and gathers weigh more against a short step (2D
+    # at 8k lost 42%), so they are not sorted.  The Pallas kernel at 1M: 2.06e8 -> 2.15e8.
+    (("gpu", 3, None, 131072), (16, "3D on a GPU from 131k particles: sorted by cell every 16 steps (H100, 1M "
+                                    "particles: 2.67e8 -> 2.95e8 particle-steps/s; the G2P gather reads "
+                                    "neighbouring rows)")),
     # 2D on a GPU: the scatter's atomics contend on few nodes once neighbours share them (H100 mpm88,
     # XLA kernel, sorted every 16: 8k 2.97e8 -> 1.71e8, 131k 8.96e8 -> 7.49e8, 2.1M 1.09e9 -> 5.54e8)
-    (("gpu", 2, None), (0, "2D on a GPU: not sorted (H100 mpm88 sorted by cell: 0.51-0.84x, the scatter's atomics "
-                           "contend on shared nodes)")),
+    (("gpu", 2, None, 0), (0, "2D on a GPU: not sorted (H100 mpm88 sorted by cell: 0.51-0.84x, the scatter's "
+                              "atomics contend on shared nodes)")),
     # CPU (2 cores, float32, one core pinned): sorted every 16 steps, mpm88 0.96x at 32k and 0.89x at 131k,
     # mpm3d 0.98x at 131k
-    (("cpu", None, None), (0, "CPU: not sorted (sorted by cell every 16 steps: 0.89-0.98x; XLA:CPU's scatter "
-                              "and gather gain nothing from the order)")),
-    ((None, None, None), (0, "not measured: not sorted")),
+    (("cpu", None, None, 0), (0, "CPU: not sorted (sorted by cell every 16 steps: 0.89-0.98x; XLA:CPU's scatter "
+                                 "and gather gain nothing from the order)")),
+    ((None, None, None, 0), (0, "not measured: not sorted")),
 )
 
 
-def choose_sorting(policy: str, dim: int, particles_per_cell: float, dtype, kernel: str) -> tuple:
+def choose_sorting(policy: str, dim: int, num_particles: int, kernel: str) -> tuple:
     """(steps between sorts of the particles by cell, 0 for never; why): the first row of
-    :data:`SORT_TABLE` that matches a model traced under ``policy`` in ``dim`` dimensions whose
-    transfers run on ``kernel``.  ``particles_per_cell`` and ``dtype`` are for rows to come."""
+    :data:`SORT_TABLE` -- (policy, dimension, kernel, fewest particles) -> row -- that matches a
+    model traced under ``policy`` in ``dim`` dimensions with ``num_particles`` particles whose
+    transfers run on ``kernel``."""
     policy = resolve(policy)
-    for (p, d, k), row in SORT_TABLE:
-        if p in (None, policy) and d in (None, dim) and k in (None, kernel):
+    for (p, d, k, fewest), row in SORT_TABLE:
+        if p in (None, policy) and d in (None, dim) and k in (None, kernel) and num_particles >= fewest:
             return row
     return 0, "no row of SORT_TABLE matches: not sorted"
 

@@ -32,7 +32,7 @@ NO_CACHE_HELP = ("do not keep compiled programs on disk.  By default they are ke
 CACHE_HELP = "the default (the cache is on unless --no-cache); accepted for older command lines"
 
 #: the options of ``jaxmpm run`` that are not scene options (kept out of the stored command)
-RUN_ONLY = ("out", "force", "no_progress", "command", "cache", "no_cache")
+RUN_ONLY = ("out", "force", "no_progress", "command", "cache", "no_cache", "devices")
 
 
 class _OneLineErrors(argparse.ArgumentParser):
@@ -248,6 +248,11 @@ def build_parser() -> argparse.ArgumentParser:
                           + "; other scenes none)")
     run.add_argument("--max-steps", type=int, default=None, metavar="N",
                      help="refuse a run of more than N steps (default: the step counter's limit 2^31 - 1)")
+    run.add_argument("--devices", type=int, default=None, metavar="N",
+                     help="run on the first N local devices, the grid cut into N slabs along x "
+                          "(jaxmpm.parallel.ShardedSimulation; docs/scaling.md); the same file as one device. On a "
+                          "CPU, N devices need XLA_FLAGS=--xla_force_host_platform_device_count=N. `jaxmpm resume` "
+                          "continues such a file on one device (default: one device, no sharding)")
     run.add_argument("--out", required=True, metavar="FILE.h5",
                      help="HDF5 output file (an XDMF sidecar goes beside it)")
     run.add_argument("--force", action="store_true", help="overwrite --out and its XDMF sidecar if they exist")
@@ -433,6 +438,10 @@ def run_scene(args) -> int:
              "sidecar of an earlier run, which this run would replace); pass --force to overwrite, or choose "
              "another file")
     try:
+        if args.devices is not None:  # enough devices, before the scene is built
+            from jaxmpm.parallel import local_devices
+
+            local_devices(args.devices, "--devices")
         setup = build_setup(args)
         if args.max_steps is not None:
             check(args.max_steps >= 1, f"--max-steps = {args.max_steps} must be a positive integer")
@@ -445,6 +454,16 @@ def run_scene(args) -> int:
     except MemoryError:
         fail(f"scene {args.scene!r} does not fit in memory; use a coarser --spacing/--cells or fewer --ppc")
     return run_setup(setup, args, stored_options(options_of(args), setup))
+
+
+def sharded_model(setup, devices: int):
+    """``--devices N``: the scene's model on the first N local devices
+    (:class:`jaxmpm.parallel.ShardedSimulation`), checked before the output file is made; an
+    InputError naming the fix when there are fewer devices, or the model has terms the sharded
+    path does not support."""
+    from jaxmpm.parallel import ShardedSimulation, local_devices
+
+    return ShardedSimulation(setup.sim, devices=local_devices(devices, "--devices"))
 
 
 def frame_fields(args, setup) -> tuple:
@@ -565,7 +584,7 @@ def time_rows(timings: dict, particles: int, steps: int, resume: bool) -> list:
 
 def run_setup(setup, args, options: dict, resume: bool = False) -> int:
     """Run with the HDF5 writer attached (or continue the run in ``args.out``), then print the
-    summary."""
+    summary; with ``--devices N`` the run steps the scene's model on N devices (:func:`sharded_model`)."""
     import json
     import os
 
@@ -585,16 +604,23 @@ def run_setup(setup, args, options: dict, resume: bool = False) -> int:
         with h5py.File(args.out, "r") as f:
             first_step = int(f["state/step"][()]) if "state/step" in f else first_step
     timings = {}  # compile and run seconds (jm.run's timings)
+    sharded = None
     try:
         if resume:
             final = jm.resume(args.out, setup, progress=not args.no_progress, timings=timings)
         else:
+            if getattr(args, "devices", None) is not None:  # checked before the file is made
+                sharded = sharded_model(setup, args.devices)
             with jm.H5Writer(args.out, sim, state, dt=setup.dt, scene=setup.name, params=setup.params,
                              ppc=setup.params.get("ppc"), attrs={"command": json.dumps(options)},
                              fields=fields_option(options.get("fields", "none")),
                              overwrite=args.force) as writer:
-                final, _ = setup.run(progress=not args.no_progress, writer=writer,  # `command`: for resume
-                                     timings=timings)
+                if sharded is None:
+                    final, _ = setup.run(progress=not args.no_progress, writer=writer,  # `command`: for resume
+                                         timings=timings)
+                else:
+                    final, _ = sharded.run(state, setup.dt, setup.steps, setup.save_every, writer=writer,
+                                           progress=not args.no_progress, timings=timings)
         jax.block_until_ready(final)
     except jm.ParticlesLeftGrid as err:  # the grid is too small: not an instability
         when = f" (t = {err.time:.6g})" if err.time is not None else ""
@@ -639,6 +665,8 @@ def run_setup(setup, args, options: dict, resume: bool = False) -> int:
         ("shape / update", f"{type(sim.shape).__name__} / {sim.update}"),
         ("dtype", str(state.x.dtype)),
         ("particles", f"{n}"),
+        *([] if sharded is None else [("devices", f"{sharded.devices} (slabs along x), {sharded.stats['migrated']} "
+                                                  "particle moves between them")]),
         ("steps", f"{setup.steps} (t_end = {setup.t_end:.6g})"),
         ("dt", f"{setup.dt:.6g}"),
         *time_rows(timings, n, int(final.step) - first_step, resume),

@@ -2,9 +2,9 @@
 (``XLA_FLAGS=--xla_force_host_platform_device_count=N`` in a process of its own: the device count is
 fixed when JAX starts).  The scripts in tests/parallel/ print their measurements as JSON; the
 assertions are here.  Against one device, float64: the slab decomposition's P2G (one halo exchange),
-G2P and their gradients; particle migration in fixed buffers; and whole sharded runs of a scene
+G2P and their gradients; particle migration in fixed buffers; whole sharded runs of a scene
 whose particles cross the slab face both ways, under APIC, XPIC(3) with contact, and FLIP's
-gradient with respect to E."""
+gradient with respect to E; and such a run's frames, HDF5 file, resume and ``jaxmpm run --devices``."""
 
 import json
 import os
@@ -76,9 +76,49 @@ def test_sharded_runs_equal_one_device():
 
 
 @pytest.mark.slow
-def test_two_processes_give_the_one_device_answer():
+def test_sharded_frames_hdf5_resume_and_cli_equal_one_device():
+    """2 devices, disks colliding across the slab face: frames, the HDF5 file, its resume on one
+    device and ``jaxmpm run --devices 2`` against one device, float64 (tests/parallel/sharded_io_check.py)."""
+    out = run_check("sharded_io_check.py", 2)
+    frames = out["frames"]
+    assert frames["count"] == frames["reference_count"] == 9 and frames["final_step"] == 240
+    assert frames["migrated"] > 50 and frames["ended_elsewhere"] > 50, frames  # the face crossed both ways
+    assert frames["time_err"] == 0.0
+    assert max(frames["x_per_frame"]) < 1e-14 and max(frames["v_per_frame"]) < 1e-13, frames  # every frame
+    assert frames["stress_err"] < 1e-13 and frames["kinetic_err"] < 1e-14 and frames["momentum_err"] < 1e-14
+    assert frames["final_x_err"] < 1e-14 and frames["no_frames_x_err"] < 1e-14  # run(state, dt, steps) as before
+    one, many = frames["unstable"]  # dt far above the CFL limit: the same step and cause as one device
+    assert one is not None and many == one, frames["unstable"]
+    # the file a sharded run writes: the one-device file's datasets, frame by frame, and its /state
+    hdf5 = out["hdf5"]
+    assert hdf5["same_datasets"] and hdf5["same_schedule"] and hdf5["frames"] == hdf5["reference_frames"] == 9
+    assert hdf5["worst"] < 1e-13 and max(hdf5["x_per_frame"]) < 1e-14, hdf5
+    assert not hdf5["returned_history"]  # the writer holds the frames, as with sim.run
+    # killed after 6 frames (the state of step 150 saved with them), then jm.resume on one device:
+    # the uninterrupted one-device run's file and final state
+    resume = out["resume"]
+    assert resume["killed"] and resume["kept"] == {"frames": 6, "state_step": 150}
+    assert resume["same_datasets"] and resume["same_schedule"] and resume["frames"] == 9
+    assert resume["worst"] < 1e-13 and resume["final_step"] == 240, resume
+    assert resume["final_x_err"] < 1e-14 and resume["final_v_err"] < 1e-13, resume
+    # jaxmpm run disks --devices 2: the file of the same command on one device; --devices is a run option
+    cli = out["cli"]
+    assert cli["codes"] == [0, 0] and cli["same_datasets"] and cli["same_schedule"] and cli["frames"] == 4
+    assert cli["worst"] < 1e-13 and max(cli["x_per_frame"]) < 1e-14, cli
+    assert cli["summary_devices"] and cli["summary_devices"][0].split()[1] == "2"
+    assert "devices" not in cli["stored_command"]  # jaxmpm resume continues the file on one device
+    code, message = cli["three_devices"]  # more devices than the process has: the fix, and no file
+    assert code == 2 and message.startswith("jaxmpm: error: --devices 3: this process has 2 cpu devices; set "
+                                            "XLA_FLAGS=--xla_force_host_platform_device_count=3")
+    assert not cli["three_devices_file"]
+
+
+@pytest.mark.slow
+def test_two_processes_give_the_one_device_answer(tmp_path):
     """2 processes x 2 CPU devices on localhost (jax.distributed, gloo): one sharded XPIC(3) run over
-    the 4 global devices, particles crossing slab faces, equal to one device on both processes."""
+    the 4 global devices, particles crossing slab faces, equal to one device on both processes; its
+    frames in one HDF5 file written by process 0; and jm.ensemble's members spread over both processes'
+    devices, gathered on each, bit for bit those of one device."""
     import socket
 
     with socket.socket() as s:
@@ -86,8 +126,9 @@ def test_two_processes_give_the_one_device_answer():
         port = s.getsockname()[1]
     env = dict(os.environ, JAX_PLATFORMS="cpu")
     env.pop("XLA_FLAGS", None)
-    procs = [subprocess.Popen([sys.executable, str(HERE / "multihost_check.py"), str(pid), str(port)], env=env,
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for pid in (0, 1)]
+    path = tmp_path / "two_processes.h5"
+    procs = [subprocess.Popen([sys.executable, str(HERE / "multihost_check.py"), str(pid), str(port), str(path)],
+                              env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for pid in (0, 1)]
     outs = []
     for proc in procs:
         stdout, stderr = proc.communicate(timeout=600)
@@ -98,9 +139,40 @@ def test_two_processes_give_the_one_device_answer():
         assert out["migrated"] > 100 and out["mass_diff"] == 0.0
         assert out["x_rel_err"] < 1e-13 and out["v_rel_err"] < 1e-12
     assert outs[0]["x_checksum"] == outs[1]["x_checksum"]  # both processes hold the same final state
+    assert not outs[0]["history"] and not outs[1]["history"]  # process 0's file holds the frames
+    for out in outs:  # jm.ensemble across the two processes: every member on both, as on one device
+        assert out["ensemble_members"] == 4 and out["ensemble_spread"]
+        assert out["ensemble_x_err"] == 0.0 and out["ensemble_history_err"] == 0.0
+    assert outs[0]["file_frames"] == 3 and outs[0]["file_x_rel_err"] < 1e-13 and outs[0]["file_state_step"] == 200
+    assert path.exists() and not list(tmp_path.glob("*.tmp"))  # one file, its writer closed
+
+
+def test_cli_devices_refused_with_the_fix(tmp_path, capsys):
+    """``jaxmpm run --devices N``: more devices than this process has, or a model with terms the
+    sharded path does not support, exit 2 naming the fix, before the output file is made."""
+    import jax
+    from cases import run_cli
+
+    from jaxmpm.parallel import local_devices
+
+    have = len(jax.local_devices())
+    path = tmp_path / "x.h5"
+    assert run_cli(["run", "disks", "--devices", str(have + 1), "--out", str(path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"jaxmpm: error: --devices {have + 1}: this process has {have} cpu device")
+    assert f"set XLA_FLAGS=--xla_force_host_platform_device_count={have + 1}" in err and "\n" not in err
+    assert run_cli(["run", "incline", "--devices", "1", "--out", str(path)]) == 2
+    assert capsys.readouterr().err.strip().startswith(
+        "jaxmpm: error: ShardedSimulation: Collider not supported on several devices yet")
+    assert run_cli(["run", "disks", "--devices", "0", "--out", str(path)]) == 2
+    assert "--devices = 0 must be a positive integer" in capsys.readouterr().err
+    assert not path.exists()
+    assert local_devices(1) == jax.local_devices()[:1]
 
 
 def test_bad_input_names_the_option():
+    import jax
+
     import jaxmpm as jm
     from jaxmpm.parallel import ShardedSimulation, Slabs
 
@@ -114,3 +186,98 @@ def test_bad_input_names_the_option():
     setup = jm.scene("disks")
     with pytest.raises(jm.InputError, match="raise capacity"):
         ShardedSimulation(setup.sim, capacity=10).distribute(setup.state)
+    sharded = ShardedSimulation(setup.sim, devices=jax.devices()[:1])
+    with pytest.raises(jm.InputError, match="belong to a run that saves frames; pass save_every="):
+        sharded.run(setup.state, setup.dt, 10, progress=True)
+    with pytest.raises(jm.InputError, match="save_every = 3 must be a positive integer dividing steps = 10"):
+        sharded.run(setup.state, setup.dt, 10, 3)
+
+
+@pytest.mark.slow
+def test_slabs_move_with_a_collapsing_column():
+    """3 devices, float64 (tests/parallel/balance_check.py): P2G and G2P on deliberately unequal
+    slabs; a column collapse whose slabs move with its particles every K = 200 steps, and once early
+    when the spreading flow fills a buffer, against one device; its particles and mass every step;
+    the same run with frames; and the error when no boundaries fit."""
+    out = run_check("balance_check.py", 3, 900, 200, 40)
+    unequal = out["unequal"]  # slabs of 5, 7 and 28 cells, every one holding particles
+    assert len(set(np.diff(unequal["bounds"]))) == 3 and min(unequal["particles_per_slab"]) > 50, unequal
+    assert unequal["p2g_rel_err"] < 1e-14 and unequal["g2p_rel_err"] < 1e-14, unequal
+    n, run = out["particles"], out["run"]
+    # every step, the devices held exactly the N particles, and their mass; no particle was lost
+    assert run["census_particles"] == [n, n] and run["mass_exact"], run
+    assert all(abs(m - run["total_mass"]) <= 1e-14 * run["total_mass"] for m in run["census_mass"]), run
+    assert run["steps_done"] == run["final_step"] == out["steps"]
+    # the slabs moved: scheduled every K steps, and once before a step where a buffer would have overflowed
+    steps = [step for step, _ in run["bounds"]]
+    assert run["rebalances"] == len(steps) - 1 >= 4
+    assert any(step % out["every"] for step in steps), steps
+    faces = [tuple(bounds) for _, bounds in run["bounds"]]
+    assert faces[-1] != faces[0] and faces[-1][1] > faces[0][1], faces  # the face follows the spreading column
+    # fixed equal slabs hold the whole column in the first slab: they need a buffer for every particle
+    assert out["fixed_capacity_needed"] == n and run["capacity"] < 0.6 * n, (out["fixed_capacity_needed"], run)
+    # the one-device run, to round-off
+    assert run["x_rel_err"] < 1e-13 and run["v_rel_err"] < 1e-12 and run["F_rel_err"] < 1e-12, run
+    assert run["momentum_diff"] < 1e-13, run
+    frames = out["frames"]  # with frames: the slabs move between frames, every frame as on one device
+    assert frames["count"] == frames["reference_count"] == 3 and frames["final_step"] == 400
+    assert frames["rebalances"] == 2 and frames["census_particles"] == [n, n], frames
+    assert max(frames["x_per_frame"]) < 1e-13, frames
+    error = out["no_fit_error"]  # one particle too few slots for the most even slabs: stops before a step
+    assert error.startswith("ShardedSimulation: at step 0 the most even slabs") and "raise capacity" in error, error
+
+
+def test_balanced_bounds_equalise_the_counts():
+    """The boundary choice: the fewest particles in the fullest slab (against every allowed cut),
+    widths between 2 H + 1 and max_cells, each face nearest its share of the particles."""
+    import itertools
+
+    import jaxmpm as jm
+    from jaxmpm.parallel import Slabs
+
+    rng = np.random.default_rng(3)
+    grid = jm.Grid(lower=(0.0, 0.0), upper=(2.4, 1.0), cells=(24, 4))
+    slabs = Slabs(grid, 3, 1, max_cells=12)  # slabs of 3 to 12 cells
+    allowed = [(0, a, b, 24) for a, b in itertools.combinations(range(1, 24), 2)
+               if all(3 <= w <= 12 for w in np.diff((0, a, b, 24)))]
+    for trial in range(30):
+        counts = rng.integers(0, 40, 24) * (rng.random(24) < 0.6)
+        if trial == 0:
+            counts = np.zeros(24, int)
+            counts[2:6] = 100  # a column in two cells of slab widths: the narrowest slabs share it
+        bounds = slabs.balanced_bounds(counts)
+        slabs.check_bounds(bounds)
+        widths = np.diff(bounds)
+        assert bounds[0] == 0 and bounds[-1] == 24 and widths.min() >= 3 and widths.max() <= 12
+        fullest = max(counts[a:b].sum() for a, b in zip(bounds[:-1], bounds[1:]))
+        best = min(max(counts[a:b].sum() for a, b in zip(cut[:-1], cut[1:])) for cut in allowed)
+        assert fullest == best, (counts, bounds)
+    assert slabs.balanced_bounds(np.zeros(24, int)).tolist() == [0, 8, 16, 24]  # no particles: equal slabs
+    assert slabs.balanced_bounds(np.ones(24, int)).tolist() == [0, 8, 16, 24]  # evenly spread: equal slabs
+    assert slabs.equal_bounds().tolist() == [0, 8, 16, 24]
+    assert Slabs(grid, 3, 1).window_planes == 8 + 3 and slabs.window_planes == 12 + 3
+    with pytest.raises(jm.InputError, match=r"max_cells = 2 must be an integer from 2 H \+ 1 = 3"):
+        Slabs(grid, 3, 1, max_cells=2)
+    with pytest.raises(jm.InputError, match="3 slabs of 3 to 7 cells cannot cover the grid's 24 cells"):
+        Slabs(grid, 3, 1, max_cells=7)
+    with pytest.raises(jm.InputError, match=r"bounds \[0, 2, 12, 24\] must run from 0 to 24 with 3 slabs of 3 to"):
+        slabs.check_bounds([0, 2, 12, 24])
+
+
+def test_rebalancing_options_checked():
+    import jax
+
+    import jaxmpm as jm
+    from jaxmpm.parallel import ShardedSimulation
+
+    setup = jm.scene("disks")
+    one = jax.devices()[:1]
+    with pytest.raises(jm.InputError, match="rebalance_every = 0 must be a positive integer"):
+        ShardedSimulation(setup.sim, devices=one, rebalance_every=0)
+    with pytest.raises(jm.InputError, match="max_cells bounds the slabs that move; pass rebalance_every="):
+        ShardedSimulation(setup.sim, devices=one, max_cells=10)
+    sharded = ShardedSimulation(setup.sim, devices=one, rebalance_every=5)
+    buffers, valid, ids = sharded.distribute(setup.state)
+    assert sharded.bounds.tolist() == [0, setup.sim.grid.cells[0]]
+    with pytest.raises(jm.InputError, match="slabs that move need their boundaries"):
+        sharded.rollout(5)(setup.sim, buffers, valid, ids, setup.dt)

@@ -15,7 +15,10 @@ backend (:func:`plan`; benchmarks/ensemble_throughput.py):
   operation (the 32-particle bar: 1.8-2.8x a single run).
 
 Every strategy gives the same numbers (on the CPU bit for bit; tests/test_ensemble_strategies.py).
-With several devices, each runs its share of the members (``shard_map``) by the same strategy."""
+With several devices, each runs its share of the members (``shard_map``) by the same strategy -- the
+devices of every process too, after ``jax.distributed.initialize``: the members spread over all of them
+and every process gets every member's results back (tests/test_parallel_slabs.py, 2 processes x 2 CPU
+devices: bit for bit one device's)."""
 
 from __future__ import annotations
 
@@ -23,6 +26,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from ..core.errors import check
@@ -49,8 +53,30 @@ def _check_members(sim, params: dict) -> None:
 
 
 def _shard(tree, mesh):
+    """The batched inputs laid over the mesh's "batch" axis: global arrays, each process filling the rows
+    of its own devices (the mesh may span several processes, ``jax.distributed``; every process holds
+    the same batch)."""
     sharding = NamedSharding(mesh, PartitionSpec("batch"))
-    return jax.tree_util.tree_map(lambda a: jax.device_put(a, sharding), tree)
+
+    def put(a):
+        if not mesh.is_multi_process or isinstance(a, jax.core.Tracer):
+            return jax.device_put(a, sharding)
+        host = np.asarray(a)
+        return jax.make_array_from_callback(host.shape, sharding, lambda index: host[index])
+
+    return jax.tree_util.tree_map(put, tree)
+
+
+def _gathered(tree):
+    """Every member's results on every process: arrays sharded over several processes' devices are
+    gathered (``process_allgather``) into arrays on this process's default device; the rest as they are."""
+
+    def get(a):
+        if isinstance(a, jax.Array) and not a.is_fully_addressable:
+            return jnp.asarray(multihost_utils.process_allgather(a, tiled=True))
+        return a
+
+    return jax.tree_util.tree_map(get, tree)
 
 
 #: how the members on one device run: "auto" (by backend), "vmap" (batched) or "sequential" (one after another)
@@ -111,7 +137,9 @@ def ensemble(sim, state, dt, steps: int, save_every: int = 1, *, params: dict | 
             conditions instead of ``state``.
         save_particles: whether the histories keep the particle positions and velocities
             (default False).
-        devices: the devices to shard the batch over; None (the default): ``jax.devices()``.
+        devices: the devices to shard the batch over; None (the default): ``jax.devices()``, which
+            after ``jax.distributed.initialize`` holds every process's devices (each process then
+            calls ``ensemble`` alike, and each gets every member's results).
         progress: True prints to stderr the compile time (``jaxmpm ensemble: 9 members x 400
             steps: compiling ... 3.1 s``; the program is compiled ahead of the run, the same
             program, so the same numbers) and then the run time; False prints nothing; None (the
@@ -154,8 +182,9 @@ def ensemble(sim, state, dt, steps: int, save_every: int = 1, *, params: dict | 
     if mesh is not None:
         inputs = _shard(inputs, mesh)
     how = plan(strategy, chunk, batch // used, int(state.x.shape[0]), devices[0].platform)
-    return shown_call(_batched_rollout, (sim, state, dt, frames, save_every, save_particles, *how, mesh, *inputs),
-                      f"jaxmpm ensemble: {batch} members x {steps} steps", show)
+    out = shown_call(_batched_rollout, (sim, state, dt, frames, save_every, save_particles, *how, mesh, *inputs),
+                     f"jaxmpm ensemble: {batch} members x {steps} steps", show)
+    return _gathered(out) if mesh is not None and mesh.is_multi_process else out
 
 
 @eqx.filter_jit

@@ -365,6 +365,9 @@ def main(argv=None) -> int:
     parser.add_argument("--reduce", action="store_true",
                         help="the Pallas kernel with its block reduction before the atomic adds (a row put first in "
                              "the library's kernel table for this run; implies --kernel auto)")
+    parser.add_argument("--basis", action="store_true",
+                        help="the Pallas kernel reading XLA's per-slot basis W instead of forming the weights from the "
+                             "per-axis factors (PallasKernel(factors=False); a what-if row as --reduce)")
     parser.add_argument("--checkpoint", default="auto", type=lambda v: {"true": True, "false": False}.get(v.lower(), v),
                         help="the gradient part's sim.run(checkpoint=...): auto (default), true, false, low_memory")
     parser.add_argument("--sort-every", default="auto", type=lambda v: v if v == "auto" else int(v), metavar="K",
@@ -373,10 +376,12 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     global SORT_EVERY
     SORT_EVERY = args.sort_every
-    if args.reduce:  # what-if row: how whoever measures tries a table entry before writing it into the library
+    if args.reduce or args.basis:  # what-if row: how whoever measures tries a table entry before writing it
         from jaxmpm.transfer import backend
 
-        row = ("pallas", {"reduce": True}, "benchmarks/gpu.py --reduce")
+        options = {"reduce": True} if args.reduce else {}
+        options.update({"factors": False} if args.basis else {})
+        row = ("pallas", options, "benchmarks/gpu.py --reduce/--basis")
         backend.KERNEL_TABLE = ((("cpu", None, None, None), row), (("gpu", None, None, None), row))
         args.kernel = "auto"
     sizes = QUICK if args.quick else FULL

@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Every GPU number of issue 32 in one lease of a device: the kernels checked against XLA on the device, then
-# benchmarks/gpu.py with the XLA kernel (next to Taichi CUDA), the Pallas kernel unsorted and sorted by cell, and
+# benchmarks/gpu.py with the XLA kernel (next to Taichi CUDA), the Pallas kernel (its weights from the per-axis
+# factors; and, --basis, from XLA's per-slot basis) unsorted and sorted by cell, and
 # the scheme / gradient / ensemble parts.  Each stage has its own time limit, so one slow stage cannot take the
 # others' time; every row is printed as it is measured (the log is the record if a stage is cut).
 #
@@ -34,6 +35,7 @@ log=$out/log.txt
   stage xla 170 --parts mpm88 mpm3d
   stage pallas 70 --parts mpm3d mpm88 --kernel pallas --sort-every 0 --no-taichi
   stage pallas_sorted 35 --parts mpm3d --kernel pallas --sort-every 16 --no-taichi
+  stage pallas_basis 60 --parts mpm3d mpm88 --basis --sort-every 0 --no-taichi
   stage pallas_reduce 45 --parts mpm88 mpm3d --reduce --sort-every 0 --no-taichi
   stage schemes 75 --parts schemes --no-taichi
   stage gradient 65 --parts gradient --no-taichi

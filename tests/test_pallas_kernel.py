@@ -47,10 +47,11 @@ def _columns(stencil, m, v, tau):
             "slots": PerSlot(2.0 * stencil.weight), "slot_vectors": PerSlot(stencil.gradient)}
 
 
-def _transfers(kernel, shape, grid, x, m, v, tau, u):
-    """P2G of every column and every G2P method of ``kernel``."""
+def _transfers(kernel, shape, grid, x, m, v, tau, u, per_slot=True):
+    """P2G of every column (``per_slot=False``: but the per-slot ones) and every G2P method of ``kernel``."""
     stencil = shape.stencil(grid, x)
-    nodal = kernel.p2g(stencil, _columns(stencil, m, v, tau), grid.num_nodes)
+    columns = {k: c for k, c in _columns(stencil, m, v, tau).items() if per_slot or not k.startswith("slot")}
+    nodal = kernel.p2g(stencil, columns, grid.num_nodes)
     return nodal, {"gather": kernel.gather(stencil, u), "gather_scalar": kernel.gather(stencil, u[:, 0]),
                    "velocity_gradient": kernel.velocity_gradient(stencil, u[:, :-1]),
                    "scalar_gradient": kernel.scalar_gradient(stencil, u[:, -1]),
@@ -67,13 +68,17 @@ def _assert_same(expected, got, rtol):
 def test_every_method_equals_the_xla_kernel(dim, shape):
     """P2G (every contraction kind, multimaterial columns; with and without the block reduction)
     and the four G2P methods equal the XLA kernel's to 1e-12 in float64."""
-    args = _inputs(dim)
-    run = jax.jit(lambda kernel, *a: _transfers(kernel, SHAPES[shape], *a), static_argnums=0)
+    _compare_with_xla((PALLAS, REDUCED), SHAPES[shape], _inputs(dim))
+
+
+def _compare_with_xla(kernels, shape, args, per_slot=True):
+    """Each kernel's transfers equal the XLA kernel's to 1e-12 (the block reduction changes P2G only)."""
+    run = jax.jit(lambda kernel, *a: _transfers(kernel, shape, *a, per_slot=per_slot), static_argnums=0)
     nodal, particle = run(XLA, *args)
-    for kernel in (PALLAS, REDUCED):
+    for kernel in kernels:
         got_nodal, got_particle = run(kernel, *args)
         _assert_same(nodal, got_nodal, 1e-12)
-        if kernel is PALLAS:  # the reduction changes P2G only
+        if not kernel.reduce:
             _assert_same(particle, got_particle, 1e-12)
 
 
@@ -251,6 +256,28 @@ def test_a_gpu_step_lowers_to_triton():
                     (jax.vmap(lambda s: sim.step(s, setup.dt)), states)):
         program = jax.jit(fn).trace(arg).lower(lowering_platforms=("cuda",)).as_text()
         assert program.count("__gpu$xla.gpu.triton") >= 7
+
+
+def test_weights_formed_in_the_kernel_from_the_per_axis_factors():
+    """PallasKernel(factors=True), the default: P2G and the G2P methods read a tensor-product
+    stencil's per-axis factors (3 D K1 values per particle) and form S, G_d and S (x_i - X_p)_d in the
+    kernel -- the jaxpr holds the factor primitives and no basis W -- and give the basis path's values
+    (factors=False) and the XLA kernel's to 1e-12, in 2D and 3D.  Per-slot columns take the basis
+    path; the gradients come from the basis path's rules (the gradient tests above)."""
+
+    def transfers(kernel, shape, *args):
+        return _transfers(kernel, shape, *args, per_slot=False)
+
+    basis = PallasKernel(block=32, factors=False)
+    for dim, shape in ((2, "quadratic"), (3, "cubic")):
+        args = _inputs(dim)
+        _compare_with_xla((PALLAS, basis), SHAPES[shape], args, per_slot=False)
+        program = str(jax.make_jaxpr(lambda *a: transfers(PALLAS, SHAPES[shape], *a))(*args))
+        assert program.count("jaxmpm_pallas_scatter_factors") == 1
+        assert program.count("jaxmpm_pallas_gather_factors") == 5
+        assert "jaxmpm_pallas_scatter[" not in program and "jaxmpm_pallas_gather[" not in program
+        program = str(jax.make_jaxpr(lambda *a: transfers(basis, SHAPES[shape], *a))(*args))
+        assert "factors" not in program and "jaxmpm_pallas_scatter" in program
 
 
 def test_choosing_and_forcing_a_kernel():

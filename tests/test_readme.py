@@ -56,6 +56,10 @@ BLOCKS = {
                                     1)]),
     "Transfer kernels: XLA or fused Pallas": Block(),  # one model, no run
     "One simulation on several devices": Block([("setup.dt, 200)", "setup.dt, 20)", 1)]),
+    "Load balance: slabs that move with the particles": Block([('jm.scene("column_collapse")',
+                                                               'jm.scene("column_collapse", cells=2)', 1),
+                                                              ("rebalance_every=200", "rebalance_every=10", 1),
+                                                              ("setup.dt, 800)", "setup.dt, 20)", 1)]),
     "Extending jaxmpm": Block(
         [('scheme="newpic:0.3")', 'scheme="newpic:0.3", t_end=0.5, frames=2); setup.run()', 1)],  # run the new scheme
     ),

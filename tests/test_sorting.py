@@ -105,6 +105,7 @@ def test_a_failure_names_the_users_particle():
     assert errors[0].step == errors[1].step == 1
 
 
+@pytest.mark.slow
 def test_gradients_through_a_sorted_run_equal_the_unsorted_ones():
     """d(mean height after 30 steps)/dE through the sorted rollout equals the unsorted one (1e-10):
     the permutations are gathers, whose transposes JAX knows."""

@@ -35,6 +35,15 @@ particles, each member on its own copy of the grid) and the XPIC/FMPM series all
 kernels.  Positions reach P2G and G2P through the basis W (built by XLA from the stencil), whose
 cotangent is the ``contract`` kernel.
 
+With a tensor-product stencil (``factors=True``, the default) the forward kernels read the stencil's
+per-axis factors instead of W and form the slot weights in registers (``scatter_factors_p``,
+``gather_factors_p``; 3 D K1 values per particle instead of up to (1 + 2 D) K): on an H100 the basis
+path lost to the XLA kernel (3D 0.77x, 2D 0.55-0.73x), where the fused prototype, which formed its
+weights in the kernel, had run 3x faster.  Their derivatives are the basis path's (a JVP through
+W = _factor_basis(F)), so the reverse pass forms W once and the forward pass never does.  The factor
+kernels are checked in interpret mode and lowered for Triton here; they have not been timed on a
+device.
+
 Interpret mode (``interpret=None``: when the program is compiled for the CPU, chosen per platform
 when the primitives are lowered) runs the same kernels through Pallas' interpreter, where the tests
 compare them with the XLA kernel.  One difference: Pallas' interpreter (jax 0.10) applies an atomic
@@ -58,7 +67,7 @@ from jax.extend.core import Primitive
 from jax.interpreters import ad, batching, mlir
 
 from ..contractions import Affine, Divergence, Gradient, Hoop, PerSlot, Weighted, as_terms
-from ..shapes import rows
+from ..shapes import AxisymmetricStencil, TensorStencil, rows
 from . import Kernel
 from .xla import _weight_basis
 
@@ -107,15 +116,23 @@ def _same_nodes(index_ref, size: int):
     return same, leader
 
 
-def _scatter_pallas(index, W, Q, *, pairs, num_nodes, width, block, reduce, interpret):
-    """nodal (num_nodes, width) = sum_p sum_k sum_{r = (j, c)} W[j, k, p] Q[r, p] at (index[k, p], c)."""
-    K = index.shape[0]
-    J = W.shape[0]
-    dtype = jnp.result_type(W, Q)
-    index, W, Q = _padded(index, block), _padded(W.astype(dtype), block), _padded(Q.astype(dtype), block)
-    by_column = [[(r, j) for r, (j, c) in enumerate(pairs) if c == col] for col in range(width)]
+def _basis_source(W):
+    """The weights of the slots read from the basis W (J, K, N): (array, its leading block shape,
+    weights(ref, k, js) -> {j: (B,) weights of slot k})."""
+    return W, W.shape[:2], lambda ref, k, js: {j: ref[j, k, :] for j in js}
 
-    def kernel(index_ref, w_ref, q_ref, _, out_ref):
+
+def _scatter_pallas(index, source, Q, *, pairs, num_nodes, width, block, reduce, interpret):
+    """nodal (num_nodes, width) = sum_p sum_k sum_{r = (j, c)} W[j, k, p] Q[r, p] at (index[k, p], c),
+    the weights W from ``source`` (:func:`_basis_source`, :func:`_factor_source`)."""
+    K = index.shape[0]
+    A, lead, weights = source
+    dtype = jnp.result_type(A, Q)
+    index, A, Q = _padded(index, block), _padded(A.astype(dtype), block), _padded(Q.astype(dtype), block)
+    by_column = [[(r, j) for r, (j, c) in enumerate(pairs) if c == col] for col in range(width)]
+    used = sorted({j for j, _ in pairs})
+
+    def kernel(index_ref, a_ref, q_ref, _, out_ref):
         q = [q_ref[r, :] for r in range(len(pairs))]
         if reduce:
             same, leader = _same_nodes(index_ref, K)
@@ -123,7 +140,7 @@ def _scatter_pallas(index, W, Q, *, pairs, num_nodes, width, block, reduce, inte
 
         def slot(k, carry):  # a loop over the slots (not unrolled: the kernel's size is that of one slot)
             node = index_ref[k, :]
-            w = {j: w_ref[j, k, :] for j in {j for j, _ in pairs}}
+            w = weights(a_ref, k, used)
             indices, values = [], []
             for col, terms in enumerate(by_column):
                 if not terms:
@@ -143,30 +160,37 @@ def _scatter_pallas(index, W, Q, *, pairs, num_nodes, width, block, reduce, inte
     blocks = index.shape[-1] // block
     nodal = pl.pallas_call(
         kernel, grid=(blocks,),
-        in_specs=[pl.BlockSpec((K, block), lambda b: (0, b)), pl.BlockSpec((J, K, block), lambda b: (0, 0, b)),
+        in_specs=[pl.BlockSpec((K, block), lambda b: (0, b)), _particle_blocks(lead, block),
                   pl.BlockSpec((len(pairs), block), lambda b: (0, b)), pl.BlockSpec(memory_space=pl.ANY)],
         out_specs=pl.BlockSpec(memory_space=pl.ANY),
         out_shape=jax.ShapeDtypeStruct((num_nodes * width,), dtype),
         # the atomics add into the output: it starts as the zeros aliased to it (interpret mode
         # reads an output that is not aliased to an input as NaN)
         input_output_aliases={3: 0}, interpret=interpret, compiler_params=_triton(interpret),
-    )(index, W, Q, jnp.zeros((num_nodes * width,), dtype))
+    )(index, A, Q, jnp.zeros((num_nodes * width,), dtype))
     return nodal.reshape(num_nodes, width)
 
 
-def _gather_pallas(index, W, u, *, pairs, block, interpret):
-    """(P, N): out[r, p] = sum_k W[j, k, p] u[index[k, p], c] for r = (j, c)."""
-    K, N = index.shape
-    J = W.shape[0]
-    width = u.shape[1]
-    dtype = jnp.result_type(W, u)
-    index, W = _padded(index, block), _padded(W.astype(dtype), block)
+def _particle_blocks(lead: tuple, block: int):
+    """The BlockSpec of an array (*lead, N) taken ``block`` particles at a time, whole along ``lead``."""
+    return pl.BlockSpec(tuple(lead) + (block,), lambda b: (0,) * len(lead) + (b,))
 
-    def kernel(index_ref, w_ref, u_ref, out_ref):
+
+def _gather_pallas(index, source, u, *, pairs, block, interpret):
+    """(P, N): out[r, p] = sum_k W[j, k, p] u[index[k, p], c] for r = (j, c), W from ``source``."""
+    K, N = index.shape
+    A, lead, weights = source
+    width = u.shape[1]
+    dtype = jnp.result_type(A, u)
+    index, A = _padded(index, block), _padded(A.astype(dtype), block)
+    used = sorted({j for j, _ in pairs})
+
+    def kernel(index_ref, a_ref, u_ref, out_ref):
         def slot(k, total):
             node = index_ref[k, :] * width
+            w = weights(a_ref, k, used)
             values = {c: u_ref[node + c] for c in {c for _, c in pairs}}
-            return tuple(t + w_ref[j, k, :] * values[c] for t, (j, c) in zip(total, pairs))
+            return tuple(t + w[j] * values[c] for t, (j, c) in zip(total, pairs))
 
         zero = jnp.zeros((block,), dtype)
         total = jax.lax.fori_loop(0, K, slot, (zero,) * len(pairs))
@@ -175,12 +199,12 @@ def _gather_pallas(index, W, u, *, pairs, block, interpret):
 
     out = pl.pallas_call(
         kernel, grid=(index.shape[-1] // block,),
-        in_specs=[pl.BlockSpec((K, block), lambda b: (0, b)), pl.BlockSpec((J, K, block), lambda b: (0, 0, b)),
+        in_specs=[pl.BlockSpec((K, block), lambda b: (0, b)), _particle_blocks(lead, block),
                   pl.BlockSpec(memory_space=pl.ANY)],
         out_specs=pl.BlockSpec((len(pairs), block), lambda b: (0, b)),
         out_shape=jax.ShapeDtypeStruct((len(pairs), index.shape[-1]), dtype), interpret=interpret,
         compiler_params=_triton(interpret),
-    )(index, W, u.astype(dtype).reshape(-1))
+    )(index, A, u.astype(dtype).reshape(-1))
     return out[:, :N]
 
 
@@ -213,6 +237,79 @@ def _contract_pallas(index, Q, u, *, pairs, num_keys, block, interpret):
         compiler_params=_triton(interpret),
     )(index, Q, u.astype(dtype).reshape(-1))
     return out[..., :N]
+
+
+# ------------------------------------------------------------------ the same kernels from the per-axis factors
+# A tensor-product stencil (jaxmpm.transfer.shapes.TensorStencil) holds per axis a the factors
+# w_a, dw_a, dx_a (K1, N); slot k = (k_0, ..., k_{D-1}) in C order (axis 0 slowest) has
+#     S = prod_a w_a[k_a],   G_d = dw_d[k_d] prod_{a != d} w_a[k_a],   S (x_i - X_p)_d = S dx_d[k_d].
+# The kernels below read those factors, F = (w, dw, dx) as (3, D, K1, N): 3 D K1 values per particle
+# (27 in 3D quadratic) where the basis W holds up to (1 + 2 D) K (189), and form the slot weights in
+# registers, as the fused prototype did (../shared/gpu/pallas_spike.py).
+def _slot_weights(f_ref, k, keys, dim: int, k1: int) -> dict:
+    """{key: (B,) weights of slot ``k``} for the keys "S", ("G", d), ("A", d) from the factor ref."""
+    digits, rest, base = [], jnp.asarray(k, jnp.int32), jnp.full((), k1, jnp.int32)
+    for _ in range(dim):  # k = sum_a k_a K1^(D - 1 - a): the last axis varies fastest
+        digits.append(jax.lax.rem(rest, base))  # int32 operands: Triton's lowering wants one type
+        rest = jax.lax.div(rest, base)
+    digits = digits[::-1]
+    kinds = {key if isinstance(key, str) else key[0] for key in keys}
+    w = [f_ref[0, a, digits[a], :] for a in range(dim)]
+    dw = [f_ref[1, a, digits[a], :] for a in range(dim)] if "G" in kinds else None
+    dx = [f_ref[2, a, digits[a], :] for a in range(dim)] if "A" in kinds else None
+    S = w[0]
+    for a in range(1, dim):
+        S = S * w[a]
+    out = {}
+    for key in keys:
+        if key == "S":
+            out[key] = S
+        elif key[0] == "G":
+            g = dw[0] if key[1] == 0 else w[0]
+            for a in range(1, dim):
+                g = g * (dw[a] if a == key[1] else w[a])
+            out[key] = g
+        else:  # ("A", d)
+            out[key] = S * dx[key[1]]
+    return out
+
+
+def _factor_source(F, keys):
+    """The weights of the slots formed from the factors F (3, D, K1, N) (:func:`_slot_weights`), for
+    the basis keys ``keys`` (a source as :func:`_basis_source`'s)."""
+    _, dim, k1, _ = F.shape
+
+    def weights(ref, k, js):
+        by_key = _slot_weights(ref, k, [keys[j] for j in js], dim, k1)
+        return {j: by_key[keys[j]] for j in js}
+
+    return F, F.shape[:3], weights
+
+
+def _factor_basis(F, keys):
+    """The basis W (J, K, N) of ``keys`` from the factors F (3, D, K1, N), as XLA forms it (the
+    derivative rules of the factor kernels differentiate this)."""
+    _, dim, k1, n = F.shape
+
+    def product(factors):
+        out = factors[0]
+        for f in factors[1:]:
+            out = out[..., None, :] * f.reshape((1,) * (out.ndim - 1) + (k1, n))
+        return out.reshape(-1, n)
+
+    w, dw, dx = F[0], F[1], F[2]
+    S = product([w[a] for a in range(dim)])
+    out = []
+    for key in keys:
+        if key == "S":
+            out.append(S)
+        elif key[0] == "G":
+            out.append(product([dw[a] if a == key[1] else w[a] for a in range(dim)]))
+        else:
+            d = key[1]
+            offset = product([dx[a] if a == d else jnp.ones_like(w[a]) for a in range(dim)])
+            out.append(S * offset)
+    return jnp.stack(out)
 
 
 # ------------------------------------------------------------------ the primitives and their rules
@@ -248,12 +345,13 @@ contract_p.def_abstract_eval(lambda index, Q, u, *, num_keys, **_: jax.core.Shap
 
 
 def _scatter_impl(index, W, Q, *, reduce, interpret, on_cpu=None, **params):
-    return _scatter_pallas(index, W, Q, reduce=reduce, interpret=_interpret(interpret, on_cpu), **params)
+    return _scatter_pallas(index, _basis_source(W), Q, reduce=reduce, interpret=_interpret(interpret, on_cpu),
+                           **params)
 
 
 def _gather_impl(index, W, u, *, reduce, interpret, on_cpu=None, **params):
     del reduce
-    return _gather_pallas(index, W, u, interpret=_interpret(interpret, on_cpu), **params)
+    return _gather_pallas(index, _basis_source(W), u, interpret=_interpret(interpret, on_cpu), **params)
 
 
 def _contract_impl(index, Q, u, *, reduce, interpret, on_cpu=None, **params):
@@ -269,13 +367,20 @@ def _interpret(interpret, on_cpu) -> bool:
     return jax.default_backend() == "cpu" if on_cpu is None else on_cpu
 
 
+def _register(primitive, impl) -> None:
+    """``impl`` as the primitive's evaluation and lowering: interpret mode when lowered for the CPU,
+    Triton when lowered for a GPU (:func:`_interpret`)."""
+    primitive.def_impl(impl)
+    mlir.register_lowering(primitive, mlir.lower_fun(impl, multiple_results=False))
+    mlir.register_lowering(primitive, mlir.lower_fun(partial(impl, on_cpu=True), multiple_results=False),
+                           platform="cpu")
+    for platform in ("cuda", "rocm"):
+        mlir.register_lowering(primitive, mlir.lower_fun(partial(impl, on_cpu=False), multiple_results=False),
+                               platform=platform)
+
+
 for _p, _impl in ((scatter_p, _scatter_impl), (gather_p, _gather_impl), (contract_p, _contract_impl)):
-    _p.def_impl(_impl)
-    mlir.register_lowering(_p, mlir.lower_fun(_impl, multiple_results=False))
-    mlir.register_lowering(_p, mlir.lower_fun(partial(_impl, on_cpu=True), multiple_results=False), platform="cpu")
-    for _platform in ("cuda", "rocm"):
-        mlir.register_lowering(_p, mlir.lower_fun(partial(_impl, on_cpu=False), multiple_results=False),
-                               platform=_platform)
+    _register(_p, _impl)
 
 
 def _bilinear_jvp(primitive):
@@ -391,6 +496,69 @@ batching.primitive_batchers[gather_p] = _gather_like_batch(gather_p)
 batching.primitive_batchers[contract_p] = _gather_like_batch(contract_p)
 
 
+# The factor kernels as primitives: their values from the kernels above, their derivatives (and so
+# their transposes) from the basis path, jvp of the same sum with W = _factor_basis(F): the reverse
+# pass forms W once, the forward pass never does.
+scatter_factors_p = Primitive("jaxmpm_pallas_scatter_factors")  # (index, F, Q) -> (n, C)
+gather_factors_p = Primitive("jaxmpm_pallas_gather_factors")  # (index, F, u) -> (P, N)
+
+scatter_factors_p.def_abstract_eval(lambda index, F, Q, *, num_nodes, width, **_: jax.core.ShapedArray(
+    (num_nodes, width), _dtype(F, Q)))
+gather_factors_p.def_abstract_eval(lambda index, F, u, *, pairs, **_: jax.core.ShapedArray(
+    (len(pairs), index.shape[1]), _dtype(F, u)))
+
+
+def _scatter_factors_impl(index, F, Q, *, keys, reduce, interpret, on_cpu=None, **params):
+    return _scatter_pallas(index, _factor_source(F, keys), Q, reduce=reduce,
+                           interpret=_interpret(interpret, on_cpu), **params)
+
+
+def _gather_factors_impl(index, F, u, *, keys, reduce, interpret, on_cpu=None, **params):
+    del reduce
+    return _gather_pallas(index, _factor_source(F, keys), u, interpret=_interpret(interpret, on_cpu), **params)
+
+
+_register(scatter_factors_p, _scatter_factors_impl)
+_register(gather_factors_p, _gather_factors_impl)
+
+
+def _factors_jvp(primitive, basis_form):
+    """JVP of a factor primitive: the value from the primitive, the tangent from its basis form
+    ``basis_form(index, W, b, **params)`` (linear in W and in b) with W = _factor_basis(F)."""
+
+    def jvp(primals, tangents, *, keys, **params):
+        index, F, b = primals
+        _, F_dot, b_dot = tangents
+        out = primitive.bind(index, F, b, keys=keys, **params)
+        terms = []
+        if type(F_dot) is not ad.Zero:
+            W, W_dot = jax.jvp(lambda F: _factor_basis(F, keys), (F,), (F_dot,))
+            terms.append(basis_form(index, W_dot, b, **params))
+        if type(b_dot) is not ad.Zero:
+            terms.append(basis_form(index, _factor_basis(F, keys), b_dot, **params))
+        if not terms:
+            return out, jnp.zeros_like(out)
+        return out, sum(terms[1:], terms[0])
+
+    return jvp
+
+
+ad.primitive_jvps[scatter_factors_p] = _factors_jvp(scatter_factors_p, _scatter)
+ad.primitive_jvps[gather_factors_p] = _factors_jvp(gather_factors_p, _gather)
+
+
+def _scatter_factors_batch(args, axes, *, num_nodes, **params):
+    size = _batch_size(args, axes)
+    index = _folded_index(args[0], axes[0], size, num_nodes)
+    F, Q = (_fold_particles(_batched(x, d, size)) for x, d in zip(args[1:], axes[1:]))
+    out = scatter_factors_p.bind(index, F, Q, num_nodes=size * num_nodes, **params)
+    return out.reshape((size, num_nodes) + out.shape[1:]), 0
+
+
+batching.primitive_batchers[scatter_factors_p] = _scatter_factors_batch
+batching.primitive_batchers[gather_factors_p] = _gather_like_batch(gather_factors_p)
+
+
 # ------------------------------------------------------------------ P2G columns as (key, column) pairs
 def _coefficient_terms(contraction, dim: int):
     """[(weight key, column within the contraction's width, coefficients (N,))] of one contraction:
@@ -418,14 +586,25 @@ class PallasKernel(Kernel):
             atomic adds (module docstring); the same numbers to round-off.
         interpret: run in Pallas' interpret mode (the CPU); None (default): when the program is
             compiled for the CPU (``jax.default_backend() == "cpu"`` for eager calls).
+        factors: form the slot weights in the kernels from a tensor-product stencil's per-axis
+            factors (3 D K1 values per particle) instead of reading the basis W (up to (1 + 2 D) K
+            values) that XLA forms from them (default True; the basis path serves the rest:
+            axisymmetric stencils, per-slot columns, and every derivative).
     """
 
     block: int = BLOCK
     reduce: bool = False
     interpret: bool | None = None
+    factors: bool = True
 
     def _options(self):
         return {"block": self.block, "reduce": self.reduce, "interpret": self.interpret}
+
+    def _from_factors(self, stencil, keys) -> bool:
+        """Whether the kernels form the weights of ``keys`` from ``stencil``'s per-axis factors (a
+        tensor-product stencil, keys among S, G_d, S (x_i - X_p)_d) rather than read the basis W."""
+        return (self.factors and isinstance(stencil, TensorStencil) and not isinstance(stencil, AxisymmetricStencil)
+                and all(k == "S" or (isinstance(k, tuple) and k[0] in ("G", "A")) for k in keys))
 
     def p2g(self, stencil, columns: dict, num_nodes: int) -> dict:
         dim, names = stencil.dim, list(columns)
@@ -448,6 +627,16 @@ class PallasKernel(Kernel):
                 for key, col, coef in _coefficient_terms(c, dim):
                     at = (key, starts[name] + col)
                     terms[at] = terms[at] + coef if at in terms else coef
+        if not per_slot:
+            keys = tuple(dict.fromkeys(k for k, _ in terms))
+            if self._from_factors(stencil, keys):
+                pairs = tuple((keys.index(k), col) for k, col in terms)
+                F = _factors_of(stencil)
+                Q = jnp.stack(list(terms.values())).astype(F.dtype)
+                nodal = scatter_factors_p.bind(stencil.index.astype(jnp.int32), F, Q, keys=keys, pairs=pairs,
+                                               num_nodes=num_nodes, width=total, **self._options())
+                return {name: nodal[:, starts[name]] if not widths[name]
+                        else nodal[:, starts[name]:starts[name] + widths[name][0]] for name in names}
         kinds = {k if isinstance(k, str) else k[0] for k, _ in terms}
         basis = _weight_basis(stencil, kinds)
         n = stencil.num_particles
@@ -463,24 +652,40 @@ class PallasKernel(Kernel):
         return {name: nodal[:, starts[name]] if not widths[name]
                 else nodal[:, starts[name]:starts[name] + widths[name][0]] for name in names}
 
-    def _gather(self, stencil, W, u, pairs):
-        return _gather(stencil.index.astype(jnp.int32), W, u, pairs=tuple(pairs), **self._options())
+    def _gather(self, stencil, keys, basis, u, pairs):
+        """out[r] = sum_k W_j u_c for r = (j, c): from the factors (``keys``) where they serve, else
+        from the basis ``basis()`` (J, K, N)."""
+        index = stencil.index.astype(jnp.int32)
+        if self._from_factors(stencil, keys):
+            return gather_factors_p.bind(index, _factors_of(stencil), u, keys=tuple(keys), pairs=tuple(pairs),
+                                         **self._options())
+        return _gather(index, basis(), u, pairs=tuple(pairs), **self._options())
 
     def gather(self, stencil, u):
         nodal = u[:, None] if u.ndim == 1 else u
-        out = self._gather(stencil, stencil.weight[None], nodal, [(0, c) for c in range(nodal.shape[1])])
+        out = self._gather(stencil, ("S",), lambda: stencil.weight[None], nodal,
+                           [(0, c) for c in range(nodal.shape[1])])
         return out[0] if u.ndim == 1 else out.T
 
     def velocity_gradient(self, stencil, v):
         d = stencil.dim
-        out = self._gather(stencil, stencil.gradient, v, [(b, a) for a in range(d) for b in range(d)])
+        out = self._gather(stencil, [("G", b) for b in range(d)], lambda: stencil.gradient, v,
+                           [(b, a) for a in range(d) for b in range(d)])
         return jnp.moveaxis(out.reshape(d, d, -1), -1, 0)
 
     def scalar_gradient(self, stencil, u):
-        return self._gather(stencil, stencil.gradient, u[:, None], [(b, 0) for b in range(stencil.dim)]).T
+        d = stencil.dim
+        return self._gather(stencil, [("G", b) for b in range(d)], lambda: stencil.gradient, u[:, None],
+                            [(b, 0) for b in range(d)]).T
 
     def affine_moment(self, stencil, v):
         d, c = stencil.dim, v.shape[1]
-        W = stencil.weight[None] * stencil.offset  # S_pi (x_i - X_p)_b, (D, K, N)
-        out = self._gather(stencil, W, v, [(b, a) for a in range(c) for b in range(d)])
+        out = self._gather(stencil, [("A", b) for b in range(d)],
+                           lambda: stencil.weight[None] * stencil.offset,  # S_pi (x_i - X_p)_b, (D, K, N)
+                           v, [(b, a) for a in range(c) for b in range(d)])
         return jnp.moveaxis(out.reshape(c, d, -1), -1, 0)
+
+
+def _factors_of(stencil):
+    """F = (w, dw, dx) of a tensor-product stencil, (3, D, K1, N)."""
+    return jnp.stack([stencil.w, stencil.dw, stencil.dx])

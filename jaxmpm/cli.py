@@ -32,7 +32,7 @@ NO_CACHE_HELP = ("do not keep compiled programs on disk.  By default they are ke
 CACHE_HELP = "the default (the cache is on unless --no-cache); accepted for older command lines"
 
 #: the options of ``jaxmpm run`` that are not scene options (kept out of the stored command)
-RUN_ONLY = ("out", "force", "no_progress", "command", "cache", "no_cache", "devices")
+RUN_ONLY = ("out", "force", "no_progress", "command", "cache", "no_cache", "devices", "rebalance_every")
 
 
 class _OneLineErrors(argparse.ArgumentParser):
@@ -253,6 +253,10 @@ def build_parser() -> argparse.ArgumentParser:
                           "(jaxmpm.parallel.ShardedSimulation; docs/scaling.md); the same file as one device. On a "
                           "CPU, N devices need XLA_FLAGS=--xla_force_host_platform_device_count=N. `jaxmpm resume` "
                           "continues such a file on one device (default: one device, no sharding)")
+    run.add_argument("--rebalance-every", type=int, default=None, metavar="K",
+                     help="with --devices: move the slab boundaries with the particles every K steps (and before a "
+                          "step that would overflow a device's buffer; docs/scaling.md, load balance); default: "
+                          "fixed equal slabs")
     run.add_argument("--out", required=True, metavar="FILE.h5",
                      help="HDF5 output file (an XDMF sidecar goes beside it)")
     run.add_argument("--force", action="store_true", help="overwrite --out and its XDMF sidecar if they exist")
@@ -438,6 +442,8 @@ def run_scene(args) -> int:
              "sidecar of an earlier run, which this run would replace); pass --force to overwrite, or choose "
              "another file")
     try:
+        check(args.rebalance_every is None or args.devices is not None,
+              f"--rebalance-every {args.rebalance_every} moves the slabs of a run on several devices; add --devices N")
         if args.devices is not None:  # enough devices, before the scene is built
             from jaxmpm.parallel import local_devices
 
@@ -456,14 +462,15 @@ def run_scene(args) -> int:
     return run_setup(setup, args, stored_options(options_of(args), setup))
 
 
-def sharded_model(setup, devices: int):
+def sharded_model(setup, devices: int, rebalance_every: int | None = None):
     """``--devices N``: the scene's model on the first N local devices
-    (:class:`jaxmpm.parallel.ShardedSimulation`), checked before the output file is made; an
-    InputError naming the fix when there are fewer devices, or the model has terms the sharded
-    path does not support."""
+    (:class:`jaxmpm.parallel.ShardedSimulation`; ``--rebalance-every K``: its slabs moving with the
+    particles), checked before the output file is made; an InputError naming the fix when there are
+    fewer devices, the model has terms the sharded path does not support, or K is not a positive
+    integer."""
     from jaxmpm.parallel import ShardedSimulation, local_devices
 
-    return ShardedSimulation(setup.sim, devices=local_devices(devices, "--devices"))
+    return ShardedSimulation(setup.sim, devices=local_devices(devices, "--devices"), rebalance_every=rebalance_every)
 
 
 def frame_fields(args, setup) -> tuple:
@@ -610,7 +617,7 @@ def run_setup(setup, args, options: dict, resume: bool = False) -> int:
             final = jm.resume(args.out, setup, progress=not args.no_progress, timings=timings)
         else:
             if getattr(args, "devices", None) is not None:  # checked before the file is made
-                sharded = sharded_model(setup, args.devices)
+                sharded = sharded_model(setup, args.devices, getattr(args, "rebalance_every", None))
             with jm.H5Writer(args.out, sim, state, dt=setup.dt, scene=setup.name, params=setup.params,
                              ppc=setup.params.get("ppc"), attrs={"command": json.dumps(options)},
                              fields=fields_option(options.get("fields", "none")),
@@ -666,7 +673,9 @@ def run_setup(setup, args, options: dict, resume: bool = False) -> int:
         ("dtype", str(state.x.dtype)),
         ("particles", f"{n}"),
         *([] if sharded is None else [("devices", f"{sharded.devices} (slabs along x), {sharded.stats['migrated']} "
-                                                  "particle moves between them")]),
+                                                  "particle moves between them"
+                                                  + (f", {sharded.stats.get('rebalances', 0)} rebalance(s)"
+                                                     if sharded.rebalance_every else ""))]),
         ("steps", f"{setup.steps} (t_end = {setup.t_end:.6g})"),
         ("dt", f"{setup.dt:.6g}"),
         *time_rows(timings, n, int(final.step) - first_step, resume),

@@ -103,9 +103,13 @@ def test_sharded_frames_hdf5_resume_and_cli_equal_one_device():
     assert resume["final_x_err"] < 1e-14 and resume["final_v_err"] < 1e-13, resume
     # jaxmpm run disks --devices 2: the file of the same command on one device; --devices is a run option
     cli = out["cli"]
-    assert cli["codes"] == [0, 0] and cli["same_datasets"] and cli["same_schedule"] and cli["frames"] == 4
+    assert cli["codes"] == [0, 0, 0] and cli["same_datasets"] and cli["same_schedule"] and cli["frames"] == 4
     assert cli["worst"] < 1e-13 and max(cli["x_per_frame"]) < 1e-14, cli
     assert cli["summary_devices"] and cli["summary_devices"][0].split()[1] == "2"
+    rebalanced = cli["rebalanced"]  # --rebalance-every 20: the same file, the slabs moving
+    assert rebalanced["same_datasets"] and rebalanced["worst"] < 1e-13, rebalanced
+    assert "rebalance" not in cli["summary_devices"][0]
+    assert int(cli["summary_devices"][-1].split(" rebalance(s)")[0].split()[-1]) >= 1, cli["summary_devices"]
     assert "devices" not in cli["stored_command"]  # jaxmpm resume continues the file on one device
     code, message = cli["three_devices"]  # more devices than the process has: the fix, and no file
     assert code == 2 and message.startswith("jaxmpm: error: --devices 3: this process has 2 cpu devices; set "
@@ -166,6 +170,11 @@ def test_cli_devices_refused_with_the_fix(tmp_path, capsys):
         "jaxmpm: error: ShardedSimulation: Collider not supported on several devices yet")
     assert run_cli(["run", "disks", "--devices", "0", "--out", str(path)]) == 2
     assert "--devices = 0 must be a positive integer" in capsys.readouterr().err
+    assert run_cli(["run", "disks", "--rebalance-every", "10", "--out", str(path)]) == 2
+    assert "--rebalance-every 10 moves the slabs of a run on several devices; add --devices N" in (
+        capsys.readouterr().err)
+    assert run_cli(["run", "disks", "--devices", "1", "--rebalance-every", "0", "--out", str(path)]) == 2
+    assert "rebalance_every = 0 must be a positive integer" in capsys.readouterr().err
     assert not path.exists()
     assert local_devices(1) == jax.local_devices()[:1]
 

@@ -9,7 +9,8 @@ crossing the slab face both ways.  Prints one JSON line.
    dataset and frame by frame (``/state`` included);
 3. resume: a sharded run killed after its second publication, continued by ``jm.resume`` on one
    device, against the uninterrupted one-device run (the file and the final state);
-4. the CLI: ``jaxmpm run disks --devices 2`` against the same command without ``--devices``."""
+4. the CLI: ``jaxmpm run disks --devices 2`` (also with ``--rebalance-every 20``) against the same command
+   without ``--devices``."""
 
 import contextlib
 import io
@@ -111,7 +112,7 @@ for model in (lambda: sim.run(state, 0.03, SAVE_EVERY, SAVE_EVERY), lambda: shar
 out["frames"]["unstable"] = errors
 
 # 2. HDF5 ----------------------------------------------------------------------------------------
-paths = {name: os.path.join(folder, f"{name}.h5") for name in ("one", "many", "killed", "cli1", "cli2")}
+paths = {name: os.path.join(folder, f"{name}.h5") for name in ("one", "many", "killed", "cli1", "cli2", "cli2b")}
 with jm.H5Writer(paths["one"], sim, state, dt=dt, scene="disks", fields=("stress",)) as writer:
     sim.run(state, dt, STEPS, SAVE_EVERY, writer=writer)
 with jm.H5Writer(paths["many"], sim, state, dt=dt, scene="disks", fields=("stress",)) as writer:
@@ -155,9 +156,11 @@ out["resume"] = file_err(paths["killed"], paths["one"]) | {
 command = ["run", "disks", "--t-end", "0.06", "--frames", "3", "--no-progress"]
 printed = io.StringIO()
 with contextlib.redirect_stdout(printed):
-    codes = [main(command + ["--devices", "2", "--out", paths["cli2"]]), main(command + ["--out", paths["cli1"]])]
+    codes = [main(command + ["--devices", "2", "--out", paths["cli2"]]), main(command + ["--out", paths["cli1"]]),
+             main(command + ["--devices", "2", "--rebalance-every", "20", "--out", paths["cli2b"]])]
 out["cli"] = file_err(paths["cli2"], paths["cli1"]) | {"codes": codes, "summary_devices": [
     line for line in printed.getvalue().splitlines() if line.startswith("devices")]}
+out["cli"]["rebalanced"] = file_err(paths["cli2b"], paths["cli1"])  # slabs moving every 20 steps
 with h5py.File(paths["cli2"], "r") as f:
     out["cli"]["stored_command"] = json.loads(f.attrs["command"])
 errors = io.StringIO()

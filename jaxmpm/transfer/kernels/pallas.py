@@ -532,7 +532,7 @@ def _factors_jvp(primitive, basis_form):
         out = primitive.bind(index, F, b, keys=keys, **params)
         terms = []
         if type(F_dot) is not ad.Zero:
-            W, W_dot = jax.jvp(lambda F: _factor_basis(F, keys), (F,), (F_dot,))
+            _, W_dot = jax.jvp(lambda F: _factor_basis(F, keys), (F,), (F_dot,))
             terms.append(basis_form(index, W_dot, b, **params))
         if type(b_dot) is not ad.Zero:
             terms.append(basis_form(index, _factor_basis(F, keys), b_dot, **params))

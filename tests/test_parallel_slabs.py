@@ -207,7 +207,8 @@ def test_slabs_move_with_a_collapsing_column():
     """3 devices, float64 (tests/parallel/balance_check.py): P2G and G2P on deliberately unequal
     slabs; a column collapse whose slabs move with its particles every K = 200 steps, and once early
     when the spreading flow fills a buffer, against one device; its particles and mass every step;
-    the same run with frames; and the error when no boundaries fit."""
+    the same run with frames; the error when no boundaries fit; and disks on 28 cells along x, which
+    equal slabs cannot split over 3 devices, run on slabs that differ."""
     out = run_check("balance_check.py", 3, 900, 200, 40)
     unequal = out["unequal"]  # slabs of 5, 7 and 28 cells, every one holding particles
     assert len(set(np.diff(unequal["bounds"]))) == 3 and min(unequal["particles_per_slab"]) > 50, unequal
@@ -232,6 +233,10 @@ def test_slabs_move_with_a_collapsing_column():
     assert frames["count"] == frames["reference_count"] == 3 and frames["final_step"] == 400
     assert frames["rebalances"] == 2 and frames["census_particles"] == [n, n], frames
     assert max(frames["x_per_frame"]) < 1e-13, frames
+    uneven = out["uneven"]  # 28 cells on 3 devices: only slabs that differ split them
+    assert uneven["cells"] % 3 and "rebalance_every=K" in out["uneven_fixed_error"]
+    assert all(len(set(np.diff(b))) > 1 for _, b in uneven["bounds"]), uneven["bounds"]
+    assert uneven["migrated"] > 0 and uneven["x_rel_err"] < 1e-14 and uneven["v_rel_err"] < 1e-13, uneven
     error = out["no_fit_error"]  # one particle too few slots for the most even slabs: stops before a step
     assert error.startswith("ShardedSimulation: at step 0 the most even slabs") and "raise capacity" in error, error
 

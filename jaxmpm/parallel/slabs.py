@@ -89,7 +89,8 @@ class Slabs(eqx.Module):
             self.max_cells = int(max_cells)
             return
         check(cells_x % devices == 0, f"Slabs: the grid's {cells_x} cells along x do not split into {devices} equal "
-              f"slabs; choose a cell count along x that is a multiple of {devices}")
+              f"slabs; choose a cell count along x that is a multiple of {devices}, or let the slabs differ: "
+              "ShardedSimulation(..., rebalance_every=K) (jaxmpm run --rebalance-every K)")
         check(cells_x // devices > 2 * halo, f"Slabs: slabs of {cells_x // devices} cells are not wider than twice the "
               f"halo ({halo} planes); use fewer devices or a finer grid")
         self.cells = tuple(grid.cells)

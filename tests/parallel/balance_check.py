@@ -160,5 +160,21 @@ try:
     out["no_fit_error"] = None
 except jm.InputError as error:
     out["no_fit_error"] = str(error)
+
+# ---------------------------------------------------------------- 4. a grid that equal slabs cannot split
+# disks on 28 cells along x over 3 devices: refused with fixed slabs (the message names rebalance_every),
+# run with moving ones, particles crossing the faces, equal to one device
+disks = jm.scene("disks", spacing=0.045, speed=1.0)
+try:
+    ShardedSimulation(disks.sim)
+    out["uneven_fixed_error"] = None
+except jm.InputError as error:
+    out["uneven_fixed_error"] = str(error)
+uneven = ShardedSimulation(disks.sim, rebalance_every=50)
+uneven_final = uneven.run(disks.state, disks.dt, 100)
+uneven_one = jax.jit(lambda s: jax.lax.fori_loop(0, 100, lambda i, s: disks.sim.step(s, disks.dt), s))(disks.state)
+out["uneven"] = {"cells": disks.sim.grid.cells[0], "bounds": uneven.stats["bounds"],
+                 "migrated": uneven.stats["migrated"], "x_rel_err": rel_err(uneven_final.x, uneven_one.x),
+                 "v_rel_err": rel_err(uneven_final.v, uneven_one.v)}
 out["seconds"] = time.perf_counter() - tic
 print(json.dumps(out))

@@ -40,7 +40,7 @@ per-axis factors instead of W and form the slot weights in registers (``scatter_
 ``gather_factors_p``; 3 D K1 values per particle instead of up to (1 + 2 D) K): on an H100 the basis
 path lost to the XLA kernel (3D 0.77x, 2D 0.55-0.73x), where the fused prototype, which formed its
 weights in the kernel, had run 3x faster.  Their derivatives are the basis path's (a JVP through
-W = _factor_basis(F)), so the reverse pass forms W once and the forward pass never does.  The factor
+W = _factor_basis(index, F)), so the reverse pass forms W once and the forward pass never does.  The factor
 kernels are checked in interpret mode and lowered for Triton here; they have not been timed on a
 device.
 
@@ -246,6 +246,11 @@ def _contract_pallas(index, Q, u, *, pairs, num_keys, block, interpret):
 # The kernels below read those factors, F = (w, dw, dx) as (3, D, K1, N): 3 D K1 values per particle
 # (27 in 3D quadratic) where the basis W holds up to (1 + 2 D) K (189), and form the slot weights in
 # registers, as the fused prototype did (../shared/gpu/pallas_spike.py).
+def _kinds(keys) -> set:
+    """The weight kinds of basis keys: "S", "G" (from ("G", d)), "A", "T", "P"."""
+    return {key if isinstance(key, str) else key[0] for key in keys}
+
+
 def _slot_weights(f_ref, k, keys, dim: int, k1: int) -> dict:
     """{key: (B,) weights of slot ``k``} for the keys "S", ("G", d), ("A", d) from the factor ref."""
     digits, rest, base = [], jnp.asarray(k, jnp.int32), jnp.full((), k1, jnp.int32)
@@ -253,7 +258,7 @@ def _slot_weights(f_ref, k, keys, dim: int, k1: int) -> dict:
         digits.append(jax.lax.rem(rest, base))  # int32 operands: Triton's lowering wants one type
         rest = jax.lax.div(rest, base)
     digits = digits[::-1]
-    kinds = {key if isinstance(key, str) else key[0] for key in keys}
+    kinds = _kinds(keys)
     w = [f_ref[0, a, digits[a], :] for a in range(dim)]
     dw = [f_ref[1, a, digits[a], :] for a in range(dim)] if "G" in kinds else None
     dx = [f_ref[2, a, digits[a], :] for a in range(dim)] if "A" in kinds else None
@@ -286,30 +291,12 @@ def _factor_source(F, keys):
     return F, F.shape[:3], weights
 
 
-def _factor_basis(F, keys):
-    """The basis W (J, K, N) of ``keys`` from the factors F (3, D, K1, N), as XLA forms it (the
-    derivative rules of the factor kernels differentiate this)."""
-    _, dim, k1, n = F.shape
-
-    def product(factors):
-        out = factors[0]
-        for f in factors[1:]:
-            out = out[..., None, :] * f.reshape((1,) * (out.ndim - 1) + (k1, n))
-        return out.reshape(-1, n)
-
-    w, dw, dx = F[0], F[1], F[2]
-    S = product([w[a] for a in range(dim)])
-    out = []
-    for key in keys:
-        if key == "S":
-            out.append(S)
-        elif key[0] == "G":
-            out.append(product([dw[a] if a == key[1] else w[a] for a in range(dim)]))
-        else:
-            d = key[1]
-            offset = product([dx[a] if a == d else jnp.ones_like(w[a]) for a in range(dim)])
-            out.append(S * offset)
-    return jnp.stack(out)
+def _factor_basis(index, F, keys):
+    """The basis W (J, K, N) of ``keys`` from the factors F (3, D, K1, N): the tensor-product
+    stencil they are rebuilt into, through :func:`~jaxmpm.transfer.kernels.xla._weight_basis`, as the
+    basis path forms it (the derivative rules of the factor kernels differentiate this)."""
+    basis = _weight_basis(TensorStencil(index, F[0], F[1], F[2]), _kinds(keys))
+    return jnp.stack([basis[k] for k in keys])
 
 
 # ------------------------------------------------------------------ the primitives and their rules
@@ -497,7 +484,7 @@ batching.primitive_batchers[contract_p] = _gather_like_batch(contract_p)
 
 
 # The factor kernels as primitives: their values from the kernels above, their derivatives (and so
-# their transposes) from the basis path, jvp of the same sum with W = _factor_basis(F): the reverse
+# their transposes) from the basis path, jvp of the same sum with W = _factor_basis(index, F): the reverse
 # pass forms W once, the forward pass never does.
 scatter_factors_p = Primitive("jaxmpm_pallas_scatter_factors")  # (index, F, Q) -> (n, C)
 gather_factors_p = Primitive("jaxmpm_pallas_gather_factors")  # (index, F, u) -> (P, N)
@@ -524,7 +511,7 @@ _register(gather_factors_p, _gather_factors_impl)
 
 def _factors_jvp(primitive, basis_form):
     """JVP of a factor primitive: the value from the primitive, the tangent from its basis form
-    ``basis_form(index, W, b, **params)`` (linear in W and in b) with W = _factor_basis(F)."""
+    ``basis_form(index, W, b, **params)`` (linear in W and in b) with W = _factor_basis(index, F)."""
 
     def jvp(primals, tangents, *, keys, **params):
         index, F, b = primals
@@ -532,10 +519,10 @@ def _factors_jvp(primitive, basis_form):
         out = primitive.bind(index, F, b, keys=keys, **params)
         terms = []
         if type(F_dot) is not ad.Zero:
-            _, W_dot = jax.jvp(lambda F: _factor_basis(F, keys), (F,), (F_dot,))
+            _, W_dot = jax.jvp(lambda F: _factor_basis(index, F, keys), (F,), (F_dot,))
             terms.append(basis_form(index, W_dot, b, **params))
         if type(b_dot) is not ad.Zero:
-            terms.append(basis_form(index, _factor_basis(F, keys), b_dot, **params))
+            terms.append(basis_form(index, _factor_basis(index, F, keys), b_dot, **params))
         if not terms:
             return out, jnp.zeros_like(out)
         return out, sum(terms[1:], terms[0])
@@ -627,28 +614,25 @@ class PallasKernel(Kernel):
                 for key, col, coef in _coefficient_terms(c, dim):
                     at = (key, starts[name] + col)
                     terms[at] = terms[at] + coef if at in terms else coef
-        if not per_slot:
+        index = stencil.index.astype(jnp.int32)
+        keys = tuple(dict.fromkeys(k for k, _ in terms))
+        if not per_slot and self._from_factors(stencil, keys):  # the weights formed in the kernel
+            F = _factors_of(stencil)
+            pairs = tuple((keys.index(k), col) for k, col in terms)
+            Q = jnp.stack(list(terms.values())).astype(F.dtype)
+            nodal = scatter_factors_p.bind(index, F, Q, keys=keys, pairs=pairs, num_nodes=num_nodes, width=total,
+                                           **self._options())
+        else:  # the basis W read from memory, per-slot columns with unit coefficients
+            basis = _weight_basis(stencil, _kinds(keys))
+            n = stencil.num_particles
+            for key, col, values in per_slot:
+                basis[key] = values
+                terms[(key, col)] = jnp.ones((n,), values.dtype)
             keys = tuple(dict.fromkeys(k for k, _ in terms))
-            if self._from_factors(stencil, keys):
-                pairs = tuple((keys.index(k), col) for k, col in terms)
-                F = _factors_of(stencil)
-                Q = jnp.stack(list(terms.values())).astype(F.dtype)
-                nodal = scatter_factors_p.bind(stencil.index.astype(jnp.int32), F, Q, keys=keys, pairs=pairs,
-                                               num_nodes=num_nodes, width=total, **self._options())
-                return {name: nodal[:, starts[name]] if not widths[name]
-                        else nodal[:, starts[name]:starts[name] + widths[name][0]] for name in names}
-        kinds = {k if isinstance(k, str) else k[0] for k, _ in terms}
-        basis = _weight_basis(stencil, kinds)
-        n = stencil.num_particles
-        for key, col, values in per_slot:
-            basis[key] = values
-            terms[(key, col)] = jnp.ones((n,), values.dtype)
-        keys = list(dict.fromkeys(k for k, _ in terms))
-        W = jnp.stack([basis[k] for k in keys])
-        pairs = tuple((keys.index(k), col) for k, col in terms)
-        Q = jnp.stack(list(terms.values())).astype(W.dtype)
-        nodal = _scatter(stencil.index.astype(jnp.int32), W, Q, pairs=pairs, num_nodes=num_nodes, width=total,
-                         **self._options())
+            W = jnp.stack([basis[k] for k in keys])
+            pairs = tuple((keys.index(k), col) for k, col in terms)
+            Q = jnp.stack(list(terms.values())).astype(W.dtype)
+            nodal = _scatter(index, W, Q, pairs=pairs, num_nodes=num_nodes, width=total, **self._options())
         return {name: nodal[:, starts[name]] if not widths[name]
                 else nodal[:, starts[name]:starts[name] + widths[name][0]] for name in names}
 

@@ -285,9 +285,8 @@ class ShardedSimulation:
             buffers, valid, ids = self._rebalance(buffers, valid, ids, n, held)
         progress = 0
         while progress < steps:
-            limit = jnp.asarray(steps - progress, jnp.int32)
             buffers, valid, ids, done, overflow = self._call(program, sim, state, buffers, valid, ids, dt,
-                                                             jnp.asarray(self.bounds, jnp.int32), limit)
+                                                             *self._moving_args(steps - progress))
             progress, self._since = progress + done, self._since + done
             if progress < steps:  # a particle would not fit at the next step: the slabs move, unless they just did
                 if moved and done == 0:

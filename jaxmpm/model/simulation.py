@@ -529,18 +529,24 @@ class Simulation(eqx.Module):
             self)
 
     def stable_dt(self, state: State, cfl: float = 1.0):
-        """The stable time step times ``cfl``: the smallest of the CFL limit h / max_p(c + |V_p|) and
-        the terms' limits (conduction, diffusion: :meth:`time_step_limits`)."""
+        """The stable time step times ``cfl``: the smallest of the CFL limit h / max_p(c + |V_p|), the
+        scheme's (FMPM(k): over sqrt(k)), the material's and the terms' limits (conduction,
+        diffusion: :meth:`time_step_limits`)."""
         limits = list(self.time_step_limits(state, cfl).values())
         return limits[0] if len(limits) == 1 else jnp.min(jnp.stack(limits))
 
     def time_step_limits(self, state: State, cfl: float = 1.0) -> dict:
-        """{name: largest stable dt, times ``cfl``}: "CFL" (h / max_p(c + |V_p|)), the material's own
-        limit when it has one (:meth:`jaxmpm.Material.time_step_limit`, named after its class: e.g.
-        "newtonianfluid", the viscous limit) and one per term that limits it (e.g. "heat":
-        h^2 / (2 D a), jaxmpm.physics.transport)."""
+        """{name: largest stable dt, times ``cfl``}: "CFL" (h / max_p(c + |V_p|)); the scheme's own
+        where its update shrinks that (:meth:`jaxmpm.Scheme.time_step_factor`, named after its class:
+        "fmpm", the CFL limit over sqrt(k)); the material's own limit when it has one
+        (:meth:`jaxmpm.Material.time_step_limit`, named after its class: e.g. "newtonianfluid", the
+        viscous limit); and one per term that limits it (e.g. "heat": h^2 / (2 D a),
+        jaxmpm.physics.transport)."""
         model = self.in_precision(state.x.dtype)
         limits = {"CFL": diag.stable_dt(self.grid, model.material, state.v, cfl)}
+        factor = model.scheme.time_step_factor()  # e.g. FMPM(k): 1 / sqrt(k)
+        if factor < 1.0:
+            limits[type(model.scheme).__name__.lower()] = factor * limits["CFL"]
         limit = model.material.time_step_limit(self.grid.h, self.grid.dim)
         if limit is not None:
             limits[type(model.material).__name__.lower()] = cfl * limit

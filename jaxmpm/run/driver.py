@@ -252,9 +252,11 @@ def run(
         name = min(limits, key=limits.get)
         limit = limits[name]
         if dtc > limit:
-            material = type(sim.material).__name__
+            material, scheme = type(sim.material).__name__, type(sim.scheme).__name__
             what = ("h / max(c + |V|)" if name == "CFL" else f"{material}'s own limit, Material.time_step_limit"
-                    if name == material.lower() else f"the {name} term's limit h^2 / (2 D k / (rho C_p))")
+                    if name == material.lower() else f"{scheme}'s limit, h / max(c + |V|) times "
+                    f"{sim.scheme.time_step_factor():.4g} (Scheme.time_step_factor)" if name == scheme.lower()
+                    else f"the {name} term's limit h^2 / (2 D k / (rho C_p))")
             warn(f"dt = {dtc:.6g} exceeds the stable limit {limit:.6g} (= {what}); "
                  f"use dt <= {0.5 * limit:.6g} (CFL 0.5) to stay stable", StableTimeStepWarning)
         first = int(state.step) if start_step is None else int(start_step)

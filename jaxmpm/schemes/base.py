@@ -161,6 +161,13 @@ class Scheme(eqx.Module):
         return themselves."""
         return self
 
+    def time_step_factor(self) -> float:
+        """The factor the particle update puts on the CFL limit h / max_p(c + |V_p|): 1 (the
+        default) for an update whose velocities are the lumped-mass ones; below 1 where the update
+        accelerates the particles through another mass matrix (FMPM(k): :meth:`jaxmpm.FMPM.time_step_factor`).
+        :meth:`jaxmpm.Simulation.time_step_limits` lists it as the scheme's own limit."""
+        return 1.0
+
     def strain_grid_velocity(self, v, transfer: Transfer, constraint, exchange_dv=None):
         """Grid velocity used for the strain update, from lumped velocities (USF, MUSL: after the
         momentum exchange and the conditions; ``exchange_dv`` the exchange's change Dp/m, for a

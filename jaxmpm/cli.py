@@ -252,7 +252,8 @@ def build_parser() -> argparse.ArgumentParser:
                      help="run on the first N local devices, the grid cut into N slabs along x "
                           "(jaxmpm.parallel.ShardedSimulation; docs/scaling.md); the same file as one device. On a "
                           "CPU, N devices need XLA_FLAGS=--xla_force_host_platform_device_count=N. `jaxmpm resume` "
-                          "continues such a file on one device (default: one device, no sharding)")
+                          "continues such a file on one device, or on several with --devices (default: one device, "
+                          "no sharding)")
     run.add_argument("--rebalance-every", type=int, default=None, metavar="K",
                      help="with --devices: move the slab boundaries with the particles every K steps (and before a "
                           "step that would overflow a device's buffer; docs/scaling.md, load balance); default: "
@@ -270,6 +271,12 @@ def build_parser() -> argparse.ArgumentParser:
         "saved chunk to its end, appending to the same file; the result equals the uninterrupted run.",
     )
     resume.add_argument("file", metavar="FILE.h5", help="the --out file of an interrupted `jaxmpm run`")
+    resume.add_argument("--devices", type=int, default=None, metavar="N",
+                        help="continue on the first N local devices, as `jaxmpm run --devices N` (whichever way the "
+                             "file was started: the uninterrupted run's file to round-off; default: one device)")
+    resume.add_argument("--rebalance-every", type=int, default=None, metavar="K",
+                        help="with --devices: move the slab boundaries with the particles every K steps, as "
+                             "`jaxmpm run --rebalance-every K` (default: fixed equal slabs)")
     resume.add_argument("--no-progress", action="store_true", help="no progress bar")
     resume.add_argument("--no-cache", action="store_true", help=NO_CACHE_HELP)
     resume.add_argument("--cache", action="store_true", help=CACHE_HELP)
@@ -490,6 +497,7 @@ def fields_option(text: str) -> tuple:
 def resume_run(args) -> int:
     import json
 
+    from jaxmpm.core.errors import check
     from jaxmpm.resume import run_info
 
     try:
@@ -498,11 +506,17 @@ def resume_run(args) -> int:
             fail(f"{args.file} was not written by `jaxmpm run`; resume it from Python with jm.resume(path, setup)")
         options = json.loads(info["command"])
         _with_x64(options.get("dtype", "f64"))
+        check(args.rebalance_every is None or args.devices is not None,
+              f"--rebalance-every {args.rebalance_every} moves the slabs of a run on several devices; add --devices N")
+        if args.devices is not None:  # enough devices, before the scene is built
+            from jaxmpm.parallel import local_devices
 
+            local_devices(args.devices, "--devices")
         setup = setup_from_options(options)
     except (ValueError, KeyError) as err:  # InputError is a ValueError
         fail(str(err))
-    return run_setup(setup, argparse.Namespace(out=args.file, no_progress=args.no_progress), options, resume=True)
+    return run_setup(setup, argparse.Namespace(out=args.file, no_progress=args.no_progress, devices=args.devices,
+                                               rebalance_every=args.rebalance_every), options, resume=True)
 
 
 def saved_state(path) -> dict | None:
@@ -613,11 +627,11 @@ def run_setup(setup, args, options: dict, resume: bool = False) -> int:
     timings = {}  # compile and run seconds (jm.run's timings)
     sharded = None
     try:
+        if getattr(args, "devices", None) is not None:  # checked before the file is made (or continued)
+            sharded = sharded_model(setup, args.devices, getattr(args, "rebalance_every", None))
         if resume:
-            final = jm.resume(args.out, setup, progress=not args.no_progress, timings=timings)
+            final = jm.resume(args.out, setup, progress=not args.no_progress, timings=timings, devices=sharded)
         else:
-            if getattr(args, "devices", None) is not None:  # checked before the file is made
-                sharded = sharded_model(setup, args.devices, getattr(args, "rebalance_every", None))
             with jm.H5Writer(args.out, sim, state, dt=setup.dt, scene=setup.name, params=setup.params,
                              ppc=setup.params.get("ppc"), attrs={"command": json.dumps(options)},
                              fields=fields_option(options.get("fields", "none")),

@@ -6,7 +6,10 @@ replaced by rename, never written in place (:class:`jaxmpm.H5Writer`): whatever 
 Ctrl-C, SIGTERM, ``kill -9``, an out-of-memory kill -- the file holds its last chunk's frames and
 state.  :func:`resume` reads that state back bit for bit and runs the same compiled loop on to the
 end of the run's schedule, appending to the same file.  On the CPU the result equals the
-uninterrupted run bitwise (``tests/test_resume.py``, ``tests/test_crash_safety.py``).
+uninterrupted run bitwise (``tests/test_resume.py``, ``tests/test_crash_safety.py``).  With
+``devices=N`` (``jaxmpm resume FILE --devices N``) the run continues on N devices
+(:class:`jaxmpm.parallel.ShardedSimulation`), whether one device or several wrote the file: the
+uninterrupted run's file to round-off (``tests/parallel/sharded_io_check.py``).
 """
 
 from __future__ import annotations
@@ -51,7 +54,7 @@ def restart_command(info: dict, path) -> str:
 
 
 def resume(path, model=None, state=None, *, progress: bool = False, check_stability: bool = True,
-           timings: dict | None = None):
+           timings: dict | None = None, devices=None, rebalance_every: int | None = None):
     """Continue the run stored in ``path`` to its end, appending its frames to ``path``; returns
     the final state.
 
@@ -77,6 +80,14 @@ def resume(path, model=None, state=None, *, progress: bool = False, check_stabil
         timings: a dict to fill with the seconds spent compiling (``compile``) and running
             (``run``) and the ``steps`` run, as :func:`jaxmpm.run.driver.run` does; None (the
             default).
+        devices: continue on several devices: N, the first N local devices (the grid cut into N
+            slabs along x, :class:`jaxmpm.parallel.ShardedSimulation`), or a ShardedSimulation of
+            the run's model; None (the default): one device.  Either way the file is the one the
+            uninterrupted run writes (on one device or several: the sharded path equals one device
+            to round-off), whichever wrote its first part.
+        rebalance_every: with ``devices=N``, move the slabs with the particles every K steps
+            (:class:`~jaxmpm.parallel.ShardedSimulation`'s ``rebalance_every``); None (the default):
+            equal slabs.
 
     Returns:
         The final :class:`jaxmpm.State`.
@@ -95,6 +106,7 @@ def resume(path, model=None, state=None, *, progress: bool = False, check_stabil
     else:
         check(state is not None, "resume: with a Simulation, pass state= (the run's initial state)")
         sim, template, dt = model, state, float(info["dt"])
+    sharded = _sharded(sim, devices, rebalance_every, check_stability)
     again = restart_command(info, path)
     loaded, schedule = read_state(path, template, again=again)
     if schedule["complete"]:
@@ -106,6 +118,29 @@ def resume(path, model=None, state=None, *, progress: bool = False, check_stabil
                                          f"(step {int(loaded.step)}) comes after frame {expected}; the file was "
                                          f"modified after its run stopped; {again}")
         writer.truncate(expected)  # frames saved after the state: computed again
-        final, _ = sim.run(loaded, dt, steps, save_every, writer=writer, start_step=start, progress=progress,
-                           check_stability=check_stability, timings=timings)
+        if sharded is None:
+            final, _ = sim.run(loaded, dt, steps, save_every, writer=writer, start_step=start, progress=progress,
+                               check_stability=check_stability, timings=timings)
+        else:
+            final, _ = sharded.run(loaded, dt, steps, save_every, writer=writer, start_step=start,
+                                   progress=progress, timings=timings)
     return final
+
+
+def _sharded(sim, devices, rebalance_every, check_stability: bool):
+    """The :class:`jaxmpm.parallel.ShardedSimulation` of :func:`resume`'s ``devices=`` (None: one
+    device), checked before the file is touched."""
+    from .parallel import ShardedSimulation, local_devices
+
+    check(rebalance_every is None or (devices is not None and not isinstance(devices, ShardedSimulation)),
+          f"resume: rebalance_every = {rebalance_every!r} moves the slabs of a run on several devices; pass "
+          "devices=N with it (or build the ShardedSimulation with rebalance_every= and pass it as devices=)")
+    if devices is None:
+        return None
+    check(check_stability, "resume: on several devices the run always stops at its first unstable step; leave "
+                           "check_stability=True, or resume on one device (devices=None)")
+    if isinstance(devices, ShardedSimulation):
+        check(devices.sim is sim, "resume: devices= is a ShardedSimulation of another model; build it from the "
+                                  "Simulation being resumed (ShardedSimulation(setup.sim, ...))")
+        return devices
+    return ShardedSimulation(sim, devices=local_devices(devices, "devices"), rebalance_every=rebalance_every)

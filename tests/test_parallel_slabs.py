@@ -4,7 +4,8 @@ fixed when JAX starts).  The scripts in tests/parallel/ print their measurements
 assertions are here.  Against one device, float64: the slab decomposition's P2G (one halo exchange),
 G2P and their gradients; particle migration in fixed buffers; whole sharded runs of a scene
 whose particles cross the slab face both ways, under APIC, XPIC(3) with contact, and FLIP's
-gradient with respect to E; and such a run's frames, HDF5 file, resume and ``jaxmpm run --devices``."""
+gradient with respect to E; colliders, tractions, reactions and symmetry planes; and such a run's
+frames, HDF5 file, resume and ``jaxmpm run --devices``."""
 
 import json
 import os
@@ -76,9 +77,44 @@ def test_sharded_runs_equal_one_device():
 
 
 @pytest.mark.slow
+def test_colliders_tractions_reactions_mirrors_and_transport_equal_one_device():
+    """The terms that read the nodes' positions or numbers, on 4 devices against one, float64: two
+    colliders (a box sweeping across a slab face, an inclined half-space with friction) and the fixed
+    floor's reaction; two tractions (one on a face spanning every slab) and a point force; a symmetry
+    plane normal to y; heat with held and flux nodes, and heat and diffusion across a contact
+    interface; a symmetry plane normal to x and held ends mirrored across x (ghost nodes in the edge
+    slabs' windows).  Equal slabs, and slabs that move (tests/parallel/terms_check.py)."""
+    out = run_check("terms_check.py", 4)
+    for name in ("impact", "beam", "symmetric", "heated", "heated_contact", "symmetric_x", "held_mirrored"):
+        row = out[name]
+        assert row["finite"] and row["moved"] > 5e-3, row
+        scale = max([abs(np.asarray(t)).max() for t in row["totals"].values()], default=0.0)
+        for slabs in ("equal", "moving") if name in ("impact", "symmetric", "heated") else ("equal",):
+            many = row[slabs]
+            assert many["x_abs_err"] < 1e-13 and many["v_abs_err"] < 1e-12 * many["v_scale"], (name, slabs, many)
+            assert many["fields_abs_err"] < 1e-11, (name, slabs, many)  # fields of up to 100 (temperatures)
+            assert many["totals_abs_err"] <= 1e-14 * scale, (name, slabs, many)
+            assert slabs == "equal" or many["rebalances"] > 0
+        if name != "beam":
+            assert row["equal"]["migrated"] > 0  # the bodies cross slab faces
+    totals = out["impact"]["totals"]
+    # the solids and the floor carry the disk: non-zero forces, the reaction's summed over the devices
+    assert totals["box_force_x"] > 100 and abs(totals["ramp_force_y"]) > 1 and totals["reaction"][1] > 100, totals
+    # the held band heats the block; heat and moisture cross the contact interface
+    assert out["heated"]["transported"]["temperature"] > 10
+    assert out["heated_contact"]["transported"]["temperature"] > 1
+    assert out["heated_contact"]["transported"]["concentration"] > 0.01
+    # the strip's held ends (mirrored) cool it; a ghost band a slab face would cut is refused, naming the width
+    assert out["held_mirrored"]["transported"]["temperature"] > 0.05
+    assert "the first slab must span at least 15 cells (now 8 with 4 devices)" in out["mirror_x_error"]
+    assert "slabs that move may be as narrow as 5 cells" in out["mirror_x_moving_error"]
+
+
+@pytest.mark.slow
 def test_sharded_frames_hdf5_resume_and_cli_equal_one_device():
     """2 devices, disks colliding across the slab face: frames, the HDF5 file, its resume on one
-    device and ``jaxmpm run --devices 2`` against one device, float64 (tests/parallel/sharded_io_check.py)."""
+    device and on 2, ``jaxmpm run --devices 2`` and ``jaxmpm resume --devices 2`` against one device,
+    float64 (tests/parallel/sharded_io_check.py)."""
     out = run_check("sharded_io_check.py", 2)
     frames = out["frames"]
     assert frames["count"] == frames["reference_count"] == 9 and frames["final_step"] == 240
@@ -101,6 +137,13 @@ def test_sharded_frames_hdf5_resume_and_cli_equal_one_device():
     assert resume["same_datasets"] and resume["same_schedule"] and resume["frames"] == 9
     assert resume["worst"] < 1e-13 and resume["final_step"] == 240, resume
     assert resume["final_x_err"] < 1e-14 and resume["final_v_err"] < 1e-13, resume
+    # jm.resume(..., devices=2): the sharded file continued on 2 devices, and a one-device run's file killed
+    # between two frames (its state at step 179, frames to 150) continued on 2: the same file and state
+    for again in (out["resume_devices"], out["resume_devices_of_one"]):
+        assert again["same_datasets"] and again["same_schedule"] and again["frames"] == 9, again
+        assert again["worst"] < 1e-13 and max(again["x_per_frame"]) < 1e-14 and again["final_step"] == 240, again
+        assert again["final_x_err"] < 1e-14 and again["final_v_err"] < 1e-13, again
+    assert out["resume_devices_of_one"]["kept"] == {"killed": True, "frames": 6, "state_step": 179}
     # jaxmpm run disks --devices 2: the file of the same command on one device; --devices is a run option
     cli = out["cli"]
     assert cli["codes"] == [0, 0, 0] and cli["same_datasets"] and cli["same_schedule"] and cli["frames"] == 4
@@ -110,11 +153,17 @@ def test_sharded_frames_hdf5_resume_and_cli_equal_one_device():
     assert rebalanced["same_datasets"] and rebalanced["worst"] < 1e-13, rebalanced
     assert "rebalance" not in cli["summary_devices"][0]
     assert int(cli["summary_devices"][-1].split(" rebalance(s)")[0].split()[-1]) >= 1, cli["summary_devices"]
-    assert "devices" not in cli["stored_command"]  # jaxmpm resume continues the file on one device
+    assert "devices" not in cli["stored_command"]  # jaxmpm resume continues the file on one device (or --devices N)
     code, message = cli["three_devices"]  # more devices than the process has: the fix, and no file
     assert code == 2 and message.startswith("jaxmpm: error: --devices 3: this process has 2 cpu devices; set "
                                             "XLA_FLAGS=--xla_force_host_platform_device_count=3")
     assert not cli["three_devices_file"]
+    # a one-device `jaxmpm run disks` killed after 2 frames, then `jaxmpm resume FILE --devices 2`: the file of
+    # the uninterrupted one-device command
+    again = out["cli_resume"]
+    assert again["code"] == 0 and again["kept"]["frames"] == 2 and again["frames"] == 4, again
+    assert again["same_datasets"] and again["same_schedule"] and again["worst"] < 1e-13, again
+    assert again["summary_devices"] and again["summary_devices"][0].split()[1] == "2"
 
 
 @pytest.mark.slow
@@ -151,12 +200,15 @@ def test_two_processes_give_the_one_device_answer(tmp_path):
     assert path.exists() and not list(tmp_path.glob("*.tmp"))  # one file, its writer closed
 
 
+@pytest.mark.slow
 def test_cli_devices_refused_with_the_fix(tmp_path, capsys):
-    """``jaxmpm run --devices N``: more devices than this process has, or a model with terms the
-    sharded path does not support, exit 2 naming the fix, before the output file is made."""
+    """``jaxmpm run --devices N``: more devices than this process has, or bad options, exit 2 naming
+    the fix, before the output file is made; ``jaxmpm resume --devices N`` and ``jm.resume(...,
+    devices=N)`` likewise, leaving the file as it was."""
     import jax
     from cases import run_cli
 
+    import jaxmpm as jm
     from jaxmpm.parallel import local_devices
 
     have = len(jax.local_devices())
@@ -165,9 +217,6 @@ def test_cli_devices_refused_with_the_fix(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert err.startswith(f"jaxmpm: error: --devices {have + 1}: this process has {have} cpu device")
     assert f"set XLA_FLAGS=--xla_force_host_platform_device_count={have + 1}" in err and "\n" not in err
-    assert run_cli(["run", "incline", "--devices", "1", "--out", str(path)]) == 2
-    assert capsys.readouterr().err.strip().startswith(
-        "jaxmpm: error: ShardedSimulation: Collider not supported on several devices yet")
     assert run_cli(["run", "disks", "--devices", "0", "--out", str(path)]) == 2
     assert "--devices = 0 must be a positive integer" in capsys.readouterr().err
     assert run_cli(["run", "disks", "--rebalance-every", "10", "--out", str(path)]) == 2
@@ -177,6 +226,27 @@ def test_cli_devices_refused_with_the_fix(tmp_path, capsys):
     assert "rebalance_every = 0 must be a positive integer" in capsys.readouterr().err
     assert not path.exists()
     assert local_devices(1) == jax.local_devices()[:1]
+    # `jaxmpm resume FILE --devices N` and jm.resume(..., devices=N): the same checks, before the file is touched
+    import h5py
+
+    done = tmp_path / "bar.h5"  # what resume reads first: the command that made the run
+    with h5py.File(done, "w") as f:
+        f.attrs["command"] = '{"scene": "bar"}'
+    before = done.read_bytes()
+    assert run_cli(["resume", str(done), "--devices", str(have + 1)]) == 2
+    assert capsys.readouterr().err.strip().startswith(f"jaxmpm: error: --devices {have + 1}: this process has {have}")
+    assert run_cli(["resume", str(done), "--rebalance-every", "10"]) == 2
+    assert "--rebalance-every 10 moves the slabs of a run on several devices; add --devices N" in (
+        capsys.readouterr().err)
+    setup = jm.scene("bar")
+    with pytest.raises(jm.InputError, match=f"devices {have + 1}: this process has {have}"):
+        jm.resume(done, setup, devices=have + 1)
+    with pytest.raises(jm.InputError, match="rebalance_every = 5 moves the slabs of a run on several devices; pass "
+                                            "devices=N"):
+        jm.resume(done, setup, rebalance_every=5)
+    with pytest.raises(jm.InputError, match="on several devices the run always stops at its first unstable step"):
+        jm.resume(done, setup, devices=1, check_stability=False)
+    assert done.read_bytes() == before
 
 
 def test_bad_input_names_the_option():
@@ -185,8 +255,11 @@ def test_bad_input_names_the_option():
     import jaxmpm as jm
     from jaxmpm.parallel import ShardedSimulation, Slabs
 
-    with pytest.raises(jm.InputError, match="Collider not supported on several devices yet"):
-        ShardedSimulation(jm.scene("incline").sim)
+    class Glue(jm.Term):  # a term of one's own: it may index the global grid
+        pass
+
+    with pytest.raises(jm.InputError, match="Glue not supported on several devices yet"):
+        ShardedSimulation(jm.scene("disks").sim.with_term(Glue()))
     grid = jm.Grid(lower=(0.0, 0.0), upper=(1.0, 1.0), cells=(10, 4))
     with pytest.raises(jm.InputError, match="do not split into 4 equal slabs"):
         Slabs(grid, 4, 2)

@@ -56,6 +56,7 @@ BLOCKS = {
                                     1)]),
     "Transfer kernels: XLA or fused Pallas": Block(),  # one model, no run
     "One simulation on several devices": Block([("setup.dt, 200)", "setup.dt, 20)", 1)]),
+    "Colliders, tractions, transport and symmetry planes": Block([("setup.dt, 200)", "setup.dt, 20)", 1)]),
     "Load balance: slabs that move with the particles": Block([('jm.scene("column_collapse")',
                                                                'jm.scene("column_collapse", cells=2)', 1),
                                                               ("rebalance_every=200", "rebalance_every=10", 1),

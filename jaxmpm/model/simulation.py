@@ -6,6 +6,7 @@ driver's job (``jaxmpm.run.driver``); ``sim.run`` and ``sim.rollout`` call it.""
 from __future__ import annotations
 
 import copy
+import dataclasses
 from typing import Callable
 
 import equinox as eqx
@@ -43,7 +44,7 @@ from ..transfer.backend import (
     use_kernel,
     use_policy,
 )
-from ..transfer.kernels.windowed import active_window
+from ..transfer.kernels.windowed import active_window, on_window
 from ..transfer.shapes import UGIMP, ShapeFunction, field_stencil
 from . import frame_fields
 from .step import step as _step
@@ -419,12 +420,21 @@ class Simulation(eqx.Module):
         window = active_window()
         if window is None:
             return constraint
-        check(constraint.mirror is None, "Simulation: mirror planes (jm.Mirror) are not supported on the sharded path "
-              "yet; run on one device")
-        rows = self.velocity_fields * self.grid.num_nodes
-        return jax.tree_util.tree_map(
-            lambda a: window.restrict(a, self.velocity_fields) if getattr(a, "shape", (0,))[:1] == (rows,) else a,
+        rows = self.field_nodes
+        constraint = jax.tree_util.tree_map(
+            lambda a: on_window(a, self.velocity_fields) if getattr(a, "shape", (0,))[:1] == (rows,) else a,
             constraint)
+        if constraint.mirror is None:
+            return constraint
+        # the symmetry planes' node numbers as the window's rows
+        return dataclasses.replace(constraint, mirror=constraint.mirror.on_window(window.local_nodes))
+
+    def node_positions(self, dtype):
+        """x_i, the positions of every velocity field's nodes, (field_nodes, D) in ``dtype`` (the level
+        sets of colliders are evaluated there); on the sharded path the device's window of them
+        (:mod:`jaxmpm.parallel`; its planes beyond the grid, which no particle reaches, at 0)."""
+        nodes = np.tile(self.grid.node_coordinates(), (self.velocity_fields, 1))
+        return on_window(jnp.asarray(nodes, dtype), self.velocity_fields)
 
     def init(self, particles: Particles, fields: dict | None = None) -> State:
         """Initial state from :func:`jaxmpm.fill` output (or any :class:`Particles`); the fields

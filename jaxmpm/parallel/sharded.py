@@ -5,8 +5,8 @@
 window of the grid (:mod:`jaxmpm.transfer.kernels.windowed`; one halo exchange per P2G, the
 velocity conditions cut to the window), then the particles that crossed a slab face move to the
 neighbour (:func:`~jaxmpm.parallel.migration.migrate`).  Free buffer slots hold a parked
-placeholder particle (zero mass and volume at the slab's centre, reset every step), so shapes
-never change and one compiled program serves the whole run.
+placeholder particle (zero mass, volume and particle fields at the slab's centre, reset every
+step), so shapes never change and one compiled program serves the whole run.
 
 A run stops stepping at the first step where a particle did not fit (more movers than the
 exchange slots, a full buffer, or a particle crossing more than one slab), with the state of the
@@ -48,9 +48,14 @@ from ..core.errors import check
 from ..core.limits import require_steps
 from ..core.state import State, per_particle
 from ..physics.body_force import BodyForce
+from ..physics.collider import Collider
+from ..physics.conditions import Mirror
 from ..physics.contact import Contact
 from ..physics.damping import Damping
+from ..physics.loads import ParticleForce, Traction
+from ..physics.reaction import Reaction
 from ..physics.stress import StressDivergence
+from ..physics.transport import Transport
 from ..run.driver import (
     Failure,
     RunInterrupted,
@@ -69,9 +74,13 @@ from ..transfer.kernels.windowed import use_window
 from .migration import migrate
 from .slabs import Slabs, halo_for
 
-# The terms whose grid work is P2G, G2P and node-by-node operations, which the windows serve as they
-# are; the others keep per-node data or sum over nodes (colliders, transport, tractions, reactions).
-SUPPORTED_TERMS = (StressDivergence, BodyForce, Damping, Contact)
+# The terms whose grid work is P2G, G2P and node-by-node operations, which the windows serve: as they
+# are, or with their per-node data cut to the window (colliders' node positions: Simulation.node_positions;
+# transport's held and flux nodes: jaxmpm.transfer.kernels.windowed.on_window) and nodal values read at
+# the particles' nodes through it (tractions: jaxmpm.transfer.operators.slot_values); the reaction is
+# summed over the particles' shares.  Any other term (one of the user's) is refused.
+SUPPORTED_TERMS = (StressDivergence, BodyForce, Damping, Contact, Collider, Traction, ParticleForce, Reaction,
+                   Transport)
 
 
 #: larger than any step, cause or particle index: "none" in the reduction of the devices' failure records
@@ -82,8 +91,13 @@ class ShardedSimulation:
     """``sim`` on the devices of a one-axis mesh, its grid cut into slabs along x.
 
     Args:
-        sim: the :class:`jaxmpm.Simulation` (any scheme; terms that keep per-node data of their own
-            -- colliders, transport, tractions, mirror planes -- are not supported yet).
+        sim: the :class:`jaxmpm.Simulation`: any scheme, and the library's terms
+            (:data:`SUPPORTED_TERMS`: the stress, body force, damping, contact, colliders static or
+            moving, tractions, point forces, the conditions' reaction, heat and diffusion) with any
+            velocity conditions, symmetry planes (jm.Mirror) and a transport's mirrored held nodes
+            (jm.Dirichlet(..., mirror=...)) included.  Refused with an InputError: terms of one's
+            own, and a mirror across x (the slabs' axis) whose ghost and mirror nodes a slab face
+            would put in different windows (the edge slab narrower than the ghost band and the halo).
         devices: the devices (default ``jax.devices()``); ``sim.grid.cells[0]`` must be a multiple
             of their number.
         halo: the halo in node planes (default: the shape function's nodes per axis minus one).
@@ -126,12 +140,63 @@ class ShardedSimulation:
             self.slabs = Slabs(sim.grid, D, halo, axis_name, max_cells=max_cells)
         else:
             self.slabs = Slabs(sim.grid, len(devices), halo, axis_name)
+        self._check_images()
         self.bounds = None  # the slabs' boundaries (slabs that move), chosen by distribute
         self.capacity = capacity
         self.exchange = exchange
         self.axis_name = axis_name
         self._programs = {}
         self.stats = {}
+
+    def _check_images(self):
+        """An InputError unless every ghost node of a symmetry plane (jm.Mirror) or of a transport's
+        mirrored held boundary (jm.Dirichlet(..., mirror=...)) lies in the same windows' complete
+        planes as its mirror node.  A window's planes hold complete P2G sums from its slab's face b_k
+        - H to b_{k+1} + H (:mod:`~jaxmpm.parallel.slabs`), and the image is folded there node by node
+        (:meth:`jaxmpm.physics.conditions.MirrorMap.on_window`): a pair on one x plane (a plane normal
+        to y or z) is always whole; a pair across x planes lo < hi (a plane normal to x, at the grid's
+        end) is whole when no slab face b puts b - H in (lo, hi] or b + H in [lo, hi), i.e. when the
+        edge slab is wider than the ghost band and the halo."""
+        sim, slabs = self.sim, self.slabs
+        grid, H, D, cells = sim.grid, slabs.halo, slabs.devices, sim.grid.cells[0]
+        if D == 1:
+            return
+        pairs = [(f"the symmetry plane jm.Mirror({c.where!r}, {c.position:g})", *c.plane(grid)[1:3])
+                 for c in sim.boundary if isinstance(c, Mirror)]
+        for t in sim.terms:
+            if isinstance(t, Transport):
+                ghosts, mirrors = t.mirror_map(sim)
+                pairs.append((f"{type(t).__name__}'s jm.Dirichlet(..., mirror=...)", ghosts % grid.num_nodes,
+                              mirrors % grid.num_nodes))
+        moving = self.rebalance_every is not None
+        if moving:  # every place an interior face can take: widths from 2 H + 1 to max_cells
+            narrow, wide = slabs.min_cells, slabs.max_cells
+            faces = np.unique(np.concatenate([
+                np.arange(max(j * narrow, cells - (D - j) * wide), min(j * wide, cells - (D - j) * narrow) + 1)
+                for j in range(1, D)]))
+        else:
+            faces = slabs.equal_bounds()[1:-1].astype(np.int64)
+        for what, ghosts, mirrors in pairs:
+            planes = np.stack([np.asarray(ghosts) // slabs.plane_nodes, np.asarray(mirrors) // slabs.plane_nodes])
+            lo, hi = planes.min(axis=0), planes.max(axis=0)
+            across = lo < hi
+            if not across.any():
+                continue
+            lo, hi = lo[across][:, None], hi[across][:, None]
+            split = ((faces - H > lo) & (faces - H <= hi)) | ((faces + H >= lo) & (faces + H < hi))
+            if not split.any():
+                continue
+            face = int(faces[np.flatnonzero(split.any(axis=0))[0]])
+            low_end = face <= cells // 2
+            width = int(hi.max()) + H + 1 if low_end else cells - (int(lo.min()) - H - 1)
+            edge = "first" if low_end else "last"
+            now = (f" (now {slabs.cells_per_slab} with {D} devices); raise the grid's cells along x, or use fewer "
+                   "devices" if not moving else f", and slabs that move may be as narrow as {slabs.min_cells} cells; "
+                   "shard with fixed equal slabs (no rebalance_every)")
+            check(False, f"ShardedSimulation: {what} pairs ghost and mirror node planes {int(lo.min())} to "
+                  f"{int(hi.max())} along x (the slabs' axis), and a slab face at cell {face} would cut them into "
+                  f"different windows (halo {H} planes): the {edge} slab must span at least {width} cells{now}, or "
+                  "run the model on one device")
 
     @property
     def devices(self) -> int:
@@ -212,7 +277,8 @@ class ShardedSimulation:
 
     # ------------------------------------------------------------------ the run
     def run(self, state: State, dt, steps: int, save_every: int | None = None, *, save_particles: bool = True,
-            fields: tuple | None = None, writer=None, progress: bool = False, timings: dict | None = None):
+            fields: tuple | None = None, writer=None, progress: bool = False, timings: dict | None = None,
+            start_step: int | None = None):
         """``steps`` steps of ``dt`` from ``state`` on the mesh.
 
         Without ``save_every`` (and no ``writer``): the final state, in the particles' original
@@ -239,7 +305,13 @@ class ShardedSimulation:
             progress: show a progress bar (default False).
             timings: a dict to fill with the seconds spent compiling and running and the steps run,
                 as :func:`jaxmpm.run.driver.run` does; None (the default).
+            start_step: with a writer, continue a run (:func:`jaxmpm.resume`): the step of its first
+                frame, ``state`` part-way through its schedule of ``steps`` steps from there (the
+                frames up to ``state`` are in the writer's file already); None (the default): a run
+                from ``state``, as :meth:`jaxmpm.Simulation.run` has it.
         """
+        check(start_step is None or writer is not None, "ShardedSimulation.run: start_step continues a run saved "
+              "in a file; pass writer= (see jaxmpm.resume)")
         if save_every is None and writer is None:
             check(fields is None and not progress and timings is None, "ShardedSimulation.run: fields=, progress= "
                   "and timings= belong to a run that saves frames; pass save_every= (the steps between frames)")
@@ -256,7 +328,8 @@ class ShardedSimulation:
                 buffers, valid, ids = self._advance(self.rollout(length), self.sim, state, buffers, valid, ids,
                                                     jnp.asarray(dt), length)
             return self.collect(buffers, valid, ids, n)
-        return self._run_frames(state, dt, steps, save_every, save_particles, fields, writer, progress, timings)
+        return self._run_frames(state, dt, steps, save_every, save_particles, fields, writer, progress, timings,
+                                start_step)
 
     def _start_stats(self, state):
         """:attr:`stats` of a run from ``state``, after :meth:`distribute`: the steps done, the particles
@@ -340,7 +413,8 @@ class ShardedSimulation:
             return ()
         return jnp.asarray(self.bounds, jnp.int32), jnp.asarray(steps, jnp.int32)
 
-    def _run_frames(self, state, dt, steps, save_every, save_particles, fields, writer, progress, timings):
+    def _run_frames(self, state, dt, steps, save_every, save_particles, fields, writer, progress, timings,
+                    start_step=None):
         """:meth:`run` with frames: the compiled rollout of ``save_every`` steps once per frame,
         each frame made from the collected particles and published with the driver's
         :class:`~jaxmpm.run.driver._Publisher` (a chunk of frames and the state reached, about
@@ -365,7 +439,12 @@ class ShardedSimulation:
                   f"writer saves {writer.fields!r}; choose them once, on the writer (jm.H5Writer(..., fields=...))")
             chosen = _chosen_fields(sim, state, writer.fields, save_particles)
         fields = chosen
-        frames, n, start = steps // save_every, int(state.x.shape[0]), int(state.step)
+        n, start = int(state.x.shape[0]), int(state.step) if start_step is None else int(start_step)
+        done = int(state.step) - start  # resumed: the steps done before this call, their frames saved
+        check(0 <= done <= steps, f"resume: the state is at step {int(state.step)}, outside the run's steps "
+              f"{start}..{start + steps}")
+        lead = -done % save_every  # resumed between two frames: the steps to the next frame, saved with it
+        frames = (steps - done - lead) // save_every
         require_steps(start + steps, "shorten t_end, use a larger dt, or split the run")
         writing = writer is not None  # process 0's writer holds the frames: no process keeps them in memory
         if jax.process_count() > 1:
@@ -374,7 +453,7 @@ class ShardedSimulation:
         dt = jnp.asarray(dt, state.x.dtype)
         buffers, valid, ids = self.distribute(state)
         self._start_stats(state)
-        clock = _Clock(steps, 0, progress, timings)
+        clock = _Clock(steps, done, progress, timings)
         publisher = None if writer is None else _Publisher(
             writer, dict(start_step=start, steps=steps, save_every=save_every), tree_bytes(state))
         seconds = _chunk_seconds()
@@ -393,13 +472,22 @@ class ShardedSimulation:
                 with clock.compiling():  # the rollout of one frame, compiled before the first step
                     program = self.rollout(save_every).lower(sim, buffers, valid, ids, dt,
                                                              *self._moving_args(save_every)).compile()
-                    first = jax.block_until_ready(one_frame(state))
+                    fresh = done == 0 and (writer is None or writer.frames == 0)  # no frame saved yet
+                    first = jax.block_until_ready(one_frame(state)) if fresh else None
                 if not writing:
                     pieces.append(first)
-                elif writer is not None:  # before the first step: from here on the file can be continued
+                elif writer is not None and fresh:  # before the first step: from here on the file can be continued
                     publisher.publish(first, state)
                 published = time.perf_counter()
                 clock.start()
+                if lead:  # resumed between two frames: on to the next frame, saved with the state there
+                    buffers, valid, ids = self._advance(self.rollout(lead), sim, state, buffers, valid, ids, dt,
+                                                        lead, held=state)
+                    state = self.collect(buffers, valid, ids, n)
+                    frame = one_frame(state)
+                    if writer is not None:
+                        publisher.publish(frame, state, due=True)
+                    clock.chunk(lead)
                 for k in range(frames):
                     tic = time.perf_counter()
                     try:
@@ -441,9 +529,10 @@ class ShardedSimulation:
         ``rebalance_every``: ``rollout(steps)(sim, buffers, valid, ids, dt, bounds, limit)``, ``bounds``
         the slabs' boundaries (:attr:`bounds`, (D + 1,) int32, a runtime argument: one program
         serves any) and ``limit`` the steps to take at most (None: all; the rest are not taken).  ``sim`` is an argument
-        (a model of the same structure: other parameters, or differentiated, without recompiling);
-        each step is rematerialised in reverse mode (``jax.checkpoint``).  Call :meth:`distribute`
-        first (it fixes the capacity)."""
+        (a model of the same structure: other parameters, or differentiated, without recompiling;
+        its leaves that are not arrays -- a load T(t), a solid's motion u(t) -- are static, as
+        ``eqx.filter_jit`` keeps them); each step is rematerialised in reverse mode
+        (``jax.checkpoint``).  Call :meth:`distribute` first (it fixes the capacity)."""
         check(self.capacity is not None, "ShardedSimulation.rollout: call distribute(state) first (it sets capacity)")
         key = (steps, self.capacity, self.exchange)
         if key not in self._programs:
@@ -468,9 +557,13 @@ class ShardedSimulation:
             placeholder = [leaf[0] for leaf in _particles(buffers, capacity)]  # any finite particle
 
             def reset(state, valid):
-                """Free slots back to the parked placeholder: zero mass and volume at the slab's centre."""
+                """Free slots back to the parked placeholder: zero mass and volume at the slab's centre, and
+                zero in the terms' particle fields (it is no loaded particle: jm.Traction, jm.ParticleForce)."""
                 leaves = [jnp.where(_expand(valid, a), a, p) for a, p in zip(_particles(state, capacity), placeholder)]
                 state = _with_particles(state, leaves, capacity)
+                if state.fields:
+                    state = _replace(state, fields={name: jnp.where(_expand(valid, a), a, jnp.zeros((), a.dtype))
+                                                    for name, a in state.fields.items()})
                 return _replace(state, x=jnp.where(valid[:, None], state.x, park),
                                 mass=jnp.where(valid, state.mass, 0.0), volume0=jnp.where(valid, state.volume0, 0.0))
 
@@ -542,18 +635,26 @@ class ShardedSimulation:
                 "slabs that move need their boundaries: call rollout(steps)(sim, buffers, valid, ids, dt, "
                 "sharded.bounds)" if moving else "bounds= belong to slabs that move (rebalance_every=)"))
             specs = jax.tree_util.tree_map(spec, buffers)
-            replicated = jax.tree_util.tree_map(lambda _: P(), sim)
+            # the model's arrays are replicated arguments; its other leaves -- callables such as a
+            # load T(t) or a solid's motion u(t) -- are static, as eqx.filter_jit keeps them
+            params, static = eqx.partition(sim, eqx.is_array)
+            replicated = jax.tree_util.tree_map(lambda _: P(), params)
+
+            def on_device(params, *args):
+                return local(eqx.combine(params, static), *args)
+
             out_specs = (specs,) + (P(axis),) * 10
             if not moving:
-                mapped = jax.shard_map(local, mesh=self.mesh, in_specs=(replicated, specs, P(axis), P(axis), P()),
+                mapped = jax.shard_map(on_device, mesh=self.mesh, in_specs=(replicated, specs, P(axis), P(axis), P()),
                                        out_specs=out_specs, check_vma=False)
-                return mapped(sim, buffers, valid, ids, dt)
-            mapped = jax.shard_map(local, mesh=self.mesh, in_specs=(replicated, specs, P(axis), P(axis), P(), P(), P()),
+                return mapped(params, buffers, valid, ids, dt)
+            mapped = jax.shard_map(on_device, mesh=self.mesh,
+                                   in_specs=(replicated, specs, P(axis), P(axis), P(), P(), P()),
                                    out_specs=out_specs, check_vma=False)
             limit = jnp.asarray(steps if limit is None else limit, jnp.int32)
-            return mapped(sim, buffers, valid, ids, dt, jnp.asarray(bounds, jnp.int32), limit)
+            return mapped(params, buffers, valid, ids, dt, jnp.asarray(bounds, jnp.int32), limit)
 
-        return jax.jit(program)
+        return eqx.filter_jit(program)
 
 
 def local_devices(count, option: str = "devices") -> list:

@@ -442,8 +442,7 @@ class Collider(Term):
         """Phase "colliders": the condition on the nodes with mass inside the solid at ``time``
         (phi <= 0); returns (v after, {"<name>_acceleration": (v after - v)/dt})."""
         self.check_dimension(sim.grid.dim)
-        nodes = np.asarray(sim.grid.node_coordinates())
-        x = jnp.asarray(np.tile(nodes, (v.shape[0] // nodes.shape[0], 1)), v.dtype)  # every velocity field
+        x = sim.node_positions(v.dtype)  # every velocity field's nodes
         phi, normal = self.level_set(x, time)
         touching = (phi <= 1e-9 * sim.grid.h) & (fields.mass > 0)  # on the surface despite round-off
         after = jnp.where(touching[:, None], self.condition_velocity(v, self.solid_velocity(x, time), normal), v)

@@ -138,9 +138,32 @@ class MirrorMap(eqx.Module):
     and the ghost nodes carry the reflection of their mirror node, q_g = R q_mirror(g) (R = 1 for a
     scalar such as the mass).  Folding mass, momentum and force (and S+ in the mass-matrix series)
     gives exactly the grid of the doubled body on the doubled domain.  Several planes fold one
-    after the other (corner nodes get the double image), then extend one after the other."""
+    after the other (corner nodes get the double image), then extend one after the other.
+
+    On the sharded path (:mod:`jaxmpm.parallel`) the map acts on a device's window of the grid
+    (:meth:`on_window`): the same sums, node by node, for planes normal to another axis than the
+    slabs' x, whose ghost and mirror nodes share their x plane and so lie in the same windows."""
 
     planes: tuple = eqx.field(static=True)  # (axis, ghosts, mirrors, on-plane nodes) per plane, _Indices
+    # on a window: (ghosts, mirrors, on-plane nodes) per plane as the window's rows (traced), those
+    # outside it one past its end; None: the whole grid
+    window_rows: tuple | None = None
+
+    def on_window(self, local_nodes) -> "MirrorMap":
+        """The map on a window of the grid: ``local_nodes(nodes)`` gives the window's rows of global
+        node numbers, a node outside the window one past its end
+        (:meth:`jaxmpm.transfer.kernels.windowed.Window.local_nodes`)."""
+        rows = tuple(tuple(local_nodes(nodes.array) for nodes in (g, m, p)) for _, g, m, p in self.planes)
+        return MirrorMap(self.planes, rows)
+
+    def _nodes(self):
+        """(axis, ghosts, mirrors, on-plane nodes, concatenate, read, write) per plane: the rows of
+        the nodal arrays and how to index them (on a window, rows past its end read 0 and are
+        not written)."""
+        if self.window_rows is None:
+            return [(axis, g.array, m.array, p.array, np.concatenate, {}, {}) for axis, g, m, p in self.planes]
+        return [(axis, *rows, jnp.concatenate, {"mode": "fill", "fill_value": 0}, {"mode": "drop"})
+                for (axis, *_), rows in zip(self.planes, self.window_rows)]
 
     def reflect(self, q, axis: int):
         """R q: a scalar is even, a vector's ``axis`` component odd."""
@@ -150,16 +173,16 @@ class MirrorMap(eqx.Module):
 
     def fold(self, q):
         """The nodal sum ``q`` (n,) or (n, D) of the particles plus that of their images."""
-        for axis, ghosts, mirrors, plane in self.planes:
-            source = np.concatenate([ghosts.array, plane.array])
-            target = np.concatenate([mirrors.array, plane.array])
-            q = q.at[target].add(self.reflect(q[source], axis))
+        for axis, ghosts, mirrors, plane, concatenate, read, write in self._nodes():
+            source = concatenate([ghosts, plane])
+            target = concatenate([mirrors, plane])
+            q = q.at[target].add(self.reflect(q.at[source].get(**read), axis), **write)
         return self.extend(q)
 
     def extend(self, u):
         """Ghost nodes take the reflection of their mirror node, u_g = R u_mirror(g) (idempotent)."""
-        for axis, ghosts, mirrors, _ in self.planes:
-            u = u.at[ghosts.array].set(self.reflect(u[mirrors.array], axis))
+        for axis, ghosts, mirrors, _, _, read, write in self._nodes():
+            u = u.at[ghosts].set(self.reflect(u.at[mirrors].get(**read), axis), **write)
         return u
 
     def fold_columns(self, nodal: dict, names) -> dict:

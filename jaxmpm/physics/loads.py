@@ -43,7 +43,7 @@ from ..core.registry import register_term
 from ..core.validate import FINITE
 from ..transfer.backend import materialise
 from ..transfer.contractions import PerSlot, Weighted
-from ..transfer.operators import p2g
+from ..transfer.operators import p2g, slot_values
 from .term import Term
 
 
@@ -144,7 +144,9 @@ class Traction(Term):
         area = det(state.F) * state.volume0 / (2.0 * half0 * stretch)  # A_p = V_p / (2 l_p)
         if sim.grid.axisymmetric:  # per radian, at the edge's radius: int T . du r dL (001 eq. 108)
             area = area * edge[:, 0] / state.x[:, 0]
-        area = state.fields[self.name] * area  # 0 off the loaded face
+        # 0 off the loaded face, and on particles without volume (a sharded run's free slots: A_p = 0/0)
+        loaded = (state.fields[self.name] != 0) & (state.volume0 > 0)
+        area = jnp.where(loaded, state.fields[self.name] * area, 0.0)
         load = _at(self.traction, state.time, dim, state.x.dtype)
         basis = sim.shape.grid_basis() if self.basis == "grid" else None  # 001 eq. (21): N_i at the edge
         stencil = sim.stencil(state, edge, basis)  # on the particle's own velocity field
@@ -181,7 +183,7 @@ def bounded_shares(sim, stencil, area, reach):
     share = p2g(stencil, {"share": PerSlot((area[None, :] * stencil.weight)[None])}, sim.field_nodes)["share"][:, 0]
     over = share > reach
     scale = jnp.where(over, reach / jnp.where(over, share, 1.0), 1.0)  # min(1, R_i / Q_i)
-    carried = stencil.weight * scale[stencil.index]
+    carried = stencil.weight * slot_values(stencil, scale)
     total = jnp.sum(carried, axis=0, keepdims=True)
     return carried / jnp.where(total > 0, total, 1.0)
 

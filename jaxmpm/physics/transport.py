@@ -71,6 +71,7 @@ from ..core.registry import Parameter, register_term
 from ..core.safe import safe_norm
 from ..core.validate import FINITE, FRACTION, NON_NEGATIVE, POSITIVE, concrete, positive_int, traced
 from ..transfer.contractions import Divergence, Gradient, Weighted
+from ..transfer.kernels.windowed import active_window, on_window
 from ..transfer.operators import Transfer, gather, p2g, safe_divide
 from ..transfer.series import series
 from .conditions import NodeSet, _select, mirror_nodes, node_plane
@@ -142,6 +143,12 @@ class Neumann(eqx.Module):
 def _nodes(grid, condition, copies: int) -> np.ndarray:
     """The condition's node mask on every velocity field's copy of the grid, (copies n,)."""
     return np.tile(_select(grid, condition.where, condition.layers), copies)
+
+
+def _read(nodal, rows):
+    """``nodal[rows]``, a row one past the end (a node outside the device's window on the sharded
+    path: :meth:`Transport.mirror_rows`) read as 0."""
+    return nodal.at[rows].get(mode="fill", fill_value=0)
 
 
 def _parse_update(owner: str, update: str, name: str = "update") -> tuple:
@@ -280,7 +287,8 @@ class Transport(Term):
                 self.MOMENTUM: Weighted(capacity * state.fields[self.FIELD])}  # 001 eq. (133)
 
     def held(self, sim, dtype):
-        """(mask, value) of the Dirichlet nodes on every field's copy of the grid."""
+        """(mask, value) of the Dirichlet nodes on every field's copy of the grid (on the sharded
+        path, of the device's window of it)."""
         copies = self.copies(sim)
         mask = np.zeros(copies * sim.grid.num_nodes, dtype=bool)
         value = jnp.zeros(copies * sim.grid.num_nodes, dtype)
@@ -289,7 +297,7 @@ class Transport(Term):
                 nodes = _nodes(sim.grid, c, copies)
                 mask |= nodes
                 value = jnp.where(nodes, c.value.astype(dtype), value)
-        return jnp.asarray(mask), value
+        return on_window(jnp.asarray(mask), copies), on_window(value, copies)
 
     def mirror_map(self, sim) -> tuple:
         """(ghost nodes, their mirror nodes) of the mirrored Dirichlet conditions, as field-node
@@ -312,14 +320,33 @@ class Transport(Term):
         copies = np.arange(self.copies(sim))[:, None] * n
         return ((np.concatenate(ghosts)[None] + copies).ravel(), (np.concatenate(mirrors)[None] + copies).ravel())
 
+    def mirror_rows(self, sim) -> tuple:
+        """(ghosts, mirrors) of :meth:`mirror_map` as the rows of the nodal arrays being traced: the
+        field-node indices themselves on one device; on the sharded path the device's window rows,
+        a node outside the window one past the window's end (read as 0 with ``mode="fill"``, skipped
+        by a scatter with ``mode="drop"``; the sharded run keeps each pair in the same windows:
+        :class:`jaxmpm.parallel.ShardedSimulation`)."""
+        ghosts, mirrors = self.mirror_map(sim)
+        window = active_window()
+        if window is None or not ghosts.size:
+            return ghosts, mirrors
+        n, copies, W = sim.grid.num_nodes, self.copies(sim), window.window_nodes
+
+        def rows(nodes):
+            local = window.local_nodes(nodes % n)
+            return jnp.where(local < W, (nodes // n) * W + local, copies * W)
+
+        return rows(ghosts), rows(mirrors)
+
     def boundary_flow(self, sim, dtype):
-        """Q_i,q: the Neumann conditions' inward flux times the nodal face area h^(D-1)."""
+        """Q_i,q: the Neumann conditions' inward flux times the nodal face area h^(D-1) (on the
+        sharded path, on the device's window of the grid)."""
         flow = jnp.zeros(self.copies(sim) * sim.grid.num_nodes, dtype)
         for c in self.boundary:
             if isinstance(c, Neumann):
                 flow = flow + jnp.where(_nodes(sim.grid, c, self.copies(sim)),
                                         c.flux.astype(dtype) * sim.grid.h ** (sim.grid.dim - 1), 0.0)
-        return flow
+        return on_window(flow, self.copies(sim))
 
     def nodal_field(self, sim, mass, momentum):
         """(T_i, m_Ti, held mask, ghosts, mirrors): T_i = p_Ti / m_Ti (001 eq. 138), the held value on
@@ -327,13 +354,14 @@ class Transport(Term):
         (a ghost's accumulated m and 2 v m - p added to its mirror node: what the mirrored particles
         would give it), then the ghosts take the odd extension 2 v - T_mirror."""
         held, value = self.held(sim, mass.dtype)
-        ghosts, mirrors = self.mirror_map(sim)
+        ghosts, mirrors = self.mirror_rows(sim)
         if ghosts.size:
-            momentum = momentum.at[mirrors].add(2.0 * value[ghosts] * mass[ghosts] - momentum[ghosts])
-            mass = mass.at[mirrors].add(mass[ghosts])
+            m_g, p_g, v_g = (_read(a, ghosts) for a in (mass, momentum, value))
+            momentum = momentum.at[mirrors].add(2.0 * v_g * m_g - p_g, mode="drop")
+            mass = mass.at[mirrors].add(m_g, mode="drop")
         t_nodes = jnp.where(held, value, safe_divide(momentum, mass))
         if ghosts.size:
-            t_nodes = t_nodes.at[ghosts].set(2.0 * value[ghosts] - t_nodes[mirrors])
+            t_nodes = t_nodes.at[ghosts].set(2.0 * _read(value, ghosts) - _read(t_nodes, mirrors), mode="drop")
         return t_nodes, mass, held, ghosts, mirrors
 
     # ------------------------------------------------------------------ contact interfaces
@@ -358,7 +386,8 @@ class Transport(Term):
         """A nodal sum (M n,) of the velocity fields as one sum per node (n,) on shared nodes."""
         if not self.shared(sim):
             return nodal
-        return jnp.sum(nodal.reshape((sim.velocity_fields, sim.grid.num_nodes) + nodal.shape[1:]), axis=0)
+        M = sim.velocity_fields  # the fields' nodes: the grid's, or on the sharded path the window's
+        return jnp.sum(nodal.reshape((M, nodal.shape[0] // M) + nodal.shape[1:]), axis=0)
 
     def interface_rate(self, sim, state, transfer, t_nodes, m_T, dt):
         """``interface=h_c``: the heat each velocity field gains across the contact interface per
@@ -369,7 +398,8 @@ class Transport(Term):
         integrated exactly over the step: the two capacities C^a, C^rest relax with rate
         k = h_c A (1/C^a + 1/C^rest), so the heat passed is C^a C^rest/(C^a + C^rest) (T^rest - T^a)
         (1 - exp(-k dt)) -- stable for any h_c, and summing to zero over the fields."""
-        M, n = sim.velocity_fields, sim.grid.num_nodes
+        M = sim.velocity_fields
+        n = m_T.shape[0] // M  # the fields' nodes: the grid's, or on the sharded path the window's
         volume = state.volume0 * det(state.F)
         g = transfer.p2g({"g": Gradient(volume)})["g"].reshape(M, n, -1)
         C = m_T.reshape(M, n)
@@ -401,13 +431,13 @@ class Transport(Term):
                      Weighted((volume * self.source.astype(m_T.dtype))[:, None]))  # + sum_p V_p q_s,p S_ip
         flow = own.p2g({"flow": heat_flow})["flow"][:, 0] + self.boundary_flow(sim, m_T.dtype)
         if ghosts.size:  # the mirrored particles' flow: odd, as the field
-            flow = flow.at[mirrors].add(-flow[ghosts])
+            flow = flow.at[mirrors].add(-_read(flow, ghosts), mode="drop")
         rate = safe_divide(flow, m_T)  # 001 eq. (140)
         if self.interface == "conductance" and sim.velocity_fields > 1:
             rate = rate + self.interface_rate(sim, state, transfer, t_nodes, m_T, dt)
         rate = jnp.where(held, 0.0, rate)  # held nodes keep their value
         if ghosts.size:
-            rate = rate.at[ghosts].set(-rate[mirrors])
+            rate = rate.at[ghosts].set(-_read(rate, mirrors), mode="drop")
         return t_nodes, rate
 
     def switch_on(self, sim, state, dtype):
@@ -428,9 +458,10 @@ class Transport(Term):
                                           "values (jm.Dirichlet) give a number or a function f(x) -> (N,)")
             t0 = jnp.broadcast_to(self.initial.astype(dtype), (copies * len(x),))
         target = value
-        ghosts, mirrors = self.mirror_map(sim)
+        ghosts, mirrors = self.mirror_rows(sim)
+        t0 = on_window(t0, copies)  # on the sharded path, the device's window
         if ghosts.size:  # a ghost switches on to the odd extension of the initial field
-            target = target.at[ghosts].set(2.0 * value[ghosts] - t0[mirrors])
+            target = target.at[ghosts].set(2.0 * _read(value, ghosts) - _read(t0, mirrors), mode="drop")
         return jnp.where(held & (state.step == 0), target - t0, 0.0)
 
     def grid_value(self, sim, state):

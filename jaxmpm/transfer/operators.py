@@ -27,6 +27,7 @@ from jax.custom_derivatives import SymbolicZero
 from .backend import derivative_rule
 from .contractions import Divergence, Weighted
 from .kernels import kernel
+from .kernels.windowed import active_window
 from .kernels.xla import scatter_planar, to_particle_major  # noqa: F401  (re-exported)
 
 
@@ -84,6 +85,14 @@ def gather(stencil, u):
         (N,) or (N, C).
     """
     return kernel().gather(stencil, u)
+
+
+def slot_values(stencil, u):
+    """u_i at every slot of the stencil, (K, N) for a nodal ``u`` (n,): the value at each of each
+    particle's nodes (on the sharded path read from the device's window of the grid, the stencil's
+    node numbers shifted into it: :meth:`jaxmpm.transfer.kernels.windowed.Window.local_stencil`)."""
+    window = active_window()
+    return u[stencil.index if window is None else window.local_stencil(stencil).index]
 
 
 def scatter(stencil, q, num_nodes: int):

@@ -89,7 +89,7 @@ except jm.InputError as error:
 
 # the compiled rollout's collectives: halo planes, migrating particles and scalar counts, never the
 # whole grid or all particles
-hlo = program.lower(sim, buffers, valid, ids, jnp.asarray(dt)).compile().as_text()
+hlo = program.lower(sim, buffers, valid, ids, jnp.asarray(dt)).compile().compiled.as_text()
 shapes = []
 for line in hlo.splitlines():
     for op in ("collective-permute(", "collective-permute-start(", "all-reduce(", "all-reduce-start(",

@@ -8,9 +8,11 @@ crossing the slab face both ways.  Prints one JSON line.
 2. HDF5: the file a sharded run writes against the file a one-device run writes, dataset by
    dataset and frame by frame (``/state`` included);
 3. resume: a sharded run killed after its second publication, continued by ``jm.resume`` on one
-   device, against the uninterrupted one-device run (the file and the final state);
+   device and on 2 (``devices=2``), and a one-device run killed the same way continued on 2, against
+   the uninterrupted one-device run (the file and the final state);
 4. the CLI: ``jaxmpm run disks --devices 2`` (also with ``--rebalance-every 20``) against the same command
-   without ``--devices``."""
+   without ``--devices``; a one-device ``jaxmpm run disks`` killed after its second frame, continued by
+   ``jaxmpm resume FILE --devices 2``."""
 
 import contextlib
 import io
@@ -28,8 +30,12 @@ import numpy as np  # noqa: E402
 import jaxmpm as jm  # noqa: E402
 from jaxmpm.cli import main  # noqa: E402
 from jaxmpm.parallel import ShardedSimulation  # noqa: E402
+from jaxmpm.run import driver  # noqa: E402
 
 os.environ["JAXMPM_CHUNK_SECONDS"] = "1e-9"  # every frame published at once (the chunked runs too)
+# every publication saves the state, however long the writing takes on a loaded machine (the files
+# killed below keep the state of their last publication: the same step every time)
+driver._STATE_SECONDS = float("inf")
 STEPS, SAVE_EVERY = 240, 30  # the disks meet after about 160 steps and rebound across the slab face
 out = {"devices": len(jax.devices())}
 folder = tempfile.mkdtemp(prefix="sharded-io-")
@@ -112,7 +118,8 @@ for model in (lambda: sim.run(state, 0.03, SAVE_EVERY, SAVE_EVERY), lambda: shar
 out["frames"]["unstable"] = errors
 
 # 2. HDF5 ----------------------------------------------------------------------------------------
-paths = {name: os.path.join(folder, f"{name}.h5") for name in ("one", "many", "killed", "cli1", "cli2", "cli2b")}
+paths = {name: os.path.join(folder, f"{name}.h5") for name in ("one", "many", "killed", "killed_many", "killed_one",
+                                                                "cli1", "cli2", "cli2b", "cli_killed")}
 with jm.H5Writer(paths["one"], sim, state, dt=dt, scene="disks", fields=("stress",)) as writer:
     sim.run(state, dt, STEPS, SAVE_EVERY, writer=writer)
 with jm.H5Writer(paths["many"], sim, state, dt=dt, scene="disks", fields=("stress",)) as writer:
@@ -139,18 +146,34 @@ class DyingWriter(jm.H5Writer):
         super().append(history)
 
 
-try:
-    with DyingWriter(paths["killed"], sim, state, dt=dt, scene="disks", fields=("stress",)) as writer:
-        ShardedSimulation(sim).run(state, dt, STEPS, SAVE_EVERY, writer=writer)
-    killed = False
-except Killed:
-    killed = True
-with h5py.File(paths["killed"], "r") as f:
-    kept = {"frames": int(f["time"].shape[0]), "state_step": int(f["state/step"][()])}
+def killed_run(path, run) -> dict:
+    """``run(writer)`` into ``path`` with a writer 'killed' at its KILLED_AT-th chunk: what the file kept."""
+    try:
+        with DyingWriter(path, sim, state, dt=dt, scene="disks", fields=("stress",)) as writer:
+            run(writer)
+        killed = False
+    except Killed:
+        killed = True
+    with h5py.File(path, "r") as f:
+        return {"killed": killed, "frames": int(f["time"].shape[0]), "state_step": int(f["state/step"][()])}
+
+
+def resumed_err(path, resumed) -> dict:
+    return file_err(path, paths["one"]) | {"final_x_err": rel_err(resumed.x, one_final.x),
+                                           "final_v_err": rel_err(resumed.v, one_final.v),
+                                           "final_step": int(resumed.step)}
+
+
+kept = killed_run(paths["killed"], lambda w: ShardedSimulation(sim).run(state, dt, STEPS, SAVE_EVERY, writer=w))
+killed = kept.pop("killed")
+shutil.copy(paths["killed"], paths["killed_many"])
 resumed = jm.resume(paths["killed"], setup)  # on one device: the file's state is the user's particles in order
-out["resume"] = file_err(paths["killed"], paths["one"]) | {
-    "killed": killed, "kept": kept, "final_x_err": rel_err(resumed.x, one_final.x),
-    "final_v_err": rel_err(resumed.v, one_final.v), "final_step": int(resumed.step)}
+out["resume"] = resumed_err(paths["killed"], resumed) | {"killed": killed, "kept": kept}
+# the same file continued on 2 devices; and a one-device run's file continued on 2 devices
+out["resume_devices"] = resumed_err(paths["killed_many"], jm.resume(paths["killed_many"], setup, devices=2))
+kept_one = killed_run(paths["killed_one"], lambda w: sim.run(state, dt, STEPS, SAVE_EVERY, writer=w))
+out["resume_devices_of_one"] = resumed_err(paths["killed_one"], jm.resume(paths["killed_one"], setup, devices=2)) | {
+    "kept": kept_one}
 
 # 4. the CLI -------------------------------------------------------------------------------------
 command = ["run", "disks", "--t-end", "0.06", "--frames", "3", "--no-progress"]
@@ -171,5 +194,32 @@ with contextlib.redirect_stderr(errors):
     except SystemExit as stop:
         out["cli"]["three_devices"] = [stop.code, errors.getvalue().strip()]
 out["cli"]["three_devices_file"] = os.path.exists(os.path.join(folder, "three.h5"))
+# a one-device `jaxmpm run` killed as its writer takes the third frame, then `jaxmpm resume --devices 2`
+saved = jm.H5Writer.append
+
+
+def dying_append(self, history):
+    dying_append.calls += 1
+    if dying_append.calls == 3:
+        raise Killed
+    saved(self, history)
+
+
+dying_append.calls = 0
+jm.H5Writer.append = dying_append
+try:
+    with contextlib.redirect_stdout(io.StringIO()):
+        main(command + ["--out", paths["cli_killed"]])
+except Killed:
+    pass
+finally:
+    jm.H5Writer.append = saved
+with h5py.File(paths["cli_killed"], "r") as f:
+    kept = {"frames": int(f["time"].shape[0]), "state_step": int(f["state/step"][()])}
+printed = io.StringIO()
+with contextlib.redirect_stdout(printed):
+    code = main(["resume", paths["cli_killed"], "--devices", "2", "--no-progress"])
+out["cli_resume"] = file_err(paths["cli_killed"], paths["cli1"]) | {"code": code, "kept": kept, "summary_devices": [
+    line for line in printed.getvalue().splitlines() if line.startswith("devices")]}
 shutil.rmtree(folder, ignore_errors=True)
 print(json.dumps(out))

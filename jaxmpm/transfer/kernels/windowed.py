@@ -50,6 +50,13 @@ class Window:
         """The velocity fields of a global nodal row count."""
         return max(1, rows // self.num_nodes)
 
+    def local_nodes(self, nodes):
+        """Global node numbers ``nodes`` of one velocity field (an int array) as rows of the window;
+        a node outside the window gets the row ``window_nodes``, one past its end, which a scatter
+        with ``mode="drop"`` skips and a gather with ``mode="fill"`` reads as the fill value."""
+        local = jnp.asarray(nodes) - self.first_node
+        return jnp.where((local >= 0) & (local < self.window_nodes), local, self.window_nodes)
+
     def local_stencil(self, stencil):
         """``stencil`` with node numbers f n + i (field f, global node i) renumbered f W + i -
         first_node, clipped into the window (a particle outside its window is a failure the
@@ -81,6 +88,14 @@ def use_window(window: Window):
 def active_window() -> Window | None:
     """The window in force for the code being traced, or None (one device: the whole grid)."""
     return _window.get()
+
+
+def on_window(nodal, fields: int = 1):
+    """A global per-node array ``nodal`` (fields x num_nodes, ...) of the model -- the velocity
+    conditions, the nodes' positions -- as the step being traced sees it: itself on one device, the
+    device's window of it (:meth:`Window.restrict`) on the sharded path."""
+    window = active_window()
+    return nodal if window is None else window.restrict(nodal, fields)
 
 
 class WindowedKernel:

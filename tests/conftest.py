@@ -24,17 +24,14 @@ test_contact_scenes and test_core_v2).  At the optimisation level above it moves
 round-off (1e-16 relative: disks, spin, mpm88), as the level itself does; at XLA's defaults it
 changes no bit.
 
-Every process of a test session keeps the programs it compiles in one folder, which all of them
-read (jaxmpm's compilation cache, :class:`jaxmpm.run.cache.FolderCache`: each entry written to a
-temporary file and renamed into place, so that two processes never see half an entry; the folder
-is made by the session's first process -- pytest's, or xdist's controller -- and removed when that
-process ends).  A program compiled again is read back instead of compiled: a test that builds the
-same simulation anew, a module run after ``jax.clear_caches()`` below, eager code (its stage
-boundaries, ``lax.cond``, are traced as new functions at every call), and -- since the folder is
-shared -- a program the other worker, or a subprocess (CLI, notebooks, resume, through
-``$JAXMPM_CACHE_DIR``) compiled already.  A cached program is the one XLA compiled, so no number
-changes.  The user's cache folder is never touched.  ``JAXMPM_TEST_XLA_CACHE=0`` runs the suite
-without a cache (and with ``JAXMPM_CACHE=0``)."""
+Each test process also keeps every program it compiles in a folder of its own for the session
+(JAX's persistent cache, emptied and removed when the process ends), so a program compiled again
+is read back instead of compiled: a test that builds the same simulation anew, a module run after
+``jax.clear_caches()`` below, and eager code, whose stage boundaries (``lax.cond``) are traced as
+new functions at every call.  A cached program is the one XLA compiled, so no number changes.  The
+subprocesses the tests start get a folder of the session too (``$JAXMPM_CACHE_DIR``: jaxmpm's own
+cache, when it is on), never the user's.  ``JAXMPM_TEST_XLA_CACHE=0`` runs the suite without a
+cache (and with ``JAXMPM_CACHE=0``)."""
 
 import atexit
 import os
@@ -57,18 +54,11 @@ jax.config.update("jax_numpy_dtype_promotion", "strict")
 jax.config.update("jax_numpy_rank_promotion", "raise")
 
 if os.environ.get("JAXMPM_TEST_XLA_CACHE", "1") != "0":
-    # the session's folder: made by its first process; xdist's workers and the tests' subprocesses
-    # inherit the environment, so they find it
-    _SESSION_FOLDER = "JAXMPM_TEST_SESSION_CACHE"
-    if not os.environ.get(_SESSION_FOLDER):
-        os.environ[_SESSION_FOLDER] = tempfile.mkdtemp(prefix="jaxmpm-tests-xla-")
-        atexit.register(shutil.rmtree, os.environ[_SESSION_FOLDER], ignore_errors=True)
-    os.environ["JAXMPM_CACHE_DIR"] = os.environ[_SESSION_FOLDER]
-    os.environ["JAXMPM_CACHE_MAX_BYTES"] = str(8 << 30)  # the suite writes a few hundred MB: never evict
-
-    from jaxmpm.run.cache import compilation_cache
-
-    compilation_cache(os.environ[_SESSION_FOLDER], min_compile_seconds=0.0)  # every program, however quick
+    _compiled = tempfile.mkdtemp(prefix="jaxmpm-tests-xla-")
+    atexit.register(shutil.rmtree, _compiled, ignore_errors=True)
+    jax.config.update("jax_compilation_cache_dir", _compiled)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)  # every program, however quick
+    os.environ["JAXMPM_CACHE_DIR"] = os.path.join(_compiled, "subprocesses")
 else:
     os.environ["JAXMPM_CACHE"] = "0"
 

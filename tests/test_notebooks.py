@@ -45,6 +45,7 @@ def test_float64_first_and_a_quick_switch(path):
 def test_notebook_executes(path, tmp_path, monkeypatch):
     monkeypatch.setenv("JAXMPM_NOTEBOOK_QUICK", "1")
     monkeypatch.setenv("MPLBACKEND", "Agg")
+    monkeypatch.setenv("JAXMPM_CACHE_DIR", str(tmp_path / "xla"))  # jm.compilation_cache() in the first cell
     nb = nbformat.read(path, as_version=4)
     client = NotebookClient(nb, timeout=300, kernel_name="python3", resources={"metadata": {"path": str(tmp_path)}})
     client.execute()  # raises CellExecutionError on the first failing cell

@@ -169,13 +169,7 @@ class ShardedSimulation:
                 pairs.append((f"{type(t).__name__}'s jm.Dirichlet(..., mirror=...)", ghosts % grid.num_nodes,
                               mirrors % grid.num_nodes))
         moving = self.rebalance_every is not None
-        if moving:  # every place an interior face can take: widths from 2 H + 1 to max_cells
-            narrow, wide = slabs.min_cells, slabs.max_cells
-            faces = np.unique(np.concatenate([
-                np.arange(max(j * narrow, cells - (D - j) * wide), min(j * wide, cells - (D - j) * narrow) + 1)
-                for j in range(1, D)]))
-        else:
-            faces = slabs.equal_bounds()[1:-1].astype(np.int64)
+        faces = slabs.possible_faces(moving)
         for what, ghosts, mirrors in pairs:
             planes = np.stack([np.asarray(ghosts) // slabs.plane_nodes, np.asarray(mirrors) // slabs.plane_nodes])
             lo, hi = planes.min(axis=0), planes.max(axis=0)

@@ -191,6 +191,17 @@ class Slabs(eqx.Module):
             bounds.append(int(fits[nearest]))
         return np.asarray(bounds[::-1], dtype=np.int32)
 
+    def possible_faces(self, moving: bool) -> np.ndarray:
+        """The cells at which an interior slab face can lie: the equal slabs' faces, or with
+        ``moving`` every place a face of slabs between 2 H + 1 and ``max_cells`` cells wide can take
+        (the j-th face lies between j narrow and j wide slabs from either end)."""
+        if not moving:
+            return self.equal_bounds()[1:-1].astype(np.int64)
+        cells, D, narrow, wide = self.cells[0], self.devices, self.min_cells, self.max_cells
+        return np.unique(np.concatenate([
+            np.arange(max(j * narrow, cells - (D - j) * wide), min(j * wide, cells - (D - j) * narrow) + 1)
+            for j in range(1, D)]))
+
     def check_bounds(self, bounds) -> None:
         """An InputError unless ``bounds`` (host values) cut the grid into slabs this layout serves."""
         b = np.asarray(bounds)

@@ -141,8 +141,10 @@ class MirrorMap(eqx.Module):
     after the other (corner nodes get the double image), then extend one after the other.
 
     On the sharded path (:mod:`jaxmpm.parallel`) the map acts on a device's window of the grid
-    (:meth:`on_window`): the same sums, node by node, for planes normal to another axis than the
-    slabs' x, whose ghost and mirror nodes share their x plane and so lie in the same windows."""
+    (:meth:`on_window`): the same sums, node by node, on the window's complete planes.  A plane
+    normal to y or z pairs nodes of one x plane, always in the same windows; a plane normal to x
+    pairs planes at the grid's end, which :class:`jaxmpm.parallel.ShardedSimulation` keeps in the
+    edge slab's window (it refuses slabs that would split a pair)."""
 
     planes: tuple = eqx.field(static=True)  # (axis, ghosts, mirrors, on-plane nodes) per plane, _Indices
     # on a window: (ghosts, mirrors, on-plane nodes) per plane as the window's rows (traced), those

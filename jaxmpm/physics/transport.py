@@ -330,13 +330,7 @@ class Transport(Term):
         window = active_window()
         if window is None or not ghosts.size:
             return ghosts, mirrors
-        n, copies, W = sim.grid.num_nodes, self.copies(sim), window.window_nodes
-
-        def rows(nodes):
-            local = window.local_nodes(nodes % n)
-            return jnp.where(local < W, (nodes // n) * W + local, copies * W)
-
-        return rows(ghosts), rows(mirrors)
+        return window.local_nodes(ghosts, self.copies(sim)), window.local_nodes(mirrors, self.copies(sim))
 
     def boundary_flow(self, sim, dtype):
         """Q_i,q: the Neumann conditions' inward flux times the nodal face area h^(D-1) (on the

@@ -50,12 +50,16 @@ class Window:
         """The velocity fields of a global nodal row count."""
         return max(1, rows // self.num_nodes)
 
-    def local_nodes(self, nodes):
-        """Global node numbers ``nodes`` of one velocity field (an int array) as rows of the window;
-        a node outside the window gets the row ``window_nodes``, one past its end, which a scatter
-        with ``mode="drop"`` skips and a gather with ``mode="fill"`` reads as the fill value."""
-        local = jnp.asarray(nodes) - self.first_node
-        return jnp.where((local >= 0) & (local < self.window_nodes), local, self.window_nodes)
+    def local_nodes(self, nodes, fields: int = 1):
+        """Node numbers ``nodes`` (an int array) of an array of ``fields`` copies of the grid, f n + i
+        (copy f, global node i), as the rows f W + i - first_node of that many copies of the window;
+        a node outside the window gets the row ``fields`` W, one past the end, which a scatter with
+        ``mode="drop"`` skips and a gather with ``mode="fill"`` reads as the fill value."""
+        nodes = jnp.asarray(nodes)
+        copy, node = (nodes // self.num_nodes, nodes % self.num_nodes) if fields > 1 else (0, nodes)
+        local = node - self.first_node
+        inside = (local >= 0) & (local < self.window_nodes)
+        return jnp.where(inside, copy * self.window_nodes + local, fields * self.window_nodes)
 
     def local_stencil(self, stencil):
         """``stencil`` with node numbers f n + i (field f, global node i) renumbered f W + i -

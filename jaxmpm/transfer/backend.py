@@ -11,7 +11,8 @@ policy's business:
   fusion on the CPU, so the boundary is a conditional whose predicate, ``not (x > +inf)``, is true
   for every float (NaN included) but cannot be folded: the taken branch is the identity and the
   values are exactly the inputs (under ``vmap`` it stays one conditional over the whole batch:
-  :func:`_batched_barrier`).
+  :func:`_batched_barrier`).  Code run op by op, outside any trace, has no program to steer: there
+  a boundary is skipped (:func:`_eager`).
 * ``"gpu"`` (every other backend's default): boundaries are identities.  On a GPU the
   conditional costs a device-to-host round trip of its predicate per boundary (measured on an
   H100: 1.56x slower 3D step at 1M particles, 7x at 8k), and fusion is what one wants there.
@@ -53,6 +54,11 @@ from jax.custom_batching import custom_vmap
 
 from ..core.errors import check
 
+try:  # whether no trace is active: code runs op by op (see _eager)
+    from jax._src.core import trace_state_clean as _trace_state_clean
+except ImportError:  # pragma: no cover - a JAX without it keeps every boundary
+    _trace_state_clean = None
+
 POLICIES = ("auto", "cpu", "gpu")
 
 _active = contextvars.ContextVar("jaxmpm_backend_policy", default="auto")
@@ -84,7 +90,7 @@ def active() -> str:
 def materialise(arrays):
     """Stage boundary: ``arrays`` (a pytree of arrays) unchanged, evaluated once before their
     consumers under the CPU policy; the identity under the GPU policy."""
-    if active() != "cpu":
+    if active() != "cpu" or _eager(arrays):
         return arrays
     return _held(arrays) if structured() else _barrier(lambda a: a, arrays)
 
@@ -93,7 +99,7 @@ def evaluate_once(fn, *args):
     """Stage boundary around a computation: ``fn(*args)``, evaluated into its own buffers under the
     CPU policy (like :func:`materialise`, but without copying the result); ``fn(*args)`` inline
     under the GPU policy."""
-    if active() != "cpu":
+    if active() != "cpu" or _eager(args):
         return fn(*args)
     if not structured():
         return _barrier(lambda a: fn(*a), args)
@@ -123,6 +129,18 @@ def scatter_row_width(width: int) -> int:
     if active() != "cpu" or width & (width - 1) == 0:
         return width
     return 1 << (width - 1).bit_length()
+
+
+def _eager(operands) -> bool:
+    """Whether ``operands`` are being computed now, op by op, outside any trace (``sim.step``
+    called without ``jax.jit``).  Then no program is being built, so a boundary has nothing to
+    steer, and it is skipped: as a conditional it would be compiled anew at every call, its
+    branches being new functions each time (1149 conditionals compiled in tests/test_conventions.py
+    and tests/test_affine.py).  Under ``jax.disable_jit`` JAX already runs a conditional's branch
+    directly.  False when in doubt: a JAX without ``trace_state_clean`` keeps the boundary."""
+    if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(operands)):
+        return False
+    return _trace_state_clean is not None and _trace_state_clean()
 
 
 def _barrier(fn, operands, witness=None):
@@ -221,7 +239,7 @@ def hold_tangent(tangent, primal):
     CPU policy.  Its transpose is the same conditional on the cotangent, so reverse mode evaluates
     that cotangent once before its consumers (e.g. the gather that transposes a scatter) instead
     of fusing its computation into them."""
-    if active() != "cpu":
+    if active() != "cpu" or _eager((tangent, primal)):
         return tangent
     return _barrier(lambda t: t, tangent, witness=primal)  # the predicate must not read the tangent
 

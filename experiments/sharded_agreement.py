@@ -142,7 +142,8 @@ def worker(devices, steps, scenes, schemes, folder):
 
 # ---------------------------------------------------------------------------------------- driver
 def spawn(devices, args, folder):
-    env = dict(os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count={max(devices, 1)}",
+    flags = os.environ.get("XLA_FLAGS", "") + f" --xla_force_host_platform_device_count={max(devices, 1)}"
+    env = dict(os.environ, XLA_FLAGS=flags.strip(),
                JAX_PLATFORMS="cpu")
     command = [sys.executable, __file__, "--worker", str(devices), "--steps", str(args.steps), "--folder", folder,
                "--scenes", ",".join(args.scenes), "--schemes", ",".join(args.schemes)]

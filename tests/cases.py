@@ -1,6 +1,7 @@
 """Definitions shared by the tests: shape functions, grids, random particles on a grid, a
 stencil's arrays per particle, and the finite-difference helper."""
 
+import os
 import types
 
 import numpy as np
@@ -145,3 +146,13 @@ def assert_same_files(a, b):
     assert sorted(x) == sorted(y)
     for name in x:
         np.testing.assert_array_equal(y[name], x[name], err_msg=name)
+
+
+def forced_devices_flags(devices: int) -> str:
+    """``XLA_FLAGS`` for a subprocess with ``devices`` forced CPU devices that keeps the suite's other
+    XLA flags (its compile settings, tests/conftest.py).  Replacing ``XLA_FLAGS`` outright dropped
+    them: tests/parallel/terms_check.py took 65 s to compile and run at XLA's defaults against 44 s
+    with them (2-core machine)."""
+    kept = [flag for flag in os.environ.get("XLA_FLAGS", "").split()
+            if not flag.startswith("--xla_force_host_platform_device_count")]
+    return " ".join([*kept, f"--xla_force_host_platform_device_count={devices}"])

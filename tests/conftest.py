@@ -27,8 +27,8 @@ changes no bit.
 Each test process also keeps every program it compiles in a folder of its own for the session
 (JAX's persistent cache, emptied and removed when the process ends), so a program compiled again
 is read back instead of compiled: a test that builds the same simulation anew, a module run after
-``jax.clear_caches()`` below, and eager code, whose stage boundaries (``lax.cond``) are traced as
-new functions at every call.  A cached program is the one XLA compiled, so no number changes.  The
+``jax.clear_caches()`` below, and eager code, whose loops (XPIC's series) are traced as new
+functions at every call.  A cached program is the one XLA compiled, so no number changes.  The
 subprocesses the tests start get a folder of the session too (``$JAXMPM_CACHE_DIR``: jaxmpm's own
 cache, when it is on), never the user's.  ``JAXMPM_TEST_XLA_CACHE=0`` runs the suite without a
 cache (and with ``JAXMPM_CACHE=0``)."""

@@ -15,13 +15,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cases import forced_devices_flags
 
 HERE = Path(__file__).parent / "parallel"
 
 
 def run_check(script: str, devices: int, *args) -> dict:
-    env = dict(os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count={devices}", SLAB_DEVICES=str(devices),
-               JAX_PLATFORMS="cpu")
+    env = dict(os.environ, XLA_FLAGS=forced_devices_flags(devices), SLAB_DEVICES=str(devices), JAX_PLATFORMS="cpu")
     done = subprocess.run([sys.executable, str(HERE / script), *map(str, args)], env=env, capture_output=True,
                           text=True, timeout=900)
     assert done.returncode == 0, done.stderr[-3000:]
@@ -177,8 +177,7 @@ def test_two_processes_give_the_one_device_answer(tmp_path):
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    env = dict(os.environ, JAX_PLATFORMS="cpu")
-    env.pop("XLA_FLAGS", None)
+    env = dict(os.environ, JAX_PLATFORMS="cpu")  # the script adds its 2 devices to XLA_FLAGS
     path = tmp_path / "two_processes.h5"
     procs = [subprocess.Popen([sys.executable, str(HERE / "multihost_check.py"), str(pid), str(port), str(path)],
                               env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for pid in (0, 1)]

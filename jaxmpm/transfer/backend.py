@@ -239,7 +239,7 @@ def hold_tangent(tangent, primal):
     CPU policy.  Its transpose is the same conditional on the cotangent, so reverse mode evaluates
     that cotangent once before its consumers (e.g. the gather that transposes a scatter) instead
     of fusing its computation into them."""
-    if active() != "cpu" or _eager((tangent, primal)):
+    if active() != "cpu":  # only called in a JVP rule, so always traced: never eager
         return tangent
     return _barrier(lambda t: t, tangent, witness=primal)  # the predicate must not read the tangent
 

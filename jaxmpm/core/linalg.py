@@ -18,12 +18,13 @@ def det(a):
     """det A of a stack of 1x1, 2x2 or 3x3 matrices (..., D, D) -> (...), by cofactor expansion;
     larger matrices go to ``jnp.linalg.det``."""
     d = a.shape[-1]
+    if d > 3:
+        return jnp.linalg.det(a)
+    a = [jnp.unstack(row, axis=-1) for row in jnp.unstack(a, axis=-2)]  # a[i][j]: one unstack per axis
     if d == 1:
-        return a[..., 0, 0]
+        return a[0][0]
     if d == 2:
-        return a[..., 0, 0] * a[..., 1, 1] - a[..., 0, 1] * a[..., 1, 0]
-    if d == 3:
-        return (a[..., 0, 0] * a[..., 1, 1] * a[..., 2, 2] + a[..., 0, 1] * a[..., 1, 2] * a[..., 2, 0]
-                + a[..., 0, 2] * a[..., 1, 0] * a[..., 2, 1] - a[..., 0, 2] * a[..., 1, 1] * a[..., 2, 0]
-                - a[..., 0, 0] * a[..., 1, 2] * a[..., 2, 1] - a[..., 0, 1] * a[..., 1, 0] * a[..., 2, 2])
-    return jnp.linalg.det(a)
+        return a[0][0] * a[1][1] - a[0][1] * a[1][0]
+    return (a[0][0] * a[1][1] * a[2][2] + a[0][1] * a[1][2] * a[2][0]
+            + a[0][2] * a[1][0] * a[2][1] - a[0][2] * a[1][1] * a[2][0]
+            - a[0][0] * a[1][2] * a[2][1] - a[0][1] * a[1][0] * a[2][2])

@@ -40,8 +40,6 @@ from .base import ParticleDamping, ParticleUpdate, Scheme
 # Per-particle (D, D) matrices are handled "planar" here, as (D, D, N) (see Stencil): every entry
 # is a row of N numbers, so the small matrix algebra below is elementwise on contiguous vectors.
 
-# Per-particle (D, D) matrices are handled "planar" here, as (D, D, N) (see Stencil): every entry
-# is a row of N numbers, so the small matrix algebra below is elementwise on contiguous vectors.
 def to_planar(A):
     """(N, D, D) -> (D, D, N)."""
     return jnp.moveaxis(A, 0, -1)
@@ -61,19 +59,21 @@ def _planar_inverse(A):
     d = A.shape[0]
     if d == 1:
         return 1.0 / A
+    A = [rows(r) for r in rows(A)]  # A[i][j]: the (N,) rows, taken as one unstack per axis
     if d == 2:
-        det = A[0, 0] * A[1, 1] - A[0, 1] * A[1, 0]
-        return _stack2([[A[1, 1], -A[0, 1]], [-A[1, 0], A[0, 0]]]) / det[None, None]
-    cof = [[A[(i + 1) % 3, (j + 1) % 3] * A[(i + 2) % 3, (j + 2) % 3]
-            - A[(i + 1) % 3, (j + 2) % 3] * A[(i + 2) % 3, (j + 1) % 3] for j in range(3)] for i in range(3)]
-    det = sum(A[0, j] * cof[0][j] for j in range(3))
+        det = A[0][0] * A[1][1] - A[0][1] * A[1][0]
+        return _stack2([[A[1][1], -A[0][1]], [-A[1][0], A[0][0]]]) / det[None, None]
+    cof = [[A[(i + 1) % 3][(j + 1) % 3] * A[(i + 2) % 3][(j + 2) % 3]
+            - A[(i + 1) % 3][(j + 2) % 3] * A[(i + 2) % 3][(j + 1) % 3] for j in range(3)] for i in range(3)]
+    det = sum(A[0][j] * cof[0][j] for j in range(3))
     return _stack2([[cof[j][i] for j in range(3)] for i in range(3)]) / det[None, None]  # adj(A) = cof^T
 
 
 def _planar_matmul(A, B):
     """A @ B for planar (D, D, N) matrices."""
     d = A.shape[0]
-    return _stack2([[sum(A[i, k] * B[k, j] for k in range(d)) for j in range(d)] for i in range(d)])
+    A, B = [rows(r) for r in rows(A)], [rows(r) for r in rows(B)]
+    return _stack2([[sum(A[i][k] * B[k][j] for k in range(d)) for j in range(d)] for i in range(d)])
 
 
 def _planar_matvec(A, x):

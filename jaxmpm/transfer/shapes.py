@@ -31,7 +31,7 @@ def rows(a):
     values as indexing; in reverse mode the split's transpose concatenates the slices' cotangents,
     where each index would pad its own into a zero array of ``a``'s size (for the planar (D, K, N)
     stencil arrays, D pads of K N numbers per use)."""
-    return [jnp.squeeze(part, 0) for part in jax.lax.split(a, (1,) * a.shape[0], axis=0)]
+    return list(jnp.unstack(a, axis=0))
 
 
 class StencilBase(eqx.Module):

@@ -34,9 +34,10 @@ from . import Kernel, register_kernel
 def _sum_over_stencil(a):
     """sum_k a[..., k, :] for planar a of shape (..., K, N), unrolled over the (4-64) stencil
     slots: K-1 elementwise adds of contiguous particle rows, which XLA fuses with their producers."""
-    total = a[..., 0, :]
-    for k in range(1, a.shape[-2]):
-        total = total + a[..., k, :]
+    first, *others = jnp.unstack(a, axis=-2)
+    total = first
+    for row in others:
+        total = total + row
     return total
 
 
@@ -139,7 +140,7 @@ def nodal_values(stencil, u):
         return materialise(u).at[index].get(mode="promise_in_bounds")
     # the nodal field is evaluated once first: XLA would otherwise fuse its whole computation
     # (v = p/m, boundary conditions) into the gather and repeat it for every slot
-    return materialise([uc.at[index].get(mode="promise_in_bounds") for uc in materialise(u.T)])
+    return materialise([uc.at[index].get(mode="promise_in_bounds") for uc in rows(materialise(u.T))])
 
 
 def gather_planar(stencil, u):

@@ -1,4 +1,4 @@
-"""mpm88 side by side: Taichi (CPU backend) against jaxmpm, float32, in one run.
+"""mpm88 side by side: Taichi (CPU backend) against jaxmpm, float32 (and float64), in one run.
 
 Taichi's 88-line MPM demo (``python -m taichi example mpm88``) is written out below as Taichi
 kernels (its ``substep``, unchanged apart from the particle count and taking the initial positions
@@ -7,6 +7,9 @@ B-splines, the same fluid, gravity and one-sided walls; the force uses G_pi wher
 uses S_pi D^-1 (x_i - X_p)).  Both start from the same particle positions and run the same
 number of steps of dt = 2e-4 after a warm-up (compilation); the result is particle-steps per
 second for each and the ratio jaxmpm / Taichi.
+
+``--dtype f32 f64`` runs both precisions: Taichi with ``default_fp=ti.f64`` (every field and
+constant in float64) against the scene built with ``dtype="f64"``.
 
 Particle counts 8192 (mpm88), 32768 and 131072 on the same 128^2 grid: the grid, dt, particle
 volume and mass stay mpm88's, so the larger runs are the same flow with 4x and 16x more particles
@@ -19,6 +22,7 @@ Taichi is not a dependency of jaxmpm; install it to run this file::
     python benchmarks/vs_taichi.py                       # 8k, 32k, 128k particles
     python benchmarks/vs_taichi.py --particles 8192 --steps 500 --repeats 5
     python benchmarks/vs_taichi.py --quick               # 8k only, fewer steps
+    python benchmarks/vs_taichi.py --dtype f32 f64       # both precisions, each side by side
     python benchmarks/vs_taichi.py --quick --t-end 1     # also the full t = 1 run, f32 and f64
 
 ``--t-end T`` also runs the 8192-particle scene to time T in Taichi (f32) and jaxmpm (f32 and
@@ -53,6 +57,8 @@ def parse_args(argv=None):
     p.add_argument("--quick", action="store_true", help="8192 particles, 100 steps, 2 repeats")
     p.add_argument("--pause", type=float, default=2.0,
                    help="seconds of idle before each engine's measurement (default 2; see main())")
+    p.add_argument("--dtype", nargs="+", choices=["f32", "f64"], default=["f32"],
+                   help="precisions to run, each in both engines (default f32)")
     p.add_argument("--csv", default=str(DEFAULT_CSV))
     p.add_argument("--t-end", type=float, default=0.0,
                    help="also run 8192 particles to this time in Taichi and jaxmpm (f32, f64); 0 = skip")
@@ -71,10 +77,12 @@ def import_taichi():
 
 
 # --------------------------------------------------------------------------------------- Taichi
-def taichi_mpm88(ti, x0, v0, steps, warmup, repeats):
-    """Taichi's mpm88 substep on the CPU backend, float32.  Returns (best seconds, x, v)."""
+def taichi_mpm88(ti, x0, v0, steps, warmup, repeats, dtype="f32"):
+    """Taichi's mpm88 substep on the CPU backend, in float32 (or float64: ``default_fp``, so every
+    field and literal).  Returns (best seconds, x, v)."""
     ti.reset()
-    ti.init(arch=ti.cpu, default_fp=ti.f32, log_level=ti.WARN)
+    ti.init(arch=ti.cpu, default_fp=ti.f64 if dtype == "f64" else ti.f32, log_level=ti.WARN)
+    real = np.float64 if dtype == "f64" else np.float32
     n_particles, n_grid = x0.shape[0], N_GRID
     dx = 1 / n_grid
     dt = DT
@@ -140,8 +148,8 @@ def taichi_mpm88(ti, x0, v0, steps, warmup, repeats):
             C[p] = new_C
 
     def reset():
-        x.from_numpy(x0.astype(np.float32))
-        v.from_numpy(v0.astype(np.float32))
+        x.from_numpy(x0.astype(real))
+        v.from_numpy(v0.astype(real))
         J.fill(1)
         C.fill(0)
 
@@ -214,22 +222,23 @@ def main(argv=None) -> int:
     ti = import_taichi()
     import jax
 
-    if args.t_end > 0:
-        jax.config.update("jax_enable_x64", True)  # for the f64 run; the timed runs are cast to f32
+    if args.t_end > 0 or "f64" in args.dtype:
+        jax.config.update("jax_enable_x64", True)  # for the f64 runs; the f32 runs are cast to f32
 
     import jaxmpm as jm
 
     print(f"jax {jax.__version__} ({jax.devices()[0].platform}), taichi {'.'.join(map(str, ti.__version__))}, "
           f"{os.cpu_count()} CPUs, {platform.processor() or platform.machine()}, load {os.getloadavg()[0]:.2f}")
-    print(f"mpm88: {N_GRID}^2 grid, dt = {DT}, float32; {args.steps} timed steps (best of {args.repeats}) "
+    print(f"mpm88: {N_GRID}^2 grid, dt = {DT}; {args.steps} timed steps (best of {args.repeats}) "
           f"after {args.warmup} warm-up steps\n")
     rows = []
-    header = f"{'particles':>9} | {'Taichi p-steps/s':>16} | {'jaxmpm p-steps/s':>16} | {'jaxmpm/Taichi':>13} | " \
-             f"{'y_cm Taichi':>11} | {'y_cm jaxmpm':>11} | {'KE/m Taichi':>11} | {'KE/m jaxmpm':>11}"
+    header = f"{'dtype':>5} | {'particles':>9} | {'Taichi p-steps/s':>16} | {'jaxmpm p-steps/s':>16} | " \
+             f"{'jaxmpm/Taichi':>13} | {'y_cm Taichi':>11} | {'y_cm jaxmpm':>11} | {'KE/m Taichi':>11} | " \
+             f"{'KE/m jaxmpm':>11}"
     print(header)
     print("-" * len(header))
-    for n in args.particles:
-        setup = jm.scene("mpm88", n_particles=n, dtype="f32")
+    for dtype, n in [(dtype, n) for dtype in args.dtype for n in args.particles]:
+        setup = jm.scene("mpm88", n_particles=n, dtype=dtype)
         x0, v0 = np.asarray(setup.state.x), np.asarray(setup.state.v)
         # each engine on a quiet machine: Taichi's CPU worker threads keep both cores busy for a
         # while after its last kernel (measured: jaxmpm timed right after Taichi ran at 0.4-0.6x
@@ -238,12 +247,12 @@ def main(argv=None) -> int:
         time.sleep(args.pause)
         t_jm, x_jm, v_jm = jaxmpm_mpm88(setup, args.steps, args.warmup, args.repeats)
         time.sleep(args.pause)
-        t_ti, x_ti, v_ti = taichi_mpm88(ti, x0, v0, args.steps, args.warmup, args.repeats)
+        t_ti, x_ti, v_ti = taichi_mpm88(ti, x0, v0, args.steps, args.warmup, args.repeats, dtype)
         rate_ti, rate_jm = n * args.steps / t_ti, n * args.steps / t_jm
         (c_ti, k_ti), (c_jm, k_jm) = summary(x_ti, v_ti), summary(x_jm, v_jm)
-        print(f"{n:>9} | {rate_ti:>16.4g} | {rate_jm:>16.4g} | {rate_jm / rate_ti:>13.3f} | "
+        print(f"{dtype:>5} | {n:>9} | {rate_ti:>16.4g} | {rate_jm:>16.4g} | {rate_jm / rate_ti:>13.3f} | "
               f"{c_ti[1]:>11.5f} | {c_jm[1]:>11.5f} | {k_ti:>11.5f} | {k_jm:>11.5f}", flush=True)
-        rows.append(dict(particles=n, grid=f"{N_GRID}x{N_GRID}", steps=args.steps, repeats=args.repeats,
+        rows.append(dict(dtype=dtype, particles=n, grid=f"{N_GRID}x{N_GRID}", steps=args.steps, repeats=args.repeats,
                          taichi_s=t_ti, jaxmpm_s=t_jm, taichi_particle_steps_per_s=rate_ti,
                          jaxmpm_particle_steps_per_s=rate_jm, ratio_jaxmpm_over_taichi=rate_jm / rate_ti,
                          y_cm_taichi=float(c_ti[1]), y_cm_jaxmpm=float(c_jm[1]), ke_taichi=k_ti, ke_jaxmpm=k_jm,

@@ -224,6 +224,30 @@ def test_inside_the_ellipse_it_is_the_hencky_law():
     assert float(jnp.max(jnp.abs(state["plastic_dissipation"]))) == 0.0
 
 
+def test_an_eager_update_runs_its_newton_loop_in_python_and_equals_the_compiled_one(monkeypatch):
+    """Called outside any trace the return mapping's safeguarded Newton loop is a Python loop
+    (jaxmpm.transfer.backend.while_loop): an eager ``lax.while_loop`` is compiled anew at every call
+    (1.0 s an update at 50 points; about 0.2 s now).  Traced it stays one ``while_loop``; both give the
+    same stresses and plastic state."""
+    m = clay(hardening=20.0, beta=0.2)
+    state = m.initial_state(SimpleNamespace(x=jnp.zeros((6, 3))))
+    rng = np.random.default_rng(3)
+    log_stretch = rng.uniform(-0.03, 0.01, size=(6, 3))
+    log_stretch[0] = -1e-5  # a small isotropic compression stays inside the ellipse; the others yield
+    F = stretch_path(jnp.exp(jnp.asarray(log_stretch)))
+    inc = Increment(dF=F, F=F, dt=jnp.asarray(1.0))
+    loops = []
+    while_loop = jax.lax.while_loop
+    monkeypatch.setattr(jax.lax, "while_loop", lambda *a, **k: loops.append(1) or while_loop(*a, **k))
+    eager = m.update_state(inc, state)
+    assert not loops
+    compiled = jax.jit(lambda i, s: m.update_state(i, s))(inc, state)
+    assert loops
+    assert float(jnp.max(eager["plastic_strain"])) > 0.0 and float(jnp.min(eager["plastic_strain"])) == 0.0
+    for key in eager:
+        np.testing.assert_allclose(eager[key], compiled[key], rtol=1e-13, atol=1e-14, err_msg=key)
+
+
 @pytest.mark.slow  # ~20 s: compiling the reverse pass through the nested Newton loops
 def test_gradients_match_central_differences():
     """d/d(M, p0, strain amplitude) of the final stresses and plastic strain on a compression path

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 from ..core.registry import Parameter, register_material
 from ..core.safe import safe_norm
 from ..core.validate import NON_NEGATIVE, POISSON, POSITIVE, Range
-from ..transfer.backend import materialise
+from ..transfer.backend import materialise, while_loop
 from .linear import DENSITY, NU, E
 from .plastic import HenckyPlastic, deviator, principal_norm
 
@@ -273,7 +273,7 @@ class CamClay(HenckyPlastic):
             step = -value / jnp.where(slope == 0.0, 1.0, slope)
             accept = (step >= lo) & (step <= hi) & (2.0 * jnp.abs(step) <= hi - lo)
             first = (jnp.where(accept, step, 0.5 * (lo + hi)), end, zero, jnp.asarray(False), 1)
-            return jax.lax.while_loop(searching, safeguarded, first)[0]
+            return while_loop(searching, safeguarded, first)[0]
 
         dv = jax.lax.stop_gradient(root(*jax.lax.stop_gradient((p_star, q_star, p0_n))))
         dv = jnp.where(dv == 0.0, 0.0, newton(dv)[1])  # dv = 0: only a trial on the ellipse's top (p* = p_c)

@@ -143,6 +143,34 @@ def _eager(operands) -> bool:
     return _trace_state_clean is not None and _trace_state_clean()
 
 
+def fori_loop(lower: int, upper: int, body, init):
+    """``jax.lax.fori_loop(lower, upper, body, init)`` with static bounds; in eager code (see
+    :func:`_eager`) a Python loop over the same ``body``, its index an array of the loop's integer
+    type.  A ``fori_loop`` called outside any trace is traced and compiled anew at every call, its
+    body being a new closure each time: an eager XPIC(2) step on ``disks`` took 0.53 s against
+    FLIP's 0.047 s, all of the difference compiling the series loop.  Traced code keeps the loop
+    (one copy of the body in the program, differentiable)."""
+    if _eager(init):
+        carry = init
+        for i in range(lower, upper):
+            carry = body(jnp.asarray(i), carry)
+        return carry
+    return jax.lax.fori_loop(lower, upper, body, init)
+
+
+def while_loop(cond_fun, body_fun, init):
+    """``jax.lax.while_loop(cond_fun, body_fun, init)``; in eager code (see :func:`_eager`) a Python
+    loop over the same functions, the carry's leaves made arrays first, as the loop makes them.  An
+    eager ``while_loop`` is compiled anew at every call, as :func:`fori_loop` says (Cam-Clay's return
+    mapping at 50 points: 1.0 s a call eagerly)."""
+    if _eager(init):
+        carry = jax.tree_util.tree_map(jnp.asarray, init)
+        while bool(cond_fun(carry)):
+            carry = body_fun(carry)
+        return carry
+    return jax.lax.while_loop(cond_fun, body_fun, init)
+
+
 def _barrier(fn, operands, witness=None):
     """``fn(operands)`` inside a conditional that is always taken (see the module docstring); its
     predicate reads ``witness`` (default: the first float of ``operands``)."""

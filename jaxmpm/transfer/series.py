@@ -25,10 +25,10 @@ Velocity conditions enter through a ``constraint`` with ``zero``, ``apply``, ``p
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 
 from ..core.errors import check
+from .backend import fori_loop
 
 BOUNDARY_MODES = ("iterates", "result", "lumped", "unlumped1", "unlumped2", "unlumped2_mtilde", "partial",
                   "collection", "series_start", "pinv_start")
@@ -77,7 +77,7 @@ def series(start, order: int, transfer, project=None, form: str = "binomial"):
             return term, total + sign * term  # 000 eq. (3.22)
 
         first = order * start  # 000 eq. (3.24)
-        _, total = jax.lax.fori_loop(2, order + 1, body, (first, first))
+        _, total = fori_loop(2, order + 1, body, (first, first))
         return total
 
     def body(j, carry):
@@ -85,7 +85,7 @@ def series(start, order: int, transfer, project=None, form: str = "binomial"):
         term = term - project(transfer.s_plus_s(term))  # (I - P S+S)^j start
         return term, total + term
 
-    _, total = jax.lax.fori_loop(1, order, body, (start, start))
+    _, total = fori_loop(1, order, body, (start, start))
     return total
 
 
@@ -248,7 +248,7 @@ def exchange_increments(start, order: int, transfer, project, exchange):
         term = term + change
         return term, total + term, exchanged + change, state
 
-    _, total, exchanged, _ = jax.lax.fori_loop(1, order, body, (start, start, zero, exchange.initial()))
+    _, total, exchanged, _ = fori_loop(1, order, body, (start, start, zero, exchange.initial()))
     return total, exchanged
 
 
@@ -366,5 +366,5 @@ def collection_solve(target, on, series, mass, iterations: int = COLLECTION_ITER
         return correction, residual, residual + beta * direction, jnp.where(active, rho_new, rho)
 
     zero = jnp.zeros_like(target)
-    correction, *_ = jax.lax.fori_loop(0, iterations, body, (zero, target, target, rho0))
+    correction, *_ = fori_loop(0, iterations, body, (zero, target, target, rho0))
     return correction

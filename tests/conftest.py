@@ -4,16 +4,17 @@ is an error, so a silent cast or a loss of precision cannot hide in the library 
 implicit rank promotion ((N, D) with (D,)) is an error too: broadcasting is written out.
 
 The suite's time is almost all XLA compilation, so the tests compile for compile speed: JAX's own
-``jax_disable_most_optimizations`` (LLVM at optimisation level 0, its expensive passes off) and,
-on jaxlib 0.10, XLA:CPU's loop emitters in place of its fusion emitters
-(``--xla_cpu_use_fusion_emitters=false``).  Together they took the suite of their time from about 19
+``jax_disable_most_optimizations`` (LLVM at optimisation level 0, its expensive passes off) and, on
+jaxlib 0.10, XLA:CPU's loop emitters in place of its fusion emitters
+(``--xla_cpu_use_fusion_emitters=false``). Together they took the suite of their time from about 19
 to about 9 minutes on the 2-core machine (today's suite and its profile: docs/testing.md), for
-programs that run somewhat slower, which the tests' short runs do not feel.  The numbers do not depend on them beyond round-off: the stored reference
-values (tests/test_reference_values.py) were produced at XLA's defaults and agree to 1e-13 (one
-step) and 1e-10 (whole runs).  Benchmarks, experiments and users compile at XLA's defaults.  Both
-are set through the environment before JAX is imported, so the subprocesses the tests start (CLI,
-notebooks, resume) inherit them; ``JAX_DISABLE_MOST_OPTIMIZATIONS=0`` and ``XLA_FLAGS=
-"--xla_cpu_use_fusion_emitters=true --xla_cpu_parallel_codegen_split_count=32"`` in the
+programs that run somewhat slower, which the tests' short runs do not feel. The numbers do not
+depend on them beyond round-off: the stored reference values (tests/test_reference_values.py) were
+produced at XLA's defaults and agree to 1e-13 (one step) and 1e-10 (whole runs). Benchmarks,
+experiments and users compile at XLA's defaults. Both are set through the environment before JAX is
+imported, so the subprocesses the tests start (CLI, notebooks, resume) inherit them;
+``JAX_DISABLE_MOST_OPTIMIZATIONS=0`` and
+``XLA_FLAGS="--xla_cpu_use_fusion_emitters=true --xla_cpu_parallel_codegen_split_count=32"`` in the
 environment run the suite at the defaults.
 
 On jaxlib 0.10 XLA:CPU also compiles each program as one LLVM module

@@ -219,24 +219,30 @@ def test_gpu_policy_has_no_stage_boundaries():
     assert conds("cpu") > 0 and conds("gpu") == 0
 
 
+def _check_eager_step(monkeypatch, primitive, scheme):
+    """One ``spin`` step under ``scheme`` (CPU policy), run eagerly and compiled: the eager one calls
+    ``jax.lax.<primitive>`` not once, the traced one does, and the two steps agree to 1e-13."""
+    setup = jm.scene("spin", scheme=scheme, t_end=0.05, frames=1)
+    sim = setup.sim.with_backend("cpu")
+    calls = []
+    original = getattr(jax.lax, primitive)
+    monkeypatch.setattr(jax.lax, primitive, lambda *args, **kwargs: calls.append(1) or original(*args, **kwargs))
+    eager = sim.step(setup.state, setup.dt)
+    assert not calls
+    compiled = jax.jit(lambda s: sim.step(s, setup.dt))(setup.state)
+    assert calls
+    for field in ("x", "v", "F"):
+        a, b = np.asarray(getattr(compiled, field)), np.asarray(getattr(eager, field))
+        np.testing.assert_allclose(b, a, rtol=0, atol=1e-13 * np.max(np.abs(a)), err_msg=field)
+
+
 def test_an_eager_step_skips_the_stage_boundaries_and_equals_the_compiled_one(monkeypatch):
     """``sim.step`` called without jit runs op by op, so the CPU policy's boundaries have nothing to
     steer and are skipped (jaxmpm.transfer.backend._eager): as conditionals each was compiled anew at
     every call, its branches being new functions (a disks step took 1.19 s eagerly, now 0.041 s).
     Traced, the boundaries stay (as they do inside a loop that an eager step traces, such as XPIC's
     series); both give the same step."""
-    setup = jm.scene("spin", scheme=jm.APIC(), t_end=0.05, frames=1)
-    sim = setup.sim.with_backend("cpu")
-    taken = []
-    cond = jax.lax.cond
-    monkeypatch.setattr(jax.lax, "cond", lambda *args, **kwargs: taken.append(1) or cond(*args, **kwargs))
-    eager = sim.step(setup.state, setup.dt)
-    assert not taken
-    compiled = jax.jit(lambda s: sim.step(s, setup.dt))(setup.state)
-    assert taken  # the same step traced: its boundaries are conditionals
-    for field in ("x", "v", "F"):
-        a, b = np.asarray(getattr(compiled, field)), np.asarray(getattr(eager, field))
-        np.testing.assert_allclose(b, a, rtol=0, atol=1e-13 * np.max(np.abs(a)), err_msg=field)
+    _check_eager_step(monkeypatch, "cond", jm.APIC())  # traced, its boundaries are conditionals
 
 
 @pytest.mark.parametrize("scheme", [jm.XPIC(order=3), jm.FMPM(order=2, boundary="collection")],
@@ -247,18 +253,7 @@ def test_an_eager_series_runs_as_a_python_loop_and_equals_the_compiled_one(monke
     ``lax.fori_loop`` called eagerly is compiled anew at every call (an eager XPIC(2) disks step took
     0.53 s, FLIP's 0.047 s; now 0.067 s).  Traced, the loop stays one ``fori_loop``; both give the
     same step."""
-    setup = jm.scene("spin", scheme=scheme, t_end=0.05, frames=1)
-    sim = setup.sim.with_backend("cpu")
-    loops = []
-    fori_loop = jax.lax.fori_loop
-    monkeypatch.setattr(jax.lax, "fori_loop", lambda *args, **kwargs: loops.append(1) or fori_loop(*args, **kwargs))
-    eager = sim.step(setup.state, setup.dt)
-    assert not loops
-    compiled = jax.jit(lambda s: sim.step(s, setup.dt))(setup.state)
-    assert loops  # the same step traced: its series are loops
-    for field in ("x", "v", "F"):
-        a, b = np.asarray(getattr(compiled, field)), np.asarray(getattr(eager, field))
-        np.testing.assert_allclose(b, a, rtol=0, atol=1e-13 * np.max(np.abs(a)), err_msg=field)
+    _check_eager_step(monkeypatch, "fori_loop", scheme)  # traced, its series are loops
 
 
 def test_scatter_rows_are_widened_to_a_power_of_two_only_under_the_cpu_policy():

@@ -144,7 +144,12 @@ def compile_rollout(sim, state, dt, steps: int):
     memory = program.memory_analysis()
     program_bytes = (memory.argument_size_in_bytes + memory.output_size_in_bytes + memory.temp_size_in_bytes
                      - memory.alias_size_in_bytes) if memory is not None else float("nan")
-    return (lambda: program(arrays)), compile_s, program_bytes
+
+    def call():
+        return program(arrays)
+
+    call.program = program  # the compiled program (benchmarks/gpu_profile.py --hlo writes its text)
+    return call, compile_s, program_bytes
 
 
 def time_rollout(sim, state, dt, steps: int, repeats: int) -> dict:
@@ -357,6 +362,8 @@ def main(argv=None) -> int:
     parser.add_argument("--parts", nargs="+", choices=PARTS, default=list(PARTS))
     parser.add_argument("--quick", action="store_true", help="small sizes and few steps (a CPU runs it in < 2 min)")
     parser.add_argument("--smallest", action="store_true", help="only the first size of each part")
+    parser.add_argument("--sizes", nargs="+", type=int, default=None, metavar="N",
+                        help="only these particle counts of each part (default: all of the part's sizes)")
     parser.add_argument("--dtype", choices=("f32", "f64"), default="f32", help="jaxmpm's precision (Taichi: f32)")
     parser.add_argument("--repeats", type=int, default=None, help="timed calls, best kept (default 3; --quick 2)")
     parser.add_argument("--no-taichi", dest="taichi", action="store_false", help="skip Taichi")
@@ -368,6 +375,20 @@ def main(argv=None) -> int:
     parser.add_argument("--basis", action="store_true",
                         help="the Pallas kernel reading XLA's per-slot basis W instead of forming the weights from the "
                              "per-axis factors (PallasKernel(factors=False); a what-if row as --reduce)")
+    parser.add_argument("--block", type=int, default=None,
+                        help="particles per program of the Pallas kernel (PallasKernel(block=...); default: its own, "
+                             "128; a what-if row as --reduce)")
+    parser.add_argument("--planar", action="store_true",
+                        help="the Pallas kernel addressing its nodal arrays column by column (PallasKernel(planar=True)"
+                             "; a what-if row as --reduce)")
+    parser.add_argument("--unroll", action="store_true",
+                        help="the Pallas kernel with its loop over the stencil's slots unrolled (PallasKernel(unroll="
+                             "True); a what-if row as --reduce)")
+    parser.add_argument("--stencil-sum", choices=("adds", "reduce"), default=None,
+                        help="how the GPU policy sums over the stencil's slots (jaxmpm.transfer.backend.STENCIL_SUM; "
+                             "default: the library's entry)")
+    parser.add_argument("--warps", type=int, default=None,
+                        help="warps per program of the Pallas kernel on Triton (default: the kernel module's WARPS)")
     parser.add_argument("--checkpoint", default="auto", type=lambda v: {"true": True, "false": False}.get(v.lower(), v),
                         help="the gradient part's sim.run(checkpoint=...): auto (default), true, false, low_memory")
     parser.add_argument("--sort-every", default="auto", type=lambda v: v if v == "auto" else int(v), metavar="K",
@@ -376,14 +397,25 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     global SORT_EVERY
     SORT_EVERY = args.sort_every
-    if args.reduce or args.basis:  # what-if row: how whoever measures tries a table entry before writing it
-        from jaxmpm.transfer import backend
+    from jaxmpm.transfer import backend
+    from jaxmpm.transfer.kernels import pallas
 
+    if args.warps:
+        pallas.WARPS = args.warps
+    if args.stencil_sum:
+        backend.STENCIL_SUM = dict(backend.STENCIL_SUM, gpu=args.stencil_sum)
+    if args.reduce or args.basis or args.block or args.planar or args.unroll:  # what-if row: a table entry tried
         options = {"reduce": True} if args.reduce else {}
         options.update({"factors": False} if args.basis else {})
-        row = ("pallas", options, "benchmarks/gpu.py --reduce/--basis")
-        backend.KERNEL_TABLE = ((("cpu", None, None, None), row), (("gpu", None, None, None), row))
+        options.update({"block": args.block} if args.block else {})
+        options.update({"planar": True} if args.planar else {})
+        options.update({"unroll": True} if args.unroll else {})
+        row = ("pallas", options, "benchmarks/gpu.py --reduce/--basis/--block/--planar/--unroll")
+        backend.KERNEL_TABLE = ((("cpu", None, None, None, None), row), (("gpu", None, None, None, None), row))
         args.kernel = "auto"
+    variant = " ".join(f"--{name}" for name in ("reduce", "basis", "planar", "unroll") if getattr(args, name))
+    variant += "".join(f" --{name.replace('_', '-')} {getattr(args, name)}"
+                       for name in ("block", "warps", "stencil_sum") if getattr(args, name))
     sizes = QUICK if args.quick else FULL
     repeats = args.repeats or (2 if args.quick else 3)
     jm.compilation_cache(False)  # compile times: XLA compiling, not a program read back from disk
@@ -396,7 +428,8 @@ def main(argv=None) -> int:
     header = (f"# benchmarks/gpu.py{' --quick' if args.quick else ''}: {common['device']} ({common['backend']}), "
               f"jax {common['jax']}, jaxmpm {jm.__version__}, "
               f"Taichi {taichi.version if taichi.ti else 'skipped: ' + taichi.why}, {common['date']}\n\n"
-              f"jaxmpm {args.dtype}, --kernel {args.kernel}, --sort-every {args.sort_every} "
+              f"jaxmpm {args.dtype}, --kernel {args.kernel}{' ' + variant if variant else ''}, "
+              f"--sort-every {args.sort_every} "
               f"(the kernel each run used in brackets), Taichi f32; "
               f"best of {repeats}; {os.cpu_count()} CPUs, {platform.machine()}, "
               f"load {os.getloadavg()[0]:.2f} at the start.")
@@ -404,7 +437,9 @@ def main(argv=None) -> int:
     if taichi.ti is None:
         print(f"Taichi skipped: {taichi.why}", flush=True)
 
-    def first(values):
+    def first(values, sized=True):
+        if args.sizes and sized:  # a size is a particle count, or (particles, cells) in 3D
+            values = tuple(v for v in values if (v[0] if isinstance(v, tuple) else v) in args.sizes)
         return values[:1] if args.smallest else values
 
     rows = []
@@ -419,7 +454,7 @@ def main(argv=None) -> int:
             rows += part_gradient(first(values), steps, args.dtype, repeats, common, args.checkpoint)
         else:
             n, batches = values
-            rows += part_ensemble(n, first(batches), steps, args.dtype, repeats, common)
+            rows += part_ensemble(n, first(batches, sized=False), steps, args.dtype, repeats, common)
         print(f"  ({part}: {time.perf_counter() - started:.0f} s in all)", flush=True)
     args.out.mkdir(parents=True, exist_ok=True)
     csv_path = write_csv(args.out / "gpu.csv", FIELDS, [{k: r.get(k) for k in FIELDS} for r in rows])

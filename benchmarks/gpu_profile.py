@@ -19,6 +19,7 @@ import gzip
 import json
 import os
 import tempfile
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -64,6 +65,8 @@ def main(argv=None) -> int:
     parser.add_argument("--sort-every", nargs="+", type=int, default=[0, 16], help="sortings to profile (0: none)")
     parser.add_argument("--kernel", choices=("auto", "xla", "pallas"), default="xla")
     parser.add_argument("--gradient", action="store_true", help="also d(mean height)/dE of mpm88 at 8k particles")
+    parser.add_argument("--hlo", type=Path, default=None, metavar="DIR",
+                        help="also write each profiled rollout's optimised HLO (the compiled program's text) to DIR")
     args = parser.parse_args(argv)
     print(jax.devices(), jax.__version__, flush=True)
     for case in args.cases:
@@ -76,6 +79,11 @@ def main(argv=None) -> int:
                 sim = sim.with_sorting(every)
                 call, _, _ = compile_rollout(sim, state, dt, args.steps)
                 kernels(call, args.steps, f"{case} {n} {args.kernel} sort_every={every}")
+                if args.hlo is not None:
+                    args.hlo.mkdir(parents=True, exist_ok=True)
+                    path = args.hlo / f"{case}_{n}_{args.kernel}_sort{every}.hlo.txt"
+                    path.write_text(call.program.as_text())
+                    print(f"  wrote {path}")
     if args.gradient:
         sim, state, dt = mpm88(8192, "f32")
         steps, dt = 200, jnp.asarray(dt, jnp.float32)

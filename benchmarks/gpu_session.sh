@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # Every GPU number of issue 32 in one lease of a device: the kernels checked against XLA on the device, then
-# benchmarks/gpu.py with the XLA kernel (next to Taichi CUDA), the Pallas kernel (its weights from the per-axis
-# factors; and, --basis, from XLA's per-slot basis) unsorted and sorted by cell, and
-# the scheme / gradient / ensemble parts.  Each stage has its own time limit, so one slow stage cannot take the
+# benchmarks/gpu.py with the tables' choice (next to Taichi CUDA), 3D on the XLA kernel, the Pallas kernel
+# unsorted in 2D and 3D, the XLA kernel summing over the stencil's slots as one reduction (--stencil-sum
+# reduce, not yet timed), and the scheme / gradient / ensemble parts.  Each stage has its own time limit, so one slow stage cannot take the
 # others' time; every row is printed as it is measured (the log is the record if a stage is cut).
 #
 #   bash benchmarks/gpu_session.sh OUT_DIR          # OUT_DIR receives log.txt, gpu.md and gpu.csv
@@ -32,11 +32,10 @@ log=$out/log.txt
     timeout "$seconds" python3 benchmarks/gpu.py --repeats 2 --out "$out/$name" "$@" ${GPU_SESSION_EXTRA:-} 2>&1 \
       | grep -v "^\[Taichi\]"
   }
-  stage xla 170 --parts mpm88 mpm3d
+  stage auto 170 --parts mpm88 mpm3d
+  stage xla 50 --parts mpm3d --kernel xla --no-taichi
   stage pallas 70 --parts mpm3d mpm88 --kernel pallas --sort-every 0 --no-taichi
-  stage pallas_sorted 35 --parts mpm3d --kernel pallas --sort-every 16 --no-taichi
-  stage pallas_basis 60 --parts mpm3d mpm88 --basis --sort-every 0 --no-taichi
-  stage pallas_reduce 45 --parts mpm88 mpm3d --reduce --sort-every 0 --no-taichi
+  stage stencil_sum 60 --parts mpm88 mpm3d --kernel xla --stencil-sum reduce --no-taichi
   stage schemes 75 --parts schemes --no-taichi
   stage gradient 65 --parts gradient --no-taichi
   stage ensemble 50 --parts ensemble --no-taichi

@@ -209,6 +209,33 @@ def test_backend_policies_give_the_same_numbers(name):
         np.testing.assert_allclose(b, a, rtol=0, atol=1e-12 * scale, err_msg=name)
 
 
+def test_a_stencil_sum_as_one_reduction_gives_the_same_step(monkeypatch):
+    """The GPU policy's sums over the stencil's slots as one reduction (backend.STENCIL_SUM "reduce", a
+    what-if for a device: benchmarks/gpu.py --stencil-sum reduce) instead of K - 1 adds: the program
+    holds the reductions, and an APIC step (gather, affine moment, velocity gradient) and its gradient
+    equal the adds' to 1e-12."""
+    from jaxmpm.transfer import backend
+
+    setup = jm.scene("spin", scheme=jm.APIC(), t_end=0.05, frames=1)
+    sim = setup.sim.with_backend("gpu")
+
+    def loss(v):
+        return jnp.sum(sim.step(eqx.tree_at(lambda s: s.v, setup.state, v), setup.dt).x ** 2)
+
+    def run():
+        program = str(jax.make_jaxpr(lambda s: sim.step(s, setup.dt))(setup.state))
+        return program.count("reduce_sum"), jax.jit(lambda s: sim.step(s, setup.dt))(setup.state), \
+            jax.jit(jax.grad(loss))(setup.state.v)
+
+    sums_adds, adds, grad_adds = run()
+    monkeypatch.setattr(backend, "STENCIL_SUM", dict(backend.STENCIL_SUM, gpu="reduce"))
+    sums_reduce, reduced, grad_reduce = run()
+    assert sums_reduce >= sums_adds + 3  # the gather, the affine moment, the velocity gradient at least
+    for a, b in zip(jax.tree_util.tree_leaves(adds) + [grad_adds], jax.tree_util.tree_leaves(reduced) + [grad_reduce]):
+        if jnp.issubdtype(a.dtype, jnp.floating):
+            np.testing.assert_allclose(b, a, rtol=1e-12, atol=1e-12 * float(jnp.abs(a).max()))
+
+
 def test_gpu_policy_has_no_stage_boundaries():
     setup = jm.scene("spin", scheme=jm.APIC(), t_end=0.05, frames=1)
 

@@ -20,6 +20,7 @@ from jaxmpm.transfer.kernels.xla import XLAKernel
 XLA = XLAKernel()
 PALLAS = PallasKernel(block=32)  # a few blocks for ~50 particles, the last one padded
 REDUCED = PallasKernel(block=32, reduce=True)
+TUNED = PallasKernel(block=32, planar=True, unroll=True)  # nodal arrays addressed by column, slots unrolled
 SHAPES = {"linear": jm.Linear(), "ugimp": jm.UGIMP(ppc=2), "quadratic": jm.QuadraticBSpline(),
           "cubic": jm.CubicBSpline()}
 FAST = {(1, "cubic"), (2, "quadratic"), (3, "linear")}
@@ -66,9 +67,10 @@ def _assert_same(expected, got, rtol):
 
 @pytest.mark.parametrize("dim, shape", CASES)
 def test_every_method_equals_the_xla_kernel(dim, shape):
-    """P2G (every contraction kind, multimaterial columns; with and without the block reduction)
-    and the four G2P methods equal the XLA kernel's to 1e-12 in float64."""
-    _compare_with_xla((PALLAS, REDUCED), SHAPES[shape], _inputs(dim))
+    """P2G (every contraction kind, multimaterial columns; with and without the block reduction;
+    with the nodal arrays addressed column by column and the slots unrolled) and the four G2P methods
+    equal the XLA kernel's to 1e-12 in float64."""
+    _compare_with_xla((PALLAS, REDUCED, TUNED), SHAPES[shape], _inputs(dim))
 
 
 def _compare_with_xla(kernels, shape, args, per_slot=True):
@@ -119,15 +121,18 @@ def test_hoop_contraction_on_an_axisymmetric_grid():
     _assert_same(run(XLA, x, m, v), run(PALLAS, x, m, v), 1e-12)
 
 
-def _assert_gradients_equal(loss, args, names):
+def _assert_gradients_equal(loss, args, names, kernels=(PALLAS,)):
     grad = jax.jit(jax.grad(loss, argnums=tuple(range(1, len(args) + 1))), static_argnums=0)
-    for name, e, g in zip(names, grad(XLA, *args), grad(PALLAS, *args)):
-        np.testing.assert_allclose(g, e, rtol=1e-10, atol=1e-10 * np.abs(e).max(), err_msg=name)
+    expected = grad(XLA, *args)
+    for kernel in kernels:
+        for name, e, g in zip(names, expected, grad(kernel, *args)):
+            np.testing.assert_allclose(g, e, rtol=1e-10, atol=1e-10 * np.abs(e).max(), err_msg=name)
 
 
 def test_gradients_of_p2g_and_gather_equal_the_xla_kernels():
     """jax.grad of a scalar of P2G and gather outputs with respect to the coefficients, a nodal
-    field and the positions (through the stencil's weights) equals the XLA path's to 1e-10."""
+    field and the positions (through the stencil's weights) equals the XLA path's to 1e-10, also with
+    the nodal arrays addressed by column and the slots unrolled (the transposes keep the options)."""
     grid, x, m, v, tau, u = _inputs(1, num_particles=40)
     shape = SHAPES["quadratic"]
 
@@ -138,7 +143,7 @@ def test_gradients_of_p2g_and_gather_equal_the_xla_kernels():
         w = jnp.sin(nodal["p"] + nodal["f"]) * nodal["m"][:, None] + u[:, :1]
         return jnp.sum(kernel.gather(stencil, w) ** 2)
 
-    _assert_gradients_equal(loss, (x, m, tau, u), ("x", "m", "tau", "u"))
+    _assert_gradients_equal(loss, (x, m, tau, u), ("x", "m", "tau", "u"), kernels=(PALLAS, TUNED))
 
 
 @pytest.mark.slow
@@ -220,12 +225,13 @@ def test_vmapped_steps_equal_the_xla_kernels():
     assert not np.allclose(out["pallas"].x[0], out["pallas"].x[1])
 
 
-@pytest.mark.parametrize("reduce", [False, True])
-def test_kernels_lower_to_triton_for_a_gpu(reduce):
+@pytest.mark.parametrize("options", [{}, {"reduce": True}, {"planar": True, "unroll": True}],
+                         ids=["plain", "reduce", "planar-unrolled"])
+def test_kernels_lower_to_triton_for_a_gpu(options):
     """With no GPU at hand, the kernels, their transposes and their batched forms are lowered for
     CUDA: every Pallas call goes to the Triton backend (jax 0.10's default GPU lowering, Mosaic GPU,
     has no atomic adds) and uses only what Triton lowers (no reduce_or, say)."""
-    kernel = PallasKernel(reduce=reduce, interpret=False)
+    kernel = PallasKernel(interpret=False, **options)
     grid, x, m, v, tau, u = _inputs(3, dtype=jnp.float32)
 
     def transfers(x, v, u):
@@ -288,11 +294,18 @@ def test_choosing_and_forcing_a_kernel():
     assert info["reason"] == KERNEL_TABLE[0][1][2]  # the CPU row
     forced = jm.backend_info(setup.sim.with_kernel("pallas"), setup.state)
     assert forced["kernel"] == "pallas" and "forced" in forced["reason"]
-    # 3D on a GPU: the XLA kernel, as measured on an H100 (the Pallas kernel lost), with the reason
-    name, _, why = choose_kernel("gpu", 3, 8.0, jnp.float32)
-    assert name == "xla" and "H100" in why and "Pallas" in why
-    assert choose_kernel("gpu", 2, 50.0, jnp.float32)[0] == "xla"
-    assert choose_kernel("gpu", 3, 8.0, jnp.float64)[0] == "xla"
+    # 3D float32 on a GPU with the force folded into the momentum (APIC): the Pallas kernel, as measured
+    # on an H100, with the reason; the force apart (FLIP, XPIC, FMPM), dense 2D and float64 (not measured
+    # in 3D): the XLA kernel
+    name, _, why = choose_kernel("gpu", 3, 8.0, jnp.float32, folds_force=True)
+    assert name == "pallas" and "H100" in why and "factors" in why
+    assert choose_kernel("gpu", 3, 8.0, jnp.float32, folds_force=False)[0] == "xla"
+    assert choose_kernel("gpu", 2, 50.0, jnp.float32, folds_force=True)[0] == "xla"
+    assert choose_kernel("gpu", 3, 8.0, jnp.float64, folds_force=True)[0] == "xla"
+    folded = jm.scene("mpm88", n_particles=256, dtype="f32")  # APIC, USL, no damping: folds the force
+    assert jm.folds_force(folded.sim) and not jm.folds_force(setup.sim)
+    gpu = jm.backend_info(folded.sim.with_backend("gpu"), folded.state)  # 2D, sparse here: XLA on a GPU too
+    assert gpu["kernel"] == "xla" and gpu["reason"].startswith("GPU")
     with pytest.raises(jm.InputError, match="kernel = 'triton'"):
         setup.sim.with_kernel("triton")
     with pytest.raises(jm.InputError, match="kernel = 'fast'"):

@@ -133,12 +133,15 @@ def test_ensembles_sort_each_member():
 
 def test_the_table_and_bad_input():
     """"auto" takes K from the backend's sort table (not sorted on the CPU or in 2D; every 16 steps in 3D on a
-    GPU from 131k particles); backend_info says which and why; a bad sort_every is refused by name."""
+    GPU from 131k particles, from 1M on the Pallas kernel); backend_info says which and why; a bad
+    sort_every is refused by name."""
     assert SIM.sort_every == "auto" and SIM.sorting(STATE) is None
     info = jm.backend_info(SIM, STATE)
     assert info["sort_every"] == 0 and info["sort_reason"].startswith("CPU")
     assert jm.backend_info(SORTED, STATE)["sort_every"] == 5
-    assert choose_sorting("gpu", 3, 1_048_576, "xla")[0] == SORT_TABLE[0][1][0] == 16
+    assert choose_sorting("gpu", 3, 1_048_576, "xla")[0] == 16
+    assert choose_sorting("gpu", 3, 1_048_576, "pallas")[0] == SORT_TABLE[0][1][0] == 16
+    assert choose_sorting("gpu", 3, 131_072, "pallas")[0] == 0  # 0.96x at 131k on an H100
     assert choose_sorting("gpu", 3, 4096, "xla")[0] == 0  # a short step: the renewal would weigh more
     assert choose_sorting("gpu", 2, 524_288, "xla")[0] == 0
     for bad in (-1, 2.5, "often", True):

@@ -47,6 +47,7 @@ from ..transfer.backend import (
 from ..transfer.kernels.windowed import active_window, on_window
 from ..transfer.shapes import UGIMP, ShapeFunction, field_stencil
 from . import frame_fields
+from .step import folds_force
 from .step import step as _step
 
 UPDATES = {"USF": "USF", "USL": "USL", "USL-": "USL", "MUSL": "MUSL", "USL+": "MUSL",
@@ -521,7 +522,7 @@ class Simulation(eqx.Module):
         ``dtype``: None (the kernel registered for the policy) where "auto" finds the XLA kernel,
         so the default path is the one it always was (:func:`backend_info`)."""
         per_cell = num_particles / max(1, int(np.prod(self.grid.cells)))
-        name, options, why = choose_kernel(self.backend, self.grid.dim, per_cell, dtype)
+        name, options, why = choose_kernel(self.backend, self.grid.dim, per_cell, dtype, folds_force(self))
         if self.kernel == "auto":
             return (None if name == "xla" else name), options, why
         if self.kernel == name:
@@ -667,7 +668,8 @@ class Simulation(eqx.Module):
 def backend_info(sim: Simulation, state: State) -> dict:
     """Which transfer kernel ``sim`` steps ``state`` with, and why: the row of the kernel table
     (``jaxmpm.transfer.backend.KERNEL_TABLE``) that matches the model's backend, dimension,
-    particles per cell and dtype, or the kernel forced by ``Simulation(kernel=...)``.
+    particles per cell, dtype and whether its P2G folds the force into the momentum
+    (:func:`folds_force`), or the kernel forced by ``Simulation(kernel=...)``.
 
     Args:
         sim: the model (:class:`Simulation`).

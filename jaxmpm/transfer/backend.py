@@ -38,8 +38,9 @@ transfer layer; it too changes speed, never results (tests/test_adjoint.py, 1e-1
 The *kernel* (``Simulation(..., kernel="auto" | "xla" | "pallas")``) picks what runs P2G and G2P
 (:mod:`jaxmpm.transfer.kernels`); it too changes speed, never results (tests/test_pallas_kernel.py,
 1e-12).  ``"auto"`` looks the model up in :data:`KERNEL_TABLE` -- by backend, dimension, particles
-per cell and dtype, each row with the measurement behind it -- the one place to retune when a
-device is measured (``jm.backend_info(sim, state)`` names the row in force).
+per cell, dtype and whether P2G folds the force into the momentum (1 + D nodal columns instead of
+1 + 2D, ``jm.folds_force``), each row with the measurement behind it -- the one place to retune when
+a device is measured (``jm.backend_info(sim, state)`` names the row in force).
 """
 
 from __future__ import annotations
@@ -129,6 +130,24 @@ def scatter_row_width(width: int) -> int:
     if active() != "cpu" or width & (width - 1) == 0:
         return width
     return 1 << (width - 1).bit_length()
+
+
+# How a sum over the stencil's slots (G2P: sum_k S_pk u_k) is formed, per policy (backend tuning; both give
+# the same sums to round-off, tests/test_open_core.py):
+# * "adds": K - 1 adds of the slots' particle rows, (K, N) -> (N,): on the CPU XLA vectorises them along the
+#   particles (the reason for the planar layout);
+# * "reduce": one reduction over the slot axis.
+# The GPU's entry awaits a device: the optimised HLO of an H100 mpm88 step (524k particles, 2026-11-27,
+# benchmarks/gpu_profile.py --hlo) materialises every per-slot G2P product, six (N, 9) arrays, in one fusion
+# with a transpose, and sums them in the next fusions: 0.136 ms of the step's 0.534 ms in its two transpose
+# fusions, where a plain-JAX step (one gather-multiply-reduce fusion) takes 0.265 ms in all.  Whoever has a
+# GPU: benchmarks/gpu.py --stencil-sum reduce.
+STENCIL_SUM = {"cpu": "adds", "gpu": "adds"}
+
+
+def stencil_sum_form() -> str:
+    """How the code being traced now sums over the stencil's slots: "adds" or "reduce" (:data:`STENCIL_SUM`)."""
+    return STENCIL_SUM[active()]
 
 
 def _eager(operands) -> bool:
@@ -313,42 +332,61 @@ KERNEL_CHOICES = ("auto", "xla", "pallas")
 # Particles per cell (particles / grid cells) from which a 2D model counts as dense.
 DENSE_PARTICLES_PER_CELL = 4.0
 
-# (policy, dimension or None for any, dense or None for any, dtype or None for any) ->
-# (kernel, its options, why).  The first row that matches wins; whoever measures on a device
+# (policy, dimension or None for any, dense or None for any, dtype or None for any, P2G folds the force
+# or None for any) -> (kernel, its options, why).  The first row that matches wins; whoever measures on a device
 # updates it (benchmarks/gpu.py; benchmarks/gpu_session.sh takes every variant in one lease).
-# Measured 2026-11-27 on an H100 80GB HBM3, jax 0.11.2, float32, particle-steps/s, best of 2
-# (benchmarks/README.md "GPU"): PallasKernel checked against the XLA kernel on the device
-# (tests/test_pallas_kernel.py under Triton: 4 passed) and timed -- it loses everywhere, so every
-# GPU row is the XLA kernel.  The fused prototype of ../shared/gpu/README.md (4.1e8 at 1M in 3D)
-# computed its B-spline weights inside the kernel; PallasKernel reads the stencil's per-slot
-# weights and node numbers that the shape function wrote to memory, which is where it loses.
+# Measured on an H100 80GB HBM3, jax 0.11.2, float32, particle-steps/s, best of 2 (benchmarks/README.md
+# "GPU"; benchmarks/measured/gpu_h100_2026-11-27.md).  First lease: PallasKernel reading the per-slot basis W
+# lost everywhere (3D 0.75-0.77x, 2D 0.55-0.73x the XLA kernel).  Second lease, the kernel forming its weights
+# from the per-axis factors (PallasKernel(factors=True), checked on the device against the XLA kernel: 10
+# passed, gradients and vmap among them): it wins in 3D where P2G folds the force into the momentum (APIC:
+# 4 numbers per slot), loses in 3D where it does not (FLIP, XPIC, FMPM: 7 numbers per slot, atomics the
+# XLA scatter does better), and loses in dense 2D.
 KERNEL_TABLE = (
     # CPU: XLA.  Pallas runs on the CPU only in interpret mode, a checking tool (tests), far slower.
-    (("cpu", None, None, None), ("xla", {}, "CPU: the XLA kernel; Pallas runs on the CPU only in interpret mode "
+    (("cpu", None, None, None, None), ("xla", {}, "CPU: the XLA kernel; Pallas runs on the CPU only in interpret mode "
                                             "(verification, far slower)")),
-    # 3D, mpm3d (APIC, quadratic): XLA 2.68e8 / 2.67e8 at 131k (64^3) / 1M (128^3); Pallas 2.01e8 /
-    # 2.06e8 (0.75x / 0.77x), sorted by cell every 16 steps 2.03e8 / 2.15e8; Pallas with its block
-    # reduction slower still.
-    (("gpu", 3, None, None), ("xla", {}, "3D on a GPU: the XLA kernel (H100, 1M particles: 2.67e8 particle-steps/s "
-                                         "against the Pallas kernel's 2.06e8)")),
+    # 3D float32, mpm3d (APIC, quadratic: the force folded), second lease, at 131k (64^3) / 1M (128^3):
+    # unsorted, XLA - / 2.74e8 (first lease 2.68e8 / 2.67e8), the factor kernel 2.80e8 / 3.08e8 and 3.09e8
+    # (1.13x at 1M in the same call); sorted by cell every 16 steps, XLA 2.49e8 / 2.97e8 (first lease
+    # 2.71e8 / 2.95e8), the factor kernel 2.69e8 / 3.38e8, 3.41e8 and 3.39e8 (1.14x at 1M).
+    # Variants that lost at 1M: nodal arrays addressed by column 2.32e8, slots unrolled 2.71e8, both
+    # 2.10e8, both with blocks of 64 particles 1.83e8 or 256 on 8 warps 2.18e8.  float64 not measured: the
+    # XLA kernel (the last row).
+    (("gpu", 3, None, "float32", True), ("pallas", {}, "3D float32 on a GPU, force folded into the momentum: the "
+                                                       "Pallas kernel forming its weights from the per-axis factors "
+                                                       "(H100, APIC at 1M particles: 3.09e8 particle-steps/s against "
+                                                       "the XLA kernel's 2.74e8)")),
+    # 3D, force apart (FLIP, XPIC, FMPM at 1M particles, dt 5e-5, benchmarks/gpu.py --parts schemes): Pallas
+    # sorted every 16 steps (second lease) against XLA unsorted (first lease): FLIP 2.12e8 / 2.29e8; XPIC(5)
+    # 9.10e7 / 1.16e8; FMPM(2) 1.60e8 / 1.56e8; FMPM(4) 1.06e8 / 1.36e8; FMPM(8) 6.46e7 / 9.26e7 (0.70-1.03x).
+    # 7 numbers per slot (mass, momentum, force) against APIC's 4: the atomics cost more.
+    (("gpu", 3, None, None, False), ("xla", {}, "3D on a GPU, force apart from the momentum: the XLA kernel (H100 "
+                                                "at 1M particles: the Pallas kernel 0.70-1.03x under FLIP, XPIC and "
+                                                "FMPM)")),
     # dense 2D, mpm88 (10-200 particles per cell): XLA 2.97e8 / 6.22e8 / 8.96e8 / 9.99e8 / 1.09e9 at
-    # 8k / 32k / 131k / 524k / 2.1M; Pallas 1.62e8 / 4.33e8 / 6.22e8 / 7.33e8 / 6.88e8 (0.55-0.73x);
-    # Pallas with its block reduction 4.0e7 / 1.2e8 / 1.2e8 at 8k / 32k / 131k (atomics contend).
-    (("gpu", 2, True, None), ("xla", {}, "dense 2D on a GPU: XLA's scatter (H100 mpm88: the Pallas kernel 0.55-0.73x "
-                                         "the XLA kernel, its block reduction 0.14-0.20x)")),
-    # everything else on the GPU (1D, sparse 2D): not measured apart; the XLA kernel
-    (("gpu", None, None, None), ("xla", {}, "GPU: the XLA kernel (the Pallas kernel lost in every case measured)")),
+    # 8k / 32k / 131k / 524k / 2.1M; Pallas from the basis 1.62e8 / 4.33e8 / 6.22e8 / 7.33e8 / 6.88e8
+    # (0.55-0.73x), with its block reduction 4.0e7 / 1.2e8 / 1.2e8 at 8k / 32k / 131k (atomics contend).
+    # Second lease: XLA 9.29e8 / 1.00e9 and 1.02e9 / 1.13e9 at 131k / 524k / 2.1M, the factor kernel
+    # 8.49e8 / 8.87e8 and 9.07e8 / 9.33e8 (0.82-0.91x).
+    (("gpu", 2, True, None, None), ("xla", {}, "dense 2D on a GPU: XLA's scatter (H100 mpm88: the Pallas kernel "
+                                               "0.82-0.91x the XLA kernel)")),
+    # everything else on the GPU (1D, sparse 2D, 3D float64): not measured apart; the XLA kernel
+    (("gpu", None, None, None, None), ("xla", {}, "GPU: the XLA kernel (not measured apart: 1D, sparse 2D, 3D "
+                                                  "float64)")),
 )
 
 
-def choose_kernel(policy: str, dim: int, particles_per_cell: float, dtype) -> tuple:
+def choose_kernel(policy: str, dim: int, particles_per_cell: float, dtype, folds_force: bool = False) -> tuple:
     """(kernel name, options, why): the first row of :data:`KERNEL_TABLE` that matches a model
     traced under ``policy`` ("cpu", "gpu" or "auto") in ``dim`` dimensions, with
-    ``particles_per_cell`` particles per grid cell, computing in ``dtype``."""
+    ``particles_per_cell`` particles per grid cell, computing in ``dtype``, whose P2G folds the force
+    into the momentum or not (``folds_force``, :func:`jaxmpm.folds_force`)."""
     policy, dtype = resolve(policy), jnp.dtype(dtype).name
     dense = dim == 2 and particles_per_cell >= DENSE_PARTICLES_PER_CELL
-    for (p, d, dn, dt), row in KERNEL_TABLE:
-        if p == policy and d in (None, dim) and dn in (None, dense) and dt in (None, dtype):
+    for (p, d, dn, dt, f), row in KERNEL_TABLE:
+        if (p == policy and d in (None, dim) and dn in (None, dense) and dt in (None, dtype)
+                and f in (None, folds_force)):
             return row
     return "xla", {}, "no row of KERNEL_TABLE matches: the XLA kernel"
 
@@ -357,6 +395,13 @@ def choose_kernel(policy: str, dim: int, particles_per_cell: float, dtype) -> tu
 # by cell, 0 for never; why).  The first row that matches wins (jaxmpm.run.sorting; measured with
 # benchmarks/gpu.py --sort-every K and benchmarks/vs_taichi.py).
 SORT_TABLE = (
+    # 3D on a GPU, the Pallas kernel (H100, mpm3d float32, second lease): 1M particles 3.08e8 -> 3.38e8
+    # particle-steps/s sorted every 16 steps (3.09e8 -> 3.41e8 in a second call), 131k 2.80e8 -> 2.69e8
+    # (0.96x).  Between the two not measured: sorted from 1M.
+    (("gpu", 3, "pallas", 1_000_000), (16, "3D on a GPU, the Pallas kernel, from 1M particles: sorted by cell every "
+                                           "16 steps (H100, 1M particles: 3.08e8 -> 3.38e8 particle-steps/s)")),
+    (("gpu", 3, "pallas", 0), (0, "3D on a GPU, the Pallas kernel, under 1M particles: not sorted (H100, 131k "
+                                  "particles sorted every 16 steps: 0.96x)")),
     # 3D on a GPU (H100, mpm3d, XLA kernel): 1M particles 2.67e8 -> 2.95e8 particle-steps/s sorted every
     # 16 steps (2.93e8 every 4, 2.95e8 every 64); 131k 2.68e8 -> 2.71e8 (1.01x: from here on).  The G2P
     # gather (a transpose fusion) falls from 0.735 to 0.155 ms per step at 1M (benchmarks/gpu_profile.py).

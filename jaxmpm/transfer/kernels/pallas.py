@@ -40,9 +40,12 @@ per-axis factors instead of W and form the slot weights in registers (``scatter_
 ``gather_factors_p``; 3 D K1 values per particle instead of up to (1 + 2 D) K): on an H100 the basis
 path lost to the XLA kernel (3D 0.77x, 2D 0.55-0.73x), where the fused prototype, which formed its
 weights in the kernel, had run 3x faster.  Their derivatives are the basis path's (a JVP through
-W = _factor_basis(index, F)), so the reverse pass forms W once and the forward pass never does.  The factor
-kernels are checked in interpret mode and lowered for Triton here; they have not been timed on a
-device.
+W = _factor_basis(index, F)), so the reverse pass forms W once and the forward pass never does.  On an
+H100 (2026-11-27, second lease) they beat the XLA kernel in 3D when P2G folds the force into the
+momentum (APIC at 1M particles: 1.13x), and lose with the force apart (FLIP, XPIC, FMPM: 7 numbers
+per slot instead of 4) and in dense 2D (0.82-0.91x): jaxmpm.transfer.backend.KERNEL_TABLE.  Two
+options, measured and left off: ``planar`` (the nodal arrays addressed column by column) and
+``unroll`` (the slot loop unrolled) lost 12-41% in 3D at 1M.
 
 Interpret mode (``interpret=None``: when the program is compiled for the CPU, chosen per platform
 when the primitives are lowered) runs the same kernels through Pallas' interpreter, where the tests
@@ -101,6 +104,29 @@ def _add_at(ref, indices, values, mask, interpret: bool):
         plgpu.atomic_add(ref, (index,), value, mask=mask)
 
 
+def _address(node, col, num_nodes: int, width: int, planar: bool):
+    """Where nodal value (node, col) lives in a kernel's flat nodal array: node-major (``node width + col``,
+    the (n, C) array's own order) or, with ``planar``, column-major (``col n + node``: the (C, n) array's, so
+    the lanes of a block that address neighbouring nodes address neighbouring words of one column)."""
+    return col * num_nodes + node if planar else node * width + col
+
+
+def _flat_nodal(u, planar: bool):
+    """The nodal array (n, C) flattened in the order :func:`_address` reads it."""
+    return (u.T if planar else u).reshape(-1)
+
+
+def _over_slots(K: int, slot, carry, unroll: bool):
+    """``slot(k, carry)`` for k = 0 .. K-1: a loop in the kernel (its size that of one slot), or, with
+    ``unroll``, K copies with k a Python int (static addresses into the blocks, the per-axis digits of
+    a factor stencil's slot folded)."""
+    if not unroll:
+        return jax.lax.fori_loop(0, K, slot, carry)
+    for k in range(K):
+        carry = slot(k, carry)
+    return carry
+
+
 def _same_nodes(index_ref, size: int):
     """(same (B, B), leader (B,)) for a block: same[p, q] = 1 where particles p and q touch the same
     node in every slot (the same cell of a tensor-product stencil); leader[p]: no earlier particle
@@ -122,7 +148,8 @@ def _basis_source(W):
     return W, W.shape[:2], lambda ref, k, js: {j: ref[j, k, :] for j in js}
 
 
-def _scatter_pallas(index, source, Q, *, pairs, num_nodes, width, block, reduce, interpret):
+def _scatter_pallas(index, source, Q, *, pairs, num_nodes, width, block, reduce, interpret, planar=False,
+                    unroll=False):
     """nodal (num_nodes, width) = sum_p sum_k sum_{r = (j, c)} W[j, k, p] Q[r, p] at (index[k, p], c),
     the weights W from ``source`` (:func:`_basis_source`, :func:`_factor_source`)."""
     K = index.shape[0]
@@ -150,12 +177,12 @@ def _scatter_pallas(index, source, Q, *, pairs, num_nodes, width, block, reduce,
                     value = value + w[j] * q[r]
                 if reduce:  # the group's sum, added once by its leader
                     value = jnp.sum(same * value[None, :], axis=1)
-                indices.append(node * width + col)
+                indices.append(_address(node, col, num_nodes, width, planar))
                 values.append(value)
             _add_at(out_ref, indices, values, leader if reduce else None, interpret)
             return carry
 
-        jax.lax.fori_loop(0, K, slot, 0)
+        _over_slots(K, slot, 0, unroll)
 
     blocks = index.shape[-1] // block
     nodal = pl.pallas_call(
@@ -168,7 +195,7 @@ def _scatter_pallas(index, source, Q, *, pairs, num_nodes, width, block, reduce,
         # reads an output that is not aliased to an input as NaN)
         input_output_aliases={3: 0}, interpret=interpret, compiler_params=_triton(interpret),
     )(index, A, Q, jnp.zeros((num_nodes * width,), dtype))
-    return nodal.reshape(num_nodes, width)
+    return nodal.reshape(width, num_nodes).T if planar else nodal.reshape(num_nodes, width)
 
 
 def _particle_blocks(lead: tuple, block: int):
@@ -176,7 +203,7 @@ def _particle_blocks(lead: tuple, block: int):
     return pl.BlockSpec(tuple(lead) + (block,), lambda b: (0,) * len(lead) + (b,))
 
 
-def _gather_pallas(index, source, u, *, pairs, block, interpret):
+def _gather_pallas(index, source, u, *, pairs, block, interpret, planar=False, unroll=False):
     """(P, N): out[r, p] = sum_k W[j, k, p] u[index[k, p], c] for r = (j, c), W from ``source``."""
     K, N = index.shape
     A, lead, weights = source
@@ -185,15 +212,17 @@ def _gather_pallas(index, source, u, *, pairs, block, interpret):
     index, A = _padded(index, block), _padded(A.astype(dtype), block)
     used = sorted({j for j, _ in pairs})
 
+    num_nodes = u.shape[0]
+
     def kernel(index_ref, a_ref, u_ref, out_ref):
         def slot(k, total):
-            node = index_ref[k, :] * width
+            node = index_ref[k, :]
             w = weights(a_ref, k, used)
-            values = {c: u_ref[node + c] for c in {c for _, c in pairs}}
+            values = {c: u_ref[_address(node, c, num_nodes, width, planar)] for c in {c for _, c in pairs}}
             return tuple(t + w[j] * values[c] for t, (j, c) in zip(total, pairs))
 
         zero = jnp.zeros((block,), dtype)
-        total = jax.lax.fori_loop(0, K, slot, (zero,) * len(pairs))
+        total = _over_slots(K, slot, (zero,) * len(pairs), unroll)
         for r in range(len(pairs)):
             out_ref[r, :] = total[r]
 
@@ -204,29 +233,31 @@ def _gather_pallas(index, source, u, *, pairs, block, interpret):
         out_specs=pl.BlockSpec((len(pairs), block), lambda b: (0, b)),
         out_shape=jax.ShapeDtypeStruct((len(pairs), index.shape[-1]), dtype), interpret=interpret,
         compiler_params=_triton(interpret),
-    )(index, A, u.astype(dtype).reshape(-1))
+    )(index, A, _flat_nodal(u.astype(dtype), planar))
     return out[:, :N]
 
 
-def _contract_pallas(index, Q, u, *, pairs, num_keys, block, interpret):
+def _contract_pallas(index, Q, u, *, pairs, num_keys, block, interpret, planar=False, unroll=False):
     """(J, K, N): out[j, k, p] = sum_{r = (j, c)} Q[r, p] u[index[k, p], c]."""
     K, N = index.shape
     width = u.shape[1]
     dtype = jnp.result_type(Q, u)
     index, Q = _padded(index, block), _padded(Q.astype(dtype), block)
 
+    num_nodes = u.shape[0]
+
     def kernel(index_ref, q_ref, u_ref, out_ref):
         q = [q_ref[r, :] for r in range(len(pairs))]
 
         def slot(k, carry):
-            node = index_ref[k, :] * width
-            values = {c: u_ref[node + c] for c in {c for _, c in pairs}}
+            node = index_ref[k, :]
+            values = {c: u_ref[_address(node, c, num_nodes, width, planar)] for c in {c for _, c in pairs}}
             for j in range(num_keys):
                 terms = [q[r] * values[c] for r, (jj, c) in enumerate(pairs) if jj == j]
                 out_ref[j, k, :] = sum(terms[1:], terms[0]) if terms else jnp.zeros((block,), dtype)
             return carry
 
-        jax.lax.fori_loop(0, K, slot, 0)
+        _over_slots(K, slot, 0, unroll)
 
     out = pl.pallas_call(
         kernel, grid=(index.shape[-1] // block,),
@@ -235,7 +266,7 @@ def _contract_pallas(index, Q, u, *, pairs, num_keys, block, interpret):
         out_specs=pl.BlockSpec((num_keys, K, block), lambda b: (0, 0, b)),
         out_shape=jax.ShapeDtypeStruct((num_keys, K, index.shape[-1]), dtype), interpret=interpret,
         compiler_params=_triton(interpret),
-    )(index, Q, u.astype(dtype).reshape(-1))
+    )(index, Q, _flat_nodal(u.astype(dtype), planar))
     return out[..., :N]
 
 
@@ -253,10 +284,16 @@ def _kinds(keys) -> set:
 
 def _slot_weights(f_ref, k, keys, dim: int, k1: int) -> dict:
     """{key: (B,) weights of slot ``k``} for the keys "S", ("G", d), ("A", d) from the factor ref."""
-    digits, rest, base = [], jnp.asarray(k, jnp.int32), jnp.full((), k1, jnp.int32)
-    for _ in range(dim):  # k = sum_a k_a K1^(D - 1 - a): the last axis varies fastest
-        digits.append(jax.lax.rem(rest, base))  # int32 operands: Triton's lowering wants one type
-        rest = jax.lax.div(rest, base)
+    digits = []
+    if isinstance(k, int):  # an unrolled slot (_over_slots): its digits known when tracing
+        for _ in range(dim):  # k = sum_a k_a K1^(D - 1 - a): the last axis varies fastest
+            k, digit = divmod(k, k1)
+            digits.append(digit)
+    else:
+        rest, base = jnp.asarray(k, jnp.int32), jnp.full((), k1, jnp.int32)
+        for _ in range(dim):
+            digits.append(jax.lax.rem(rest, base))  # int32 operands: Triton's lowering wants one type
+            rest = jax.lax.div(rest, base)
     digits = digits[::-1]
     kinds = _kinds(keys)
     w = [f_ref[0, a, digits[a], :] for a in range(dim)]
@@ -305,18 +342,16 @@ gather_p = Primitive("jaxmpm_pallas_gather")  # (index, W, u) -> (P, N)
 contract_p = Primitive("jaxmpm_pallas_contract")  # (index, Q, u) -> (J, K, N)
 
 
-def _scatter(index, W, Q, *, pairs, num_nodes, width, block, reduce, interpret):
-    return scatter_p.bind(index, W, Q, pairs=pairs, num_nodes=num_nodes, width=width, block=block, reduce=reduce,
-                          interpret=interpret)
+def _scatter(index, W, Q, *, pairs, num_nodes, width, **options):
+    return scatter_p.bind(index, W, Q, pairs=pairs, num_nodes=num_nodes, width=width, **options)
 
 
-def _gather(index, W, u, *, pairs, block, reduce, interpret):
-    return gather_p.bind(index, W, u, pairs=pairs, block=block, reduce=reduce, interpret=interpret)
+def _gather(index, W, u, *, pairs, **options):
+    return gather_p.bind(index, W, u, pairs=pairs, **options)
 
 
-def _contract(index, Q, u, *, pairs, num_keys, block, reduce, interpret):
-    return contract_p.bind(index, Q, u, pairs=pairs, num_keys=num_keys, block=block, reduce=reduce,
-                           interpret=interpret)
+def _contract(index, Q, u, *, pairs, num_keys, **options):
+    return contract_p.bind(index, Q, u, pairs=pairs, num_keys=num_keys, **options)
 
 
 def _dtype(*avals):
@@ -393,8 +428,11 @@ for _p in (scatter_p, gather_p, contract_p):
     ad.primitive_jvps[_p] = _bilinear_jvp(_p)
 
 
+OPTIONS = ("block", "reduce", "interpret", "planar", "unroll")  # the kernels' options, every primitive's params
+
+
 def _common(params):
-    return {"block": params["block"], "reduce": params["reduce"], "interpret": params["interpret"]}
+    return {name: params[name] for name in OPTIONS}
 
 
 def _scatter_transpose(ct, index, W, Q, *, pairs, num_nodes, width, **params):
@@ -577,15 +615,21 @@ class PallasKernel(Kernel):
             factors (3 D K1 values per particle) instead of reading the basis W (up to (1 + 2 D) K
             values) that XLA forms from them (default True; the basis path serves the rest:
             axisymmetric stencils, per-slot columns, and every derivative).
+        planar: address the nodal arrays column by column inside the kernels (``col n + node``)
+            rather than node by node (``node C + col``); the same sums in the same order.
+        unroll: unroll the loop over the stencil's slots (static addresses; a kernel K times as
+            long to compile).
     """
 
     block: int = BLOCK
     reduce: bool = False
     interpret: bool | None = None
     factors: bool = True
+    planar: bool = False
+    unroll: bool = False
 
     def _options(self):
-        return {"block": self.block, "reduce": self.reduce, "interpret": self.interpret}
+        return {name: getattr(self, name) for name in OPTIONS}
 
     def _from_factors(self, stencil, keys) -> bool:
         """Whether the kernels form the weights of ``keys`` from ``stencil``'s per-axis factors (a

@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 from jax.custom_derivatives import SymbolicZero
 
-from ..backend import derivative_rule, evaluate_once, hold_tangent, materialise, scatter_row_width
+from ..backend import derivative_rule, evaluate_once, hold_tangent, materialise, scatter_row_width, stencil_sum_form
 from ..contractions import Affine, Divergence, Gradient, Hoop, PerSlot, Weighted, as_terms
 from ..shapes import rows
 from . import Kernel, register_kernel
@@ -33,7 +33,10 @@ from . import Kernel, register_kernel
 
 def _sum_over_stencil(a):
     """sum_k a[..., k, :] for planar a of shape (..., K, N), unrolled over the (4-64) stencil
-    slots: K-1 elementwise adds of contiguous particle rows, which XLA fuses with their producers."""
+    slots: K-1 elementwise adds of contiguous particle rows, which XLA fuses with their producers;
+    or one reduction over the slot axis, as the backend policy says (:func:`stencil_sum_form`)."""
+    if stencil_sum_form() == "reduce":
+        return jnp.sum(a, axis=-2)
     first, *others = jnp.unstack(a, axis=-2)
     total = first
     for row in others:

@@ -69,8 +69,10 @@ def _assert_same(expected, got, rtol):
 def test_every_method_equals_the_xla_kernel(dim, shape):
     """P2G (every contraction kind, multimaterial columns; with and without the block reduction;
     with the nodal arrays addressed column by column and the slots unrolled) and the four G2P methods
-    equal the XLA kernel's to 1e-12 in float64."""
-    _compare_with_xla((PALLAS, REDUCED, TUNED), SHAPES[shape], _inputs(dim))
+    equal the XLA kernel's to 1e-12 in float64 (the planar, unrolled variant in the fast tier's cases: unrolled
+    in interpret mode, 64 slots in 3D cubic took 16 s more to compile)."""
+    tuned = (TUNED,) if (dim, shape) in FAST else ()
+    _compare_with_xla((PALLAS, REDUCED) + tuned, SHAPES[shape], _inputs(dim))
 
 
 def _compare_with_xla(kernels, shape, args, per_slot=True):

@@ -67,6 +67,13 @@ SCHEMES_DT = 5e-5  # stable for FMPM(8) on both scenes (see the module docstring
 SCHEMES = (("FLIP", 1, jm.FLIP()), ("XPIC(5)", 5, jm.XPIC(order=5)), ("FMPM(2)", 2, jm.FMPM(order=2)),
            ("FMPM(4)", 4, jm.FMPM(order=4)), ("FMPM(8)", 8, jm.FMPM(order=8)))  # (label, S+S order + 1, scheme)
 
+#: what-if rows of the kernel table: flag -> the Pallas kernel's options, what the row tries
+WHAT_IF = (("reduce", {"reduce": True}, "the Pallas kernel with its block reduction before the atomic adds"),
+           ("basis", {"factors": False}, "the Pallas kernel reading XLA's per-slot basis W instead of forming the "
+                                         "weights from the per-axis factors"),
+           ("planar", {"planar": True}, "the Pallas kernel addressing its nodal arrays column by column"),
+           ("unroll", {"unroll": True}, "the Pallas kernel with its loop over the stencil's slots unrolled"))
+
 #: part -> sizes and steps; 2D sizes are particle counts, 3D ones (particles, grid cells per axis)
 FULL = dict(mpm88=((8192, 32768, 131072, 524288, 2097152), 500), mpm3d=(((131072, 64), (1048576, 128)), 100),
             schemes=((131072, (1048576, 128)), 200), gradient=((8192, 131072), 1000),
@@ -369,21 +376,13 @@ def main(argv=None) -> int:
     parser.add_argument("--no-taichi", dest="taichi", action="store_false", help="skip Taichi")
     parser.add_argument("--kernel", choices=("auto", "xla", "pallas"), default="auto",
                         help="jaxmpm's transfer kernel (Simulation(kernel=...)); default auto: the library's table")
-    parser.add_argument("--reduce", action="store_true",
-                        help="the Pallas kernel with its block reduction before the atomic adds (a row put first in "
-                             "the library's kernel table for this run; implies --kernel auto)")
-    parser.add_argument("--basis", action="store_true",
-                        help="the Pallas kernel reading XLA's per-slot basis W instead of forming the weights from the "
-                             "per-axis factors (PallasKernel(factors=False); a what-if row as --reduce)")
+    for flag, options, text in WHAT_IF:
+        parser.add_argument(f"--{flag}", action="store_true",
+                            help=f"{text} (PallasKernel({', '.join(f'{k}={v}' for k, v in options.items())}): a row "
+                                 "put first in the library's kernel table for this run; implies --kernel auto)")
     parser.add_argument("--block", type=int, default=None,
                         help="particles per program of the Pallas kernel (PallasKernel(block=...); default: its own, "
                              "128; a what-if row as --reduce)")
-    parser.add_argument("--planar", action="store_true",
-                        help="the Pallas kernel addressing its nodal arrays column by column (PallasKernel(planar=True)"
-                             "; a what-if row as --reduce)")
-    parser.add_argument("--unroll", action="store_true",
-                        help="the Pallas kernel with its loop over the stencil's slots unrolled (PallasKernel(unroll="
-                             "True); a what-if row as --reduce)")
     parser.add_argument("--stencil-sum", choices=("adds", "reduce"), default=None,
                         help="how the GPU policy sums over the stencil's slots (jaxmpm.transfer.backend.STENCIL_SUM; "
                              "default: the library's entry)")
@@ -404,18 +403,15 @@ def main(argv=None) -> int:
         pallas.WARPS = args.warps
     if args.stencil_sum:
         backend.STENCIL_SUM = dict(backend.STENCIL_SUM, gpu=args.stencil_sum)
-    if args.reduce or args.basis or args.block or args.planar or args.unroll:  # what-if row: a table entry tried
-        options = {"reduce": True} if args.reduce else {}
-        options.update({"factors": False} if args.basis else {})
-        options.update({"block": args.block} if args.block else {})
-        options.update({"planar": True} if args.planar else {})
-        options.update({"unroll": True} if args.unroll else {})
-        row = ("pallas", options, "benchmarks/gpu.py --reduce/--basis/--block/--planar/--unroll")
-        backend.KERNEL_TABLE = ((("cpu", None, None, None, None), row), (("gpu", None, None, None, None), row))
-        args.kernel = "auto"
-    variant = " ".join(f"--{name}" for name in ("reduce", "basis", "planar", "unroll") if getattr(args, name))
+    variant = " ".join(f"--{flag}" for flag, _, _ in WHAT_IF if getattr(args, flag))
     variant += "".join(f" --{name.replace('_', '-')} {getattr(args, name)}"
                        for name in ("block", "warps", "stencil_sum") if getattr(args, name))
+    options = {k: v for flag, pairs, _ in WHAT_IF if getattr(args, flag) for k, v in pairs.items()}
+    options.update({"block": args.block} if args.block else {})
+    if options:  # what-if row: how whoever measures tries a table entry before writing it
+        row = ("pallas", options, f"benchmarks/gpu.py {variant.strip()}")
+        backend.KERNEL_TABLE = ((("cpu", None, None, None, None), row), (("gpu", None, None, None, None), row))
+        args.kernel = "auto"
     sizes = QUICK if args.quick else FULL
     repeats = args.repeats or (2 if args.quick else 3)
     jm.compilation_cache(False)  # compile times: XLA compiling, not a program read back from disk

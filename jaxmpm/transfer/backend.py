@@ -345,12 +345,13 @@ DENSE_PARTICLES_PER_CELL = 4.0
 # XLA scatter does better), and loses in dense 2D.
 KERNEL_TABLE = (
     # CPU: XLA.  Pallas runs on the CPU only in interpret mode, a checking tool (tests), far slower.
-    (("cpu", None, None, None, None), ("xla", {}, "CPU: the XLA kernel; Pallas runs on the CPU only in interpret mode "
-                                            "(verification, far slower)")),
+    (("cpu", None, None, None, None), ("xla", {}, "CPU: the XLA kernel; Pallas runs on the CPU only in interpret "
+                                                  "mode (verification, far slower)")),
     # 3D float32, mpm3d (APIC, quadratic: the force folded), second lease, at 131k (64^3) / 1M (128^3):
-    # unsorted, XLA - / 2.74e8 (first lease 2.68e8 / 2.67e8), the factor kernel 2.80e8 / 3.08e8 and 3.09e8
-    # (1.13x at 1M in the same call); sorted by cell every 16 steps, XLA 2.49e8 / 2.97e8 (first lease
-    # 2.71e8 / 2.95e8), the factor kernel 2.69e8 / 3.38e8, 3.41e8 and 3.39e8 (1.14x at 1M).
+    # unsorted, XLA (131k not measured) / 2.74e8 (first lease 2.68e8 / 2.67e8), the factor kernel
+    # 2.80e8 / 3.08e8 and 3.09e8 (1.13x at 1M in the same call); sorted by cell every 16 steps, XLA
+    # 2.49e8 / 2.97e8 (first lease 2.71e8 / 2.95e8), the factor kernel 2.69e8 / 3.38e8, 3.41e8 and
+    # 3.39e8 (1.14x at 1M).
     # Variants that lost at 1M: nodal arrays addressed by column 2.32e8, slots unrolled 2.71e8, both
     # 2.10e8, both with blocks of 64 particles 1.83e8 or 256 on 8 warps 2.18e8.  float64 not measured: the
     # XLA kernel (the last row).

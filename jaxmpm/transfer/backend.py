@@ -52,6 +52,7 @@ from functools import partial, wraps
 import jax
 import jax.numpy as jnp
 from jax.custom_batching import custom_vmap
+from jax.extend.core import jaxpr_as_fun
 
 from ..core.errors import check
 
@@ -193,11 +194,19 @@ def while_loop(cond_fun, body_fun, init):
 
 def _barrier(fn, operands, witness=None):
     """``fn(operands)`` inside a conditional that is always taken (see the module docstring); its
-    predicate reads ``witness`` (default: the first float of ``operands``)."""
+    predicate reads ``witness`` (default: the first float of ``operands``).  ``fn`` is traced once,
+    into a jaxpr that gives the untaken branch its output types and that the taken branch replays
+    (tracing ``fn`` for the types and again for the branch doubled the boundaries' tracing, and
+    under ``vmap`` quadrupled it: :func:`_batched_barrier`); the branch's program is the same."""
     if witness is None:
         witness = next(leaf for leaf in jax.tree_util.tree_leaves(operands) if jnp.issubdtype(leaf.dtype, jnp.floating))
-    out = jax.eval_shape(fn, operands)
-    return jax.lax.cond(_always_true(witness), fn, lambda ops: _untaken(out, ops), operands)
+    closed, out = jax.make_jaxpr(fn, return_shape=True)(operands)
+    out_tree = jax.tree_util.tree_structure(out)
+
+    def taken(ops):
+        return jax.tree_util.tree_unflatten(out_tree, jaxpr_as_fun(closed)(*jax.tree_util.tree_leaves(ops)))
+
+    return jax.lax.cond(_always_true(witness), taken, lambda ops: _untaken(out, ops), operands)
 
 
 def _varies(x) -> bool:

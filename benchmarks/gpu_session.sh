@@ -2,8 +2,9 @@
 # Every GPU number of issue 32 in one lease of a device: the kernels checked against XLA on the device, then
 # benchmarks/gpu.py with the tables' choice (next to Taichi CUDA), 3D on the XLA kernel, the Pallas kernel
 # unsorted in 2D and 3D, the XLA kernel summing over the stencil's slots as one reduction (--stencil-sum
-# reduce, not yet timed), and the scheme / gradient / ensemble parts.  Each stage has its own time limit, so one slow stage cannot take the
-# others' time; every row is printed as it is measured (the log is the record if a stage is cut).
+# reduce, not yet timed), and the scheme / gradient / ensemble parts.  Each stage has its own time limit, so
+# one slow stage cannot take the others' time; every row is printed as it is measured (the log is the record
+# if a stage is cut).
 #
 #   bash benchmarks/gpu_session.sh OUT_DIR          # OUT_DIR receives log.txt, gpu.md and gpu.csv
 #   GPU_SESSION_EXTRA=--quick bash benchmarks/gpu_session.sh /tmp/dry   # the same stages at small sizes (a CPU)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+from functools import partial
 from typing import Callable
 
 import equinox as eqx
@@ -452,9 +453,8 @@ class Simulation(eqx.Module):
               f"Simulation.init: the grid has axisymmetric={self.grid.axisymmetric} but the particles "
               f"axisymmetric={particles.axisymmetric}; fill them on this grid (jm.fill(grid, ...))")
         xc = concrete(x)
-        if xc is not None:
-            with jax.ensure_compile_time_eval():  # concrete positions: check even inside jit
-                inside = np.asarray(self.shape.inside(self.grid, jnp.asarray(xc)))
+        if xc is not None:  # concrete positions: checked on the host, even inside jit
+            inside = self.shape.inside(self.grid, np.asarray(xc))
             if not inside.all():
                 bad = int(np.argmin(inside))
                 raise_msg = (
@@ -497,7 +497,7 @@ class Simulation(eqx.Module):
         return State(
             x=x,
             v=jnp.asarray(particles.v, dtype),
-            F=jnp.broadcast_to(jnp.eye(dF, dtype=dtype), (n, dF, dF)),
+            F=_identities(n, dF, jnp.dtype(dtype)),
             mass=mass.astype(dtype),
             volume0=volume.astype(dtype),
             time=jnp.zeros((), dtype),
@@ -663,6 +663,13 @@ class Simulation(eqx.Module):
     @property
     def dim(self) -> int:
         return self.grid.dim
+
+
+@partial(jax.jit, static_argnums=(0, 1, 2))
+def _identities(n: int, d: int, dtype):
+    """n identity matrices d x d, F at the start: one program (jnp.eye and its broadcast, run eagerly,
+    compiled seven small ones in a new process)."""
+    return jnp.broadcast_to(jnp.eye(d, dtype=dtype), (n, d, d))
 
 
 def backend_info(sim: Simulation, state: State) -> dict:

@@ -1,4 +1,5 @@
-"""Determinants of the small matrices MPM carries (F_p, dF_p: 1x1 to 3x3), in closed form.
+"""Determinants of the small matrices MPM carries (F_p, dF_p: 1x1 to 3x3), in closed form; and the
+stack of identities a state starts from.
 
 ``jnp.linalg.det`` evaluates 2x2 and 3x3 determinants by these same products, but since jax 0.11 its
 derivative solves with an LU factorisation (``_cofactor_solve``): on a GPU a batched cuBLAS getrf and two
@@ -11,7 +12,17 @@ columns of an axisymmetric F (3x3 in r, z, theta) are no different.
 
 from __future__ import annotations
 
+from functools import partial
+
+import jax
 import jax.numpy as jnp
+
+
+@partial(jax.jit, static_argnums=(0, 1, 2))
+def identities(n: int, d: int, dtype):
+    """n identity matrices d x d (an initial F or Fe), as one program: ``jnp.eye`` and its broadcast, run
+    eagerly, compiled seven small programs in a new process (``jnp.dtype(dtype)``: a hashable dtype)."""
+    return jnp.broadcast_to(jnp.eye(d, dtype=dtype), (n, d, d))
 
 
 def det(a):

@@ -37,6 +37,7 @@ import abc
 
 import jax.numpy as jnp
 
+from ..core.linalg import identities
 from .base import Increment, InelasticMaterial, lame
 from .principal import principal_map, principal_stress
 
@@ -124,7 +125,7 @@ class HenckyPlastic(InelasticMaterial):
         n, d = jnp.shape(particles.x)
         d = d + getattr(particles, "axisymmetric", False)  # axisymmetric: 3x3 in (r, z, theta), 001 §7
         dtype = jnp.result_type(float)
-        state = {"Fe": jnp.broadcast_to(jnp.eye(d, dtype=dtype), (n, d, d)),
+        state = {"Fe": identities(n, d, jnp.dtype(dtype)),
                  STRESS: jnp.zeros((n, d, d), dtype), DISSIPATION: jnp.zeros((n,), dtype)}
         if d < 3:
             state[OUT_OF_PLANE] = jnp.ones((n, 3 - d), dtype)

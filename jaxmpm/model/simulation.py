@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-from functools import partial
 from typing import Callable
 
 import equinox as eqx
@@ -19,7 +18,7 @@ from ..core import measures as diag
 from ..core.errors import check
 from ..core.grid import Grid
 from ..core.limits import require_memory
-from ..core.linalg import det
+from ..core.linalg import det, identities
 from ..core.particles import Particles
 from ..core.registry import MATERIALS, SCHEMES, SHAPES, scheme_from_name, shape_from_name
 from ..core.state import State
@@ -497,7 +496,7 @@ class Simulation(eqx.Module):
         return State(
             x=x,
             v=jnp.asarray(particles.v, dtype),
-            F=_identities(n, dF, jnp.dtype(dtype)),
+            F=identities(n, dF, jnp.dtype(dtype)),
             mass=mass.astype(dtype),
             volume0=volume.astype(dtype),
             time=jnp.zeros((), dtype),
@@ -663,13 +662,6 @@ class Simulation(eqx.Module):
     @property
     def dim(self) -> int:
         return self.grid.dim
-
-
-@partial(jax.jit, static_argnums=(0, 1, 2))
-def _identities(n: int, d: int, dtype):
-    """n identity matrices d x d, F at the start: one program (jnp.eye and its broadcast, run eagerly,
-    compiled seven small ones in a new process)."""
-    return jnp.broadcast_to(jnp.eye(d, dtype=dtype), (n, d, d))
 
 
 def backend_info(sim: Simulation, state: State) -> dict:

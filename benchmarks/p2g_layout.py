@@ -1,10 +1,13 @@
-"""The XLA kernel's two P2G layouts side by side: particle-steps per CPU second, and the gradient.
+"""The XLA kernel's P2G layouts and G2P gathers side by side: particle-steps per CPU second, and the gradient.
 
 ``XLAKernel(layout="planar")`` forms each P2G column's per-slot values and stacks them, (C, K, N);
 ``XLAKernel(layout="rows")`` multiplies per-particle coefficients (N, C) by the weight basis
 (S, G_d, S (x_i - X_p)_d) into the scatter's rows, with no per-slot concatenation
-(``jaxmpm/transfer/kernels/xla.py``).  This script registers each in turn for the CPU policy and
-times the same step in the same process, so the ratio is what the layout changes.
+(``jaxmpm/transfer/kernels/xla.py``).  ``hold_gathers`` says whether G2P's gathered nodal values are
+evaluated once into per-slot buffers (``held``) or fused into the products that read them
+(``free``).  This script registers each variant in turn for the CPU policy and times the same step
+in the same process, so the ratio is what the variant changes; the backend's table
+(``jaxmpm.transfer.backend.XLA_LAYOUT``) is set from it.
 
 On the CPU the time is CPU time of this process (``time.process_time``, best of ``--repeats``
 after a warm-up; ``benchmarks/_results.cpu_best``), which other work on the machine disturbs far
@@ -14,10 +17,12 @@ cleanest CPU numbers:
     XLA_FLAGS=--xla_cpu_multi_thread_eigen=false taskset -c 0 python benchmarks/p2g_layout.py
     python benchmarks/p2g_layout.py --quick
 
-Cases: mpm88 (APIC, quadratic, 8192 particles, float32), disks (FLIP, uGIMP, 416 particles,
-float64), disks-large (FLIP, uGIMP, 25.7k particles, float32), mms 3D (FLIP, linear, float64), and
-the gradient of mpm88's kinetic energy after 20 steps with respect to E (float32, structured
-adjoint).  Compile time is reported apart.  Writes ``benchmarks/results/p2g_layout.csv``.
+Cases (``--cases``): mpm88 (APIC, quadratic, 8192 particles, float32; ``mpm88-f64``, ``-32k``,
+``-131k`` in float64), disks (FLIP, uGIMP, 416 particles, float64), disks-large (FLIP, uGIMP, 25.7k
+particles, float32 and ``-f64``), mms 3D (FLIP, linear, float64), bar (1D, float64), and the
+gradients (``/grad``) of the kinetic energy after 20 steps with respect to E (structured adjoint).
+``--variants`` picks among planar-held (float32's default), planar-free, rows-held and rows-free
+(float64's default).  Compile time is reported apart.  Writes ``benchmarks/results/p2g_layout.csv``.
 """
 
 from __future__ import annotations
@@ -40,13 +45,25 @@ from jaxmpm.transfer.kernels import XLAKernel, kernel, register_kernel  # noqa: 
 
 DEFAULT_CSV = Path(__file__).resolve().parent / "results" / "p2g_layout.csv"
 
-#: case -> (scene, options, steps per timed call)
+#: case -> (scene, options, steps per timed call); a name ending in /grad times the gradient
 CASES = {
     "mpm88": ("mpm88", dict(dtype="f32"), 100),
+    "mpm88-f64": ("mpm88", dict(dtype="f64"), 100),
+    "mpm88-f64-32k": ("mpm88", dict(dtype="f64", n_particles=32768), 30),
+    "mpm88-f64-131k": ("mpm88", dict(dtype="f64", n_particles=131072), 10),
     "disks": ("disks", dict(dtype="f64"), 400),
     "disks-large": ("disks", dict(dtype="f32", spacing=0.00625), 20),
+    "disks-large-f64": ("disks", dict(dtype="f64", spacing=0.00625), 20),
     "mms-3d": ("mms", dict(dtype="f64", dim=3, cells=8), 50),
+    "bar": ("bar", dict(dtype="f64"), 400),
 }
+GRADIENTS = ("mpm88/grad", "mpm88-f64/grad", "disks/grad")
+#: variant -> XLAKernel options
+VARIANTS = {"planar-held": dict(layout="planar", hold_gathers=True),
+            "planar-free": dict(layout="planar", hold_gathers=False),
+            "rows-held": dict(layout="rows", tangent_layout="rows", hold_gathers=True),
+            "rows-free": dict(layout="rows", tangent_layout="rows", hold_gathers=False),
+            "rows/planar-free": dict(layout="rows", tangent_layout="planar", hold_gathers=False)}
 
 
 @eqx.filter_jit
@@ -90,15 +107,17 @@ def main(argv=None):
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--rounds", type=int, default=2, help="alternations of the two layouts (default 2)")
     p.add_argument("--csv", default=str(DEFAULT_CSV))
+    p.add_argument("--cases", nargs="+", default=list(CASES) + list(GRADIENTS), choices=list(CASES) + list(GRADIENTS))
+    p.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
     args = p.parse_args(argv)
     repeats = 2 if args.quick else args.repeats
     policy = "cpu" if jax.default_backend() == "cpu" else "gpu"  # the policy "auto" resolves to
     with use_policy(policy):
         default = kernel()
     rows = []
-    print(f"{'case':<14}{'layout':<8}{'particle-steps/CPU s':>22}{'compile s':>11}")
-    cases = [(name, "forward") for name in CASES] + [("mpm88", "gradient")]
-    for name, kind in cases:
+    print(f"{'case':<20}{'variant':<13}{'particle-steps/CPU s':>22}{'compile s':>11}")
+    for case in args.cases:
+        name, kind = (case[:-5], "gradient") if case.endswith("/grad") else (case, "forward")
         scene, options, steps = CASES[name]
         steps = max(steps // 4, 5) if args.quick else steps
         if kind == "gradient":
@@ -107,16 +126,17 @@ def main(argv=None):
         n = int(setup.state.x.shape[0])
         best = {}
         for _ in range(args.rounds):
-            for layout in ("planar", "rows"):
-                register_kernel(policy, XLAKernel(layout=layout))  # also drops the compiled programs
+            for variant in args.variants:
+                register_kernel(policy, XLAKernel(**VARIANTS[variant]))  # also drops the compiled programs
                 first, run = measure(gradient if kind == "gradient" else advance, setup, steps, repeats)
                 rate = n * steps / run
-                best[layout] = max(best.get(layout, 0.0), rate)
-                rows.append(dict(case=name, kind=kind, layout=layout, particles=n, steps=steps,
+                best[variant] = max(best.get(variant, 0.0), rate)
+                rows.append(dict(case=case, kind=kind, variant=variant, particles=n, steps=steps,
                                  cpu_s=run, particle_steps_per_cpu_s=rate, compile_s=first - run))
-                print(f"{name + ('/grad' if kind == 'gradient' else ''):<14}{layout:<8}{rate:>22.4g}"
-                      f"{first - run:>11.2f}")
-        print(f"{'':<14}rows / planar = {best['rows'] / best['planar']:.3f}")
+                print(f"{case:<20}{variant:<13}{rate:>22.4g}{first - run:>11.2f}", flush=True)
+        base = args.variants[0]
+        print(f"{'':<20}against {base}: " + ", ".join(f"{v} {best[v] / best[base]:.3f}" for v in args.variants[1:]),
+              flush=True)
     register_kernel(policy, default)
     print("wrote", write_csv(args.csv, list(rows[0]), rows))
 

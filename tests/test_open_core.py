@@ -236,6 +236,49 @@ def test_a_stencil_sum_as_one_reduction_gives_the_same_step(monkeypatch):
             np.testing.assert_allclose(b, a, rtol=1e-12, atol=1e-12 * float(jnp.abs(a).max()))
 
 
+@pytest.mark.parametrize("name", ["spin", pytest.param("disks", marks=pytest.mark.slow)])
+def test_every_xla_kernel_variant_gives_the_same_step_and_derivatives(name):
+    """The XLA kernel's variants under the CPU policy -- P2G planar or by rows, the rows' derivatives
+    by rows or by the planar layout (a custom JVP: the values from the rows, the tangents from the
+    planar P2G), G2P's gathered values held or free -- give one step, its reverse-mode gradient and its
+    forward-mode derivative to 1e-12: APIC (spin: the affine column) and FLIP on uGIMP (disks: the
+    force apart).  "auto" picks by precision (backend.XLA_LAYOUT): planar and held in float32, rows with
+    planar derivatives and free gathers in float64."""
+    from jaxmpm.transfer.backend import use_policy, xla_layout
+    from jaxmpm.transfer.kernels import XLAKernel, kernel, register_kernel
+
+    with use_policy("cpu"):
+        default = kernel()
+        assert xla_layout(jnp.float32) == ("planar", "planar", True)
+        assert xla_layout(jnp.float64) == ("rows", "planar", False)
+    with use_policy("gpu"):
+        assert xla_layout(jnp.float64)[:2] == ("rows", "rows")
+    options = dict(spin=dict(scheme=jm.APIC(), t_end=0.05, frames=1), disks=dict(t_end=0.01, frames=1))[name]
+    setup = jm.scene(name, **options)
+    sim, state, dt = setup.sim.with_backend("cpu"), setup.state, setup.dt
+
+    def loss(v):
+        moved = sim.step(eqx.tree_at(lambda s: s.v, state, v), dt)
+        return jnp.sum(moved.x ** 2) + jnp.sum(moved.v ** 2) + jnp.sum(moved.F ** 2)
+
+    direction = jnp.asarray(np.random.default_rng(1).standard_normal(state.v.shape))
+    variants = [dict(layout="planar", hold_gathers=True), dict(layout="rows", tangent_layout="rows", hold_gathers=True),
+                dict(layout="rows", tangent_layout="planar", hold_gathers=False)]
+    results = []
+    try:
+        for options in variants:
+            register_kernel("cpu", XLAKernel(**options))
+            step = jax.jit(lambda s: sim.step(s, dt))(state)
+            grad = jax.jit(jax.grad(loss))(state.v)
+            tangent = jax.jit(lambda v: jax.jvp(loss, (v,), (direction,))[1])(state.v)
+            results.append([step.x, step.v, step.F, grad, tangent])
+    finally:
+        register_kernel("cpu", default)
+    for options, result in zip(variants[1:], results[1:]):
+        for what, a, b in zip(("x", "v", "F", "gradient", "jvp"), results[0], result):
+            np.testing.assert_allclose(b, a, rtol=0, atol=1e-12 * float(jnp.abs(a).max()), err_msg=f"{options} {what}")
+
+
 def test_gpu_policy_has_no_stage_boundaries():
     setup = jm.scene("spin", scheme=jm.APIC(), t_end=0.05, frames=1)
 

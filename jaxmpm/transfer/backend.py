@@ -18,7 +18,8 @@ policy's business:
   H100: 1.56x slower 3D step at 1M particles, 7x at 8k), and fusion is what one wants there.
 
 The policy also sets the row width of the transfer layer's one scatter-add
-(:func:`scatter_row_width`: a power of two on the CPU, the natural width elsewhere).
+(:func:`scatter_row_width`: a power of two on the CPU, the natural width elsewhere), and with the
+precision how the XLA kernel lays out P2G and G2P (:data:`XLA_LAYOUT`, :func:`xla_layout`).
 
 ``Simulation(..., backend="auto" | "cpu" | "gpu")`` picks the policy; ``"auto"`` resolves from
 ``jax.default_backend()`` when the step is traced.  Both policies give the same numbers: a
@@ -150,6 +151,33 @@ STENCIL_SUM = {"cpu": "adds", "gpu": "adds"}
 def stencil_sum_form() -> str:
     """How the code being traced now sums over the stencil's slots: "adds" or "reduce" (:data:`STENCIL_SUM`)."""
     return STENCIL_SUM[active()]
+
+
+# How the XLA kernel (jaxmpm.transfer.kernels.xla.XLAKernel with its "auto" options) runs, per (policy, dtype):
+# (P2G's layout, the layout of P2G's derivatives, whether G2P holds its gathered nodal values).  Every choice
+# gives the same numbers to round-off (tests/test_open_core.py).  Measured with benchmarks/p2g_layout.py on one
+# pinned core (2026-11-27, jax 0.10.2, particle-steps per CPU second, best of 3 over two rounds; table in
+# benchmarks/README.md), against planar with held gathers:
+# * CPU float32: planar with held gathers stays: mpm88 8k, free gathers 0.99x, rows with planar derivatives
+#   0.85x; on two threads (wall time, ms per step at 8k / 32k / 131k) the rows 0.54 / 1.74 / 9.5 against
+#   0.51-0.52 / 1.65-1.68 / 9.5-9.8, free gathers 0.51-0.79 / 2.6-2.7 / 11.3-11.8;
+# * CPU float64: rows, their derivatives planar, free gathers: mpm88 8k / 32k / 131k 1.10x / 1.24x / 1.26x
+#   (two threads, wall: 0.79 / 3.4 / 21.2 -> 0.68 / 2.73 / 15.4-16.0 ms per step), disks at h = 0.00625 (25.7k
+#   particles) 1.27x, disks (416) 1.00x, 3D mms 1.04x; gradients (mpm88 8k, disks) 0.97-1.01x.  A per-slot
+#   float64 buffer of 32k particles is 2.4 MB, of 131k 9.4 MB: beyond the cache, writing and reading it costs
+#   more than recomputing a gather inside each product, and P2G's rows written once in the scatter's order
+#   save the transpose of stacked per-slot columns.  The rows differentiated as written ran gradients at
+#   0.39-0.52x (their broadcasts transpose to reductions over short axes), hence planar derivatives;
+# * GPU: the rows layout (no per-slot concatenation; fused into the scatter, the boundaries being identities).
+XLA_LAYOUT = {("cpu", "float32"): ("planar", "planar", True), ("cpu", "float64"): ("rows", "planar", False),
+              ("cpu", None): ("planar", "planar", True), ("gpu", None): ("rows", "rows", True)}
+
+
+def xla_layout(dtype) -> tuple:
+    """(P2G's layout, "planar" or "rows"; the layout of its derivatives; whether G2P holds its gathered
+    nodal values) for the XLA kernel in code traced now in ``dtype`` (:data:`XLA_LAYOUT`)."""
+    policy = active()
+    return XLA_LAYOUT.get((policy, jnp.dtype(dtype).name), XLA_LAYOUT[(policy, None)])
 
 
 def _eager(operands) -> bool:

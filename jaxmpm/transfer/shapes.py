@@ -62,6 +62,11 @@ class StencilBase(eqx.Module):
         return self.gradient.shape[0]
 
     @property
+    def dtype(self):
+        """The floating dtype of the stencil's weights (the precision the transfers compute in)."""
+        return self.weight.dtype
+
+    @property
     def nodes_per_axis(self) -> int:
         """K1 with K = K1^D for a tensor-product stencil."""
         return int(round(self.size ** (1.0 / self.dim)))
@@ -148,6 +153,10 @@ class TensorStencil(StencilBase):
     @property
     def nodes_per_axis(self) -> int:
         return self.w.shape[1]
+
+    @property
+    def dtype(self):
+        return self.w.dtype
 
     def inertia(self):
         """D_p from the per-axis factors: with sum_i w_a,i = 1 per axis, D_aa = sum_i w_a,i dx_a,i^2

@@ -90,8 +90,8 @@ _STOCK: dict = {}
 
 
 def _stock_kernel(name: str, options: tuple, policy: str) -> Kernel:
-    """The library's own kernel ``name`` ("xla": the XLA kernel in the policy's layout; "pallas":
-    :class:`~jaxmpm.transfer.kernels.pallas.PallasKernel` with ``options``), one instance per key."""
+    """The library's own kernel ``name`` with ``options`` ("xla": :class:`XLAKernel`, by default as the
+    backend's table says; "pallas": :class:`~jaxmpm.transfer.kernels.pallas.PallasKernel`), one instance per key."""
     key = (name, options, policy)
     if key not in _STOCK:
         if name == "pallas":
@@ -99,7 +99,7 @@ def _stock_kernel(name: str, options: tuple, policy: str) -> Kernel:
 
             _STOCK[key] = PallasKernel(**dict(options))
         else:
-            _STOCK[key] = XLAKernel(layout="planar" if policy == "cpu" else "rows")
+            _STOCK[key] = XLAKernel(**dict(options))
     return _STOCK[key]
 
 

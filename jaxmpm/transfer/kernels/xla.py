@@ -25,7 +25,17 @@ import jax
 import jax.numpy as jnp
 from jax.custom_derivatives import SymbolicZero
 
-from ..backend import derivative_rule, evaluate_once, hold_tangent, materialise, scatter_row_width, stencil_sum_form
+from ...core.errors import check
+from ..backend import (
+    derivative_rule,
+    evaluate_once,
+    hold_tangent,
+    materialise,
+    scatter_row_width,
+    stencil_sum_form,
+    structured,
+    xla_layout,
+)
 from ..contractions import Affine, Divergence, Gradient, Hoop, PerSlot, Weighted, as_terms
 from ..shapes import rows
 from . import Kernel, register_kernel
@@ -134,21 +144,25 @@ def scatter_planar(index, contributions, num_nodes: int):
     return scatter_rows(index, contributions.reshape(contributions.shape[0], -1).T, num_nodes)
 
 
-def nodal_values(stencil, u):
+def nodal_values(stencil, u, hold: bool = True):
     """u_i at every stencil slot: (n,) -> (K, N), (n, C) -> a list of C arrays (K, N).  One gather
     of scalars per component (from the transposed (C, n) nodal array): on CPU this is faster than
-    gathering (K N, C) rows and transposing them, and consumers read each component directly."""
+    gathering (K N, C) rows and transposing them, and consumers read each component directly.
+    ``hold``: a vector field's gathered components are evaluated once, into their own buffers, before
+    their consumers (a stage boundary); otherwise XLA may fuse each gather into every consumer
+    (backend tuning: :class:`XLAKernel`'s ``hold_gathers``)."""
     index = stencil.index  # on the grid (shape functions clip it), so no bounds handling
     if u.ndim == 1:
         return materialise(u).at[index].get(mode="promise_in_bounds")
     # the nodal field is evaluated once first: XLA would otherwise fuse its whole computation
     # (v = p/m, boundary conditions) into the gather and repeat it for every slot
-    return materialise([uc.at[index].get(mode="promise_in_bounds") for uc in rows(materialise(u.T))])
+    values = [uc.at[index].get(mode="promise_in_bounds") for uc in rows(materialise(u.T))]
+    return materialise(values) if hold else values
 
 
-def gather_planar(stencil, u):
+def gather_planar(stencil, u, hold: bool = True):
     """(S u)_p for nodal ``u`` (n,) or (n, C), planar result (N,) or (C, N)."""
-    values = nodal_values(stencil, u)
+    values = nodal_values(stencil, u, hold)
     if u.ndim == 1:
         return sum_over_stencil(stencil.weight * values)
     w = stencil.weight
@@ -237,13 +251,69 @@ class XLAKernel(Kernel):
       S (x_i - X_p)_d, T) with per-particle coefficients Q_j (N, C) -- the concatenation is of
       per-particle arrays, K times smaller, and the rows are one elementwise expression that
       XLA can fuse into the scatter (more multiplies: a coefficient is zero where its kind does not
-      reach a column).  :class:`PerSlot` columns are added as given."""
+      reach a column).  :class:`PerSlot` columns are added as given.  The rows are a stage
+      boundary (``evaluate_once``): on the CPU evaluated once, into the buffer the scatter reads,
+      each row's C columns side by side (no transpose of planar columns); on a GPU inline, so XLA
+      may fuse them into the scatter.
 
-    layout: str = "planar"
+    ``tangent_layout`` ("planar" or "rows"): how P2G's derivatives are formed when ``layout`` is
+    "rows": with "planar" the values come from the rows and their JVP from the planar layout, whose
+    transpose (the reverse pass) is the cheap one; the rows' broadcasts transpose to reductions over
+    short axes (gradients at 0.37-0.50x on the CPU).  Under ``adjoint="autodiff"`` (the reference
+    path, no custom rules) "planar" runs the planar layout, differentiated as written.
+
+    ``hold_gathers``: G2P's gathered nodal values (one (K, N) array per component) are evaluated
+    once before the products that read them (True), or left for XLA to fuse into each product
+    (False: no per-slot buffer is written).
+
+    All three default to ``"auto"``: the backend's table for the policy and the precision traced
+    (:data:`jaxmpm.transfer.backend.XLA_LAYOUT`; on the CPU: float32 planar with held gathers,
+    float64 rows with planar derivatives and free gathers, its per-slot buffers leaving the cache;
+    on a GPU: rows)."""
+
+    layout: str = "auto"
+    tangent_layout: str = "auto"
+    hold_gathers: bool | str = "auto"
+
+    def __check_init__(self):
+        check(self.layout in ("auto", "planar", "rows"),
+              f"XLAKernel: layout = {self.layout!r}; choose 'auto', 'planar' or 'rows'")
+        check(self.tangent_layout in ("auto", "planar", "rows"),
+              f"XLAKernel: tangent_layout = {self.tangent_layout!r}; choose 'auto', 'planar' or 'rows'")
+        check(self.hold_gathers in ("auto", True, False),
+              f"XLAKernel: hold_gathers = {self.hold_gathers!r}; choose 'auto', True or False")
+
+    def _layout(self, stencil) -> str:
+        return xla_layout(stencil.dtype)[0] if self.layout == "auto" else self.layout
+
+    def _tangent_layout(self, stencil) -> str:
+        return xla_layout(stencil.dtype)[1] if self.tangent_layout == "auto" else self.tangent_layout
+
+    def _hold(self, stencil) -> bool:
+        return xla_layout(stencil.dtype)[2] if self.hold_gathers == "auto" else self.hold_gathers
 
     def p2g(self, stencil, columns: dict, num_nodes: int) -> dict:
-        if self.layout == "rows":
+        if self._layout(stencil) == "planar":
+            return self._p2g_planar(stencil, columns, num_nodes)
+        if self._tangent_layout(stencil) == "rows":
             return self._p2g_rows(stencil, columns, num_nodes)
+        if not structured():  # the reference adjoint differentiates the planar code as written
+            return self._p2g_planar(stencil, columns, num_nodes)
+
+        # the values by rows, their derivatives by the planar layout, whose transpose is the cheap one
+        # (the rows' broadcasts transpose to reductions over short axes: the gradient 0.39-0.53x)
+        @jax.custom_jvp
+        def rows_with_planar_tangents(stencil, columns):
+            return self._p2g_rows(stencil, columns, num_nodes)
+
+        @rows_with_planar_tangents.defjvp
+        def _(primals, tangents):
+            _, out_dot = jax.jvp(lambda s, c: self._p2g_planar(s, c, num_nodes), primals, tangents)
+            return rows_with_planar_tangents(*primals), out_dot
+
+        return rows_with_planar_tangents(stencil, columns)
+
+    def _p2g_planar(self, stencil, columns: dict, num_nodes: int) -> dict:
         layout = {}  # name -> (width, scalar), in the order the columns are stacked
 
         def stacked(stencil, columns):
@@ -301,7 +371,7 @@ class XLAKernel(Kernel):
                 out = v if out is None else out + v
             return out.reshape(-1, padded)
 
-        nodal = scatter_rows(stencil.index, rows_of(stencil, columns), num_nodes)
+        nodal = scatter_rows(stencil.index, evaluate_once(rows_of, stencil, columns), num_nodes)
         out, start = {}, 0
         for name in names:
             w = widths[name]
@@ -310,11 +380,11 @@ class XLAKernel(Kernel):
         return out
 
     def gather(self, stencil, u):
-        Su = gather_planar(stencil, u)
+        Su = gather_planar(stencil, u, self._hold(stencil))
         return Su if u.ndim == 1 else to_particle_major(Su)
 
     def velocity_gradient(self, stencil, v):
-        values = nodal_values(stencil, v)  # D arrays (K, N)
+        values = nodal_values(stencil, v, self._hold(stencil))  # D arrays (K, N)
         g = rows(stencil.gradient)
         d = len(g)
         planar = jnp.stack([jnp.stack([sum_over_stencil(values[a] * g[b]) for b in range(d)]) for a in range(d)])
@@ -326,16 +396,13 @@ class XLAKernel(Kernel):
         return to_particle_major(jnp.stack([sum_over_stencil(values * g[b]) for b in range(len(g))]))
 
     def affine_moment(self, stencil, v):
-        w, a, b = stencil.weight, nodal_values(stencil, v), stencil.offset
+        w, a, b = stencil.weight, nodal_values(stencil, v, self._hold(stencil)), stencil.offset
         planar = jnp.stack([jnp.stack([sum_over_stencil(w * a[i] * b[j]) for j in range(len(b))])
                             for i in range(len(a))])
         return to_particle_major(planar)
 
 
-# The layouts by policy, from benchmarks/p2g_layout.py (benchmarks/README.md).  CPU: the planar
-# layout (its stacked columns are the evaluated-once buffer the scatter reads; the rows layout ran
-# mpm88 at 0.70x, its gradient at 0.48x, disks 0.87x, 3D 0.99x, only large disks faster, 1.37x).
-# GPU: the rows layout, which has no per-slot concatenation in the compiled program (2.04 of 8.0 ms
-# of an H100 3D step at 1M particles in ../shared/gpu/README.md); its timing awaits a device.
-register_kernel("cpu", XLAKernel(layout="planar"))
-register_kernel("gpu", XLAKernel(layout="rows"))
+# One kernel for both policies, its options "auto": the backend's table (XLA_LAYOUT in
+# jaxmpm/transfer/backend.py, from benchmarks/p2g_layout.py) picks the layouts by policy and precision.
+register_kernel("cpu", XLAKernel())
+register_kernel("gpu", XLAKernel())

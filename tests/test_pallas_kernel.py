@@ -309,8 +309,14 @@ def test_choosing_and_forcing_a_kernel():
     info = jm.backend_info(setup.sim, setup.state)
     assert info["kernel"] == "xla" and info["policy"] == "cpu" and info["dimension"] == 2
     assert info["reason"] == KERNEL_TABLE[0][1][2]  # the CPU row
+    # the XLA kernel's layout for the precision (backend.XLA_LAYOUT): planar in float32, rows in float64
+    assert info["dtype"] == "float64" and info["xla_layout"] == {"p2g": "rows", "p2g_derivatives": "planar",
+                                                                 "hold_gathers": False}
+    single = jm.scene("disks", spacing=0.1, dtype="f32")
+    assert jm.backend_info(single.sim, single.state)["xla_layout"] == {"p2g": "planar", "p2g_derivatives": "planar",
+                                                                       "hold_gathers": True}
     forced = jm.backend_info(setup.sim.with_kernel("pallas"), setup.state)
-    assert forced["kernel"] == "pallas" and "forced" in forced["reason"]
+    assert forced["kernel"] == "pallas" and "forced" in forced["reason"] and "xla_layout" not in forced
     # 3D float32 on a GPU with the force folded into the momentum (APIC): the Pallas kernel, as measured
     # on an H100, with the reason; the force apart (FLIP, XPIC, FMPM), dense 2D and float64 (not measured
     # in 3D): the XLA kernel

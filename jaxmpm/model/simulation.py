@@ -43,6 +43,7 @@ from ..transfer.backend import (
     use_adjoint,
     use_kernel,
     use_policy,
+    xla_layout,
 )
 from ..transfer.kernels.windowed import active_window, on_window
 from ..transfer.shapes import UGIMP, ShapeFunction, field_stencil
@@ -678,16 +679,23 @@ def backend_info(sim: Simulation, state: State) -> dict:
         {"kernel": "xla" or "pallas", "options": the kernel's options, "policy": "cpu" or "gpu",
         "dimension", "particles_per_cell", "dtype", "reason": the table row's reason,
         "sort_every": the steps between the runs' sorts of the particles by cell (0: never),
-        "sort_reason": why}.
+        "sort_reason": why, and for the XLA kernel "xla_layout": {"p2g": "planar" or "rows",
+        "p2g_derivatives": "planar" or "rows", "hold_gathers": bool}, its "auto" options for this
+        policy and dtype (``jaxmpm.transfer.backend.XLA_LAYOUT``)}.
     """
     check(isinstance(sim, Simulation), f"backend_info: sim must be a jm.Simulation, got {type(sim).__name__}")
     check(isinstance(state, State), f"backend_info: state must be a jm.State, got {type(state).__name__}")
     n, dtype = state.x.shape[-2], state.x.dtype
     name, options, why = sim._kernel_row(n, dtype)
     every, sort_why = sim._sort_row(n, dtype)
-    return {"kernel": name or "xla", "options": dict(options), "policy": resolve(sim.backend),
+    info = {"kernel": name or "xla", "options": dict(options), "policy": resolve(sim.backend),
             "dimension": sim.grid.dim, "particles_per_cell": n / max(1, int(np.prod(sim.grid.cells))),
             "dtype": jnp.dtype(dtype).name, "reason": why, "sort_every": every, "sort_reason": sort_why}
+    if info["kernel"] == "xla":
+        with use_policy(sim.backend):
+            p2g, derivatives, hold = xla_layout(dtype)
+        info["xla_layout"] = {"p2g": p2g, "p2g_derivatives": derivatives, "hold_gathers": hold}
+    return info
 
 
 def _checked_sort_every(every):

@@ -128,9 +128,11 @@ def _scatter_rows_jvp(num_nodes, primals, tangents):
     # the same scatter of the tangents, behind a stage boundary: in reverse mode the nodal
     # cotangent is evaluated once, then gathered (the scatter's transpose); without it XLA fuses
     # the cotangent's computation into the gather and repeats it for every stencil slot
+    # the boundary's predicate reads one node number, not the primal sums: where only the tangent is
+    # used (the planar JVP of the rows layout, XLAKernel.p2g), the primal scatter is then left out
     (index, r), (_, r_dot) = primals, tangents
     out = _scatter_rows_ruled(index, r, num_nodes)
-    return out, hold_tangent(_scatter_rows(index, r_dot, num_nodes), out)
+    return out, hold_tangent(_scatter_rows(index, r_dot, num_nodes), index.reshape(-1)[:1].astype(r.dtype))
 
 
 scatter_rows = derivative_rule(_scatter_rows, _scatter_rows_ruled)

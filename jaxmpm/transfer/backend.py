@@ -163,7 +163,7 @@ def stencil_sum_form() -> str:
 #   0.51-0.52 / 1.65-1.68 / 9.5-9.8, free gathers 0.51-0.79 / 2.6-2.7 / 11.3-11.8;
 # * CPU float64: rows, their derivatives planar, free gathers: mpm88 8k / 32k / 131k 1.10x / 1.24x / 1.26x
 #   (two threads, wall: 0.79 / 3.4 / 21.2 -> 0.68 / 2.73 / 15.4-16.0 ms per step), disks at h = 0.00625 (25.7k
-#   particles) 1.27x, disks (416) 1.00x, 3D mms 1.04x; gradients (mpm88 8k, disks) 0.97-1.01x.  A per-slot
+#   particles) 1.27x, disks (416) 1.00x, 3D mms 1.04x; gradients (mpm88 8k, disks) 1.03-1.05x.  A per-slot
 #   float64 buffer of 32k particles is 2.4 MB, of 131k 9.4 MB: beyond the cache, writing and reading it costs
 #   more than recomputing a gather inside each product, and P2G's rows written once in the scatter's order
 #   save the transpose of stacked per-slot columns.  The rows differentiated as written ran gradients at

@@ -132,7 +132,8 @@ def _scatter_rows_jvp(num_nodes, primals, tangents):
     # used (the planar JVP of the rows layout, XLAKernel.p2g), the primal scatter is then left out
     (index, r), (_, r_dot) = primals, tangents
     out = _scatter_rows_ruled(index, r, num_nodes)
-    return out, hold_tangent(_scatter_rows(index, r_dot, num_nodes), index.reshape(-1)[:1].astype(r.dtype))
+    witness = index.reshape(-1)[:1].astype(r.dtype) if index.size else out
+    return out, hold_tangent(_scatter_rows(index, r_dot, num_nodes), witness)
 
 
 scatter_rows = derivative_rule(_scatter_rows, _scatter_rows_ruled)
@@ -261,7 +262,7 @@ class XLAKernel(Kernel):
     ``tangent_layout`` ("planar" or "rows"): how P2G's derivatives are formed when ``layout`` is
     "rows": with "planar" the values come from the rows and their JVP from the planar layout, whose
     transpose (the reverse pass) is the cheap one; the rows' broadcasts transpose to reductions over
-    short axes (gradients at 0.37-0.50x on the CPU).  Under ``adjoint="autodiff"`` (the reference
+    short axes (gradients at 0.39-0.52x on the CPU).  Under ``adjoint="autodiff"`` (the reference
     path, no custom rules) "planar" runs the planar layout, differentiated as written.
 
     ``hold_gathers``: G2P's gathered nodal values (one (K, N) array per component) are evaluated
@@ -303,7 +304,7 @@ class XLAKernel(Kernel):
             return self._p2g_planar(stencil, columns, num_nodes)
 
         # the values by rows, their derivatives by the planar layout, whose transpose is the cheap one
-        # (the rows' broadcasts transpose to reductions over short axes: the gradient 0.39-0.53x)
+        # (the rows' broadcasts transpose to reductions over short axes: gradients at 0.39-0.52x)
         @jax.custom_jvp
         def rows_with_planar_tangents(stencil, columns):
             return self._p2g_rows(stencil, columns, num_nodes)

@@ -286,19 +286,19 @@ class XLAKernel(Kernel):
         check(self.hold_gathers in ("auto", True, False),
               f"XLAKernel: hold_gathers = {self.hold_gathers!r}; choose 'auto', True or False")
 
-    def _layout(self, stencil) -> str:
-        return xla_layout(stencil.dtype)[0] if self.layout == "auto" else self.layout
-
-    def _tangent_layout(self, stencil) -> str:
-        return xla_layout(stencil.dtype)[1] if self.tangent_layout == "auto" else self.tangent_layout
+    def _resolved(self, stencil) -> tuple:
+        """(layout, tangent_layout, hold_gathers) for ``stencil``'s precision, "auto" read from the table."""
+        given = (self.layout, self.tangent_layout, self.hold_gathers)
+        return tuple(t if g == "auto" else g for g, t in zip(given, xla_layout(stencil.dtype)))
 
     def _hold(self, stencil) -> bool:
-        return xla_layout(stencil.dtype)[2] if self.hold_gathers == "auto" else self.hold_gathers
+        return self._resolved(stencil)[2]
 
     def p2g(self, stencil, columns: dict, num_nodes: int) -> dict:
-        if self._layout(stencil) == "planar":
+        layout, tangent_layout, _ = self._resolved(stencil)
+        if layout == "planar":
             return self._p2g_planar(stencil, columns, num_nodes)
-        if self._tangent_layout(stencil) == "rows":
+        if tangent_layout == "rows":
             return self._p2g_rows(stencil, columns, num_nodes)
         if not structured():  # the reference adjoint differentiates the planar code as written
             return self._p2g_planar(stencil, columns, num_nodes)

@@ -32,7 +32,9 @@ is read back instead of compiled: a test that builds the same simulation anew, a
 functions at every call.  A cached program is the one XLA compiled, so no number changes.  The
 subprocesses the tests start get a folder of the session too (``$JAXMPM_CACHE_DIR``: jaxmpm's own
 cache, when it is on), never the user's.  ``JAXMPM_TEST_XLA_CACHE=0`` runs the suite without a
-cache (and with ``JAXMPM_CACHE=0``)."""
+cache (and with ``JAXMPM_CACHE=0``).  ``JAXMPM_TEST_CACHE_DIR=folder`` keeps every compiled program
+in ``folder`` instead, shared by both workers and every subprocess and kept after the run, so that
+a run again reads them back (docs/testing.md, "Keeping compiled programs across runs")."""
 
 import atexit
 import os
@@ -54,7 +56,14 @@ jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_dtype_promotion", "strict")
 jax.config.update("jax_numpy_rank_promotion", "raise")
 
-if os.environ.get("JAXMPM_TEST_XLA_CACHE", "1") != "0":
+if os.environ.get("JAXMPM_TEST_CACHE_DIR"):
+    # a folder kept from one run to the next, shared by both workers and every subprocess: jaxmpm's
+    # own cache (FolderCache: entries written atomically, safe under concurrent processes), which
+    # ``import jaxmpm`` switches on for $JAXMPM_CACHE_DIR; a run again reads its programs back
+    os.environ["JAXMPM_CACHE_DIR"] = os.path.expanduser(os.environ["JAXMPM_TEST_CACHE_DIR"])
+    os.environ.setdefault("JAXMPM_CACHE_MAX_BYTES", str(8 << 30))
+    os.environ.pop("JAXMPM_CACHE", None)
+elif os.environ.get("JAXMPM_TEST_XLA_CACHE", "1") != "0":
     _compiled = tempfile.mkdtemp(prefix="jaxmpm-tests-xla-")
     atexit.register(shutil.rmtree, _compiled, ignore_errors=True)
     jax.config.update("jax_compilation_cache_dir", _compiled)

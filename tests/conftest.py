@@ -25,16 +25,17 @@ test_contact_scenes and test_core_v2).  At the optimisation level above it moves
 round-off (1e-16 relative: disks, spin, mpm88), as the level itself does; at XLA's defaults it
 changes no bit.
 
-Each test process also keeps every program it compiles in a folder of its own for the session
-(JAX's persistent cache, emptied and removed when the process ends), so a program compiled again
-is read back instead of compiled: a test that builds the same simulation anew, a module run after
-``jax.clear_caches()`` below, and eager code, whose loops (XPIC's series) are traced as new
-functions at every call.  A cached program is the one XLA compiled, so no number changes.  The
-subprocesses the tests start get a folder of the session too (``$JAXMPM_CACHE_DIR``: jaxmpm's own
-cache, when it is on), never the user's.  ``JAXMPM_TEST_XLA_CACHE=0`` runs the suite without a
-cache (and with ``JAXMPM_CACHE=0``).  ``JAXMPM_TEST_CACHE_DIR=folder`` keeps every compiled program
-in ``folder`` instead, shared by both workers and every subprocess and kept after the run, so that
-a run again reads them back (docs/testing.md, "Keeping compiled programs across runs")."""
+The suite keeps every program it compiles in one folder, shared by both workers and every process
+the tests start, and kept from one run to the next: ``jaxmpm/tests`` in the user's cache folder
+(jaxmpm's own cache, ``$JAXMPM_CACHE_DIR`` for the processes; never the library's ``jaxmpm/xla``).
+A program compiled again is read back instead of compiled: a test that builds the same simulation
+anew, a module run after ``jax.clear_caches()`` below, eager code whose loops (XPIC's series) are
+traced as new functions at every call, and every program of an earlier run.  A cached program is
+the one XLA compiled, so no number changes (docs/testing.md, "Keeping compiled programs across
+runs").  ``JAXMPM_TEST_CACHE_DIR=folder`` picks another folder; ``JAXMPM_TEST_CACHE_DIR=`` (empty)
+gives each process a throw-away folder of its own instead, removed when it ends (a clean checkout
+on a fresh machine runs the same way either way); ``JAXMPM_TEST_XLA_CACHE=0`` runs without a cache
+(and with ``JAXMPM_CACHE=0``)."""
 
 import atexit
 import os
@@ -56,12 +57,34 @@ jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_dtype_promotion", "strict")
 jax.config.update("jax_numpy_rank_promotion", "raise")
 
-if os.environ.get("JAXMPM_TEST_CACHE_DIR"):
-    # a folder kept from one run to the next, shared by both workers and every subprocess: jaxmpm's
-    # own cache (FolderCache: entries written atomically, safe under concurrent processes), which
-    # ``import jaxmpm`` switches on for $JAXMPM_CACHE_DIR; a run again reads its programs back
-    os.environ["JAXMPM_CACHE_DIR"] = os.path.expanduser(os.environ["JAXMPM_TEST_CACHE_DIR"])
-    os.environ.setdefault("JAXMPM_CACHE_MAX_BYTES", str(8 << 30))
+
+
+def _kept_folder():
+    """The folder the suite keeps its compiled programs in from one run to the next:
+    ``$JAXMPM_TEST_CACHE_DIR`` (empty: none), else ``jaxmpm/tests`` in the user's cache folder
+    (``$XDG_CACHE_HOME`` or ``~/.cache``; ``%LOCALAPPDATA%`` on Windows), never the library's own
+    ``jaxmpm/xla``; None when it cannot be made."""
+    folder = os.environ.get("JAXMPM_TEST_CACHE_DIR")
+    if folder is None:
+        base = os.environ.get("LOCALAPPDATA" if os.name == "nt" else "XDG_CACHE_HOME") or os.path.join("~", ".cache")
+        folder = os.path.join(base, "jaxmpm", "tests")
+    if not folder:
+        return None
+    folder = os.path.expanduser(folder)
+    try:
+        os.makedirs(folder, exist_ok=True)
+    except OSError:
+        return None
+    return folder if os.access(folder, os.W_OK) else None
+
+
+_kept = _kept_folder() if os.environ.get("JAXMPM_TEST_XLA_CACHE", "1") != "0" else None
+if _kept:
+    # shared by both workers and every subprocess: jaxmpm's own cache (FolderCache: entries written
+    # atomically, a corrupt one compiled again, the folder bounded), which ``import jaxmpm`` switches
+    # on for $JAXMPM_CACHE_DIR; a run again reads its programs back
+    os.environ["JAXMPM_CACHE_DIR"] = _kept
+    os.environ.setdefault("JAXMPM_CACHE_MAX_BYTES", str(2 << 30))
     os.environ.pop("JAXMPM_CACHE", None)
 elif os.environ.get("JAXMPM_TEST_XLA_CACHE", "1") != "0":
     _compiled = tempfile.mkdtemp(prefix="jaxmpm-tests-xla-")

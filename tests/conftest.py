@@ -38,6 +38,7 @@ on a fresh machine runs the same way either way); ``JAXMPM_TEST_XLA_CACHE=0`` ru
 (and with ``JAXMPM_CACHE=0``)."""
 
 import atexit
+import gc
 import os
 import shutil
 import tempfile
@@ -95,6 +96,11 @@ elif os.environ.get("JAXMPM_TEST_XLA_CACHE", "1") != "0":
 else:
     os.environ["JAXMPM_CACHE"] = "0"
 
+
+# the suite traces programs all the time: Python's collector runs its youngest generation every
+# 20 000 allocations rather than 700, as jaxmpm does inside its own tracing calls
+# (jaxmpm/run/collector.py; gradients traced 23-26% faster, benchmarks/tracing_gc.py)
+gc.set_threshold(20_000, *gc.get_threshold()[1:])
 
 import pytest  # noqa: E402
 

@@ -18,6 +18,7 @@ from ..core.errors import InstabilityError, ParticlesLeftGrid, check
 from ..core.limits import require_memory, require_steps
 from ..core.state import State
 from ..core.warn import warn
+from .collector import with_fewer_collections
 from .memory import _segment_length, choose_checkpoint, parse_memory, tree_bytes  # noqa: F401  (_segment_length: tests)
 
 CAUSES = {
@@ -105,6 +106,7 @@ def check_state(state) -> None:
           + "); cast it to one dtype first, e.g. jm.scenes.cast_state(state, jnp.float32)")
 
 
+@with_fewer_collections
 def rollout(sim, state: State, dt, frames: int, save_every: int = 1, save_particles: bool = True,
             checkpoint="auto", history_gradients: bool = True, fields: tuple = (), memory=None):
     """Pure ``lax.scan`` rollout of ``frames * save_every`` steps.  Returns
@@ -175,6 +177,7 @@ def rollout(sim, state: State, dt, frames: int, save_every: int = 1, save_partic
     history = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a[None], b]), first, frames_hist)
     return final, history, failure
 
+@with_fewer_collections
 def run(
     sim,
     state: State,

@@ -18,6 +18,7 @@ import jax
 import numpy as np
 
 from ..core.errors import check
+from .collector import fewer_collections, with_fewer_collections
 
 
 def interactive() -> bool:
@@ -99,7 +100,7 @@ class AheadOfTime:
         key = _signature(args)
         program = self.programs.get(key)
         if program is None:
-            with Stage(self.what, self.show) as stage:
+            with Stage(self.what, self.show) as stage, fewer_collections():
                 program = self.jitted.lower(*args).compile()
             self.compile_time += stage.seconds
             self.programs[key] = program
@@ -130,6 +131,7 @@ def bar(show: bool, **options):
         progress_bar.close()
 
 
+@with_fewer_collections
 def shown_call(jitted, args: tuple, what: str, show: bool):
     """``jitted(*args)``; when ``show`` (and no argument is traced: under ``jit``/``grad``/``vmap``
     nothing runs here to time), compiled ahead of time and then run to completion, each timed and

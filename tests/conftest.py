@@ -33,9 +33,8 @@ anew, a module run after ``jax.clear_caches()`` below, eager code whose loops (X
 traced as new functions at every call, and every program of an earlier run.  A cached program is
 the one XLA compiled, so no number changes (docs/testing.md, "Keeping compiled programs across
 runs").  ``JAXMPM_TEST_CACHE_DIR=folder`` picks another folder; ``JAXMPM_TEST_CACHE_DIR=`` (empty)
-gives each process a throw-away folder of its own instead, removed when it ends (a clean checkout
-on a fresh machine runs the same way either way); ``JAXMPM_TEST_XLA_CACHE=0`` runs without a cache
-(and with ``JAXMPM_CACHE=0``)."""
+gives each process a throw-away folder of its own instead, removed when it ends;
+``JAXMPM_TEST_XLA_CACHE=0`` runs without a cache (and with ``JAXMPM_CACHE=0``)."""
 
 import atexit
 import gc

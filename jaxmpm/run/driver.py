@@ -177,6 +177,7 @@ def rollout(sim, state: State, dt, frames: int, save_every: int = 1, save_partic
     history = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a[None], b]), first, frames_hist)
     return final, history, failure
 
+
 @with_fewer_collections
 def run(
     sim,

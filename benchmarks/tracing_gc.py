@@ -20,6 +20,7 @@ Times are wall seconds of ``jax.jit(f).trace(...)`` and of ``.lower()``, best of
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import subprocess
 import sys
@@ -52,21 +53,13 @@ def child(scene: str, scheme: str, program: str, mode: str) -> dict:
 
     jitted = jax.jit(jax.grad(loss) if program == "gradient" else loss)
     full = gc.get_stats()[2]["collections"]
-    with collector.fewer_collections() if mode == "whole" else _nothing():
+    with collector.fewer_collections() if mode == "whole" else contextlib.nullcontext():
         start = time.perf_counter()
         traced = jitted.trace(state.v)
         middle = time.perf_counter()
         traced.lower()
         end = time.perf_counter()
     return dict(trace=middle - start, lower=end - middle, full_collections=gc.get_stats()[2]["collections"] - full)
-
-
-class _nothing:
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        return False
 
 
 def main(argv=None) -> int:

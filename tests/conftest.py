@@ -58,7 +58,6 @@ jax.config.update("jax_numpy_dtype_promotion", "strict")
 jax.config.update("jax_numpy_rank_promotion", "raise")
 
 
-
 def _kept_folder():
     """The folder the suite keeps its compiled programs in from one run to the next:
     ``$JAXMPM_TEST_CACHE_DIR`` (empty: none), else ``jaxmpm/tests`` in the user's cache folder
@@ -78,7 +77,8 @@ def _kept_folder():
     return folder if os.access(folder, os.W_OK) else None
 
 
-_kept = _kept_folder() if os.environ.get("JAXMPM_TEST_XLA_CACHE", "1") != "0" else None
+_cached = os.environ.get("JAXMPM_TEST_XLA_CACHE", "1") != "0"
+_kept = _kept_folder() if _cached else None
 if _kept:
     # shared by both workers and every subprocess: jaxmpm's own cache (FolderCache: entries written
     # atomically, a corrupt one compiled again, the folder bounded), which ``import jaxmpm`` switches
@@ -86,7 +86,7 @@ if _kept:
     os.environ["JAXMPM_CACHE_DIR"] = _kept
     os.environ.setdefault("JAXMPM_CACHE_MAX_BYTES", str(2 << 30))
     os.environ.pop("JAXMPM_CACHE", None)
-elif os.environ.get("JAXMPM_TEST_XLA_CACHE", "1") != "0":
+elif _cached:
     _compiled = tempfile.mkdtemp(prefix="jaxmpm-tests-xla-")
     atexit.register(shutil.rmtree, _compiled, ignore_errors=True)
     jax.config.update("jax_compilation_cache_dir", _compiled)
@@ -97,9 +97,12 @@ else:
 
 
 # the suite traces programs all the time: Python's collector runs its youngest generation every
-# 20 000 allocations rather than 700, as jaxmpm does inside its own tracing calls
-# (jaxmpm/run/collector.py; gradients traced 23-26% faster, benchmarks/tracing_gc.py)
-gc.set_threshold(20_000, *gc.get_threshold()[1:])
+# TRACING_THRESHOLD allocations rather than 700 for the whole run, as jaxmpm does inside its own
+# tracing calls (gradients traced 23-26% faster, benchmarks/tracing_gc.py); imported only now, once
+# the cache settings above are in the environment that ``import jaxmpm`` reads
+from jaxmpm.run.collector import TRACING_THRESHOLD  # noqa: E402
+
+gc.set_threshold(TRACING_THRESHOLD, *gc.get_threshold()[1:])
 
 import pytest  # noqa: E402
 

@@ -172,6 +172,8 @@ def test_viscous_time_step_limit():
     assert float(limits["newtonianfluid"]) == pytest.approx(0.5 * 3 * h**2 / (16 * 0.01), rel=1e-13)
     assert float(sim.stable_dt(state, 0.5)) == pytest.approx(min(float(v) for v in limits.values()), rel=1e-14)
     assert float(limits["newtonianfluid"]) < float(limits["CFL"])  # the viscous limit binds here
+    inviscid, state = bar_1d(eta=0.0)
+    assert set(inviscid.time_step_limits(state, cfl=0.5)) == {"CFL"}  # no limit of its own: no entry
 
 
 def test_a_run_is_stable_below_the_viscous_limit_and_blows_up_above():

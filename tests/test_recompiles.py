@@ -3,8 +3,8 @@
 event fires for a program read from the test session's persistent cache too): a second
 ``jm.calibrate`` with the same loss, ``free=`` picking other parameters, a contact's separation or
 specified normal, a transport term's initial value, a rebuilt scene (heat1d, cylinder, slide's ramp)
-and a new E, beta or dt compile no new program.  Which values the programs compute with is checked
-too: a reused program must see the new value."""
+and a new E, beta or dt compile no new program; the stable time step is one program for any cfl.
+Which values the programs compute with is checked too: a reused program must see the new value."""
 
 import gc
 import weakref
@@ -164,6 +164,30 @@ def test_new_E_beta_and_dt_compile_nothing():
     for change in (lambda: run(jm.set_params(sim, E=2.0 * float(jm.get_params(sim, "E")["E"]))),
                    lambda: run(jm.set_params(sim, beta=0.5)), lambda: run(step=dt / 2)):
         assert not any("rollout" in n for n in compiled_by(change)[1])
+
+
+def test_the_stable_time_step_is_one_program_for_any_cfl():
+    """sim.stable_dt (a scene's dt) and sim.time_step_limits (sim.run's check of dt) on concrete inputs
+    compile one program, the same for both, and jm.stable_dt one, where op by op they compiled one
+    per operation (15 for heat1d's limits on a first call); a new cfl compiles nothing.  Their numbers
+    are those of the same arithmetic op by op and inside the caller's own jit, bit for bit."""
+    s = jm.scene("heat1d", cells=8)
+    sim, state = s.sim, s.state
+    for action, program in ((lambda c: sim.stable_dt(state, c), "_time_step_limits"),
+                            (lambda c: sim.time_step_limits(state, c), "_time_step_limits"),
+                            (lambda c: jm.stable_dt(sim.grid, sim.material, state.v, c), "_cfl_limit")):
+        jax.clear_caches()
+        first, names = compiled_by(lambda: action(0.5))
+        assert names == [f"jit({program})"], names
+        other, names = compiled_by(lambda: action(0.7))
+        assert names == []
+        with jax.disable_jit():
+            op_by_op = action(0.7)
+        for got, want in ((other, op_by_op), (other, jax.jit(action)(0.7))):
+            assert jax.tree_util.tree_structure(got) == jax.tree_util.tree_structure(want)
+            for g, w in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want)):
+                np.testing.assert_array_equal(g, w)
+    assert set(sim.time_step_limits(state, 0.5)) == {"CFL", "heat"}
 
 
 @pytest.mark.slow

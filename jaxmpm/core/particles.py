@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Callable, Sequence
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -267,6 +268,8 @@ def fill(
     check(v.shape == (x.shape[0], dim), f"fill: velocity must give {dim} components per particle, got {v.shape}")
     check(density is None or np.shape(density) in ((), (x.shape[0],)),
           f"fill: density has shape {np.shape(density)}; give one number (or one per particle, {x.shape[0]})")
-    mass = None if density is None else jnp.asarray(np.asarray(density) * volume)
-    return Particles(x=jnp.asarray(x), v=jnp.asarray(np.array(v)), volume=jnp.asarray(volume), mass=mass, ppc=int(ppc),
-                     axisymmetric=grid.axisymmetric)
+    # onto the device with jax.device_put: jnp.asarray of a NumPy array compiles a small program per new
+    # shape on jaxlib 0.10 (jit(stage)), device_put none; the same dtypes (canonicalised) either way
+    mass = None if density is None else jax.device_put(np.asarray(density) * volume)
+    return Particles(x=jax.device_put(x), v=jax.device_put(np.array(v)), volume=jax.device_put(volume), mass=mass,
+                     ppc=int(ppc), axisymmetric=grid.axisymmetric)

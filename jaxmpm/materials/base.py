@@ -166,7 +166,8 @@ class Material(eqx.Module):
         cells of size ``h`` in a ``dim``-D model (e.g. a viscous fluid's diffusion limit
         ~ rho h^2 / eta), or None: no limit of its own (the default).
         :meth:`jaxmpm.Simulation.stable_dt` takes the smallest of the CFL limit, the terms' limits
-        and this one (named after the material's class in :meth:`jaxmpm.Simulation.time_step_limits`)."""
+        and this one (named after the material's class in :meth:`jaxmpm.Simulation.time_step_limits`),
+        inside one compiled program: write it in jnp (its arrays may be traced)."""
         return None
 
     def totals(self, state, volume0) -> dict:

@@ -22,7 +22,7 @@ from ..core.linalg import det, identities
 from ..core.particles import Particles
 from ..core.registry import MATERIALS, SCHEMES, SHAPES, scheme_from_name, shape_from_name
 from ..core.state import State
-from ..core.validate import FINITE, concrete, show
+from ..core.validate import FINITE, POSITIVE, concrete, show, traced
 from ..core.warn import warn
 from ..materials.base import Material
 from ..physics.body_force import BodyForce
@@ -471,7 +471,11 @@ class Simulation(eqx.Module):
         if particles.mass is None:
             if volume.dtype != x.dtype:  # in the positions' precision (state_positions)
                 volume = volume.astype(x.dtype)
-            mass = jnp.asarray(self.material.density, x.dtype) * volume  # a plain float density too
+            density, vc = concrete(self.material.density), concrete(volume)
+            if density is None or vc is None:
+                mass = jnp.asarray(self.material.density, x.dtype) * volume  # a plain float density too
+            else:  # on the host: op by op this compiled two small programs on a first call
+                mass = jax.device_put(np.asarray(density, x.dtype) * vc)
         else:
             mass = jnp.asarray(particles.mass)
             mc, vc, rc = concrete(mass), concrete(volume), concrete(self.material.density)
@@ -544,7 +548,14 @@ class Simulation(eqx.Module):
         scheme's (FMPM(k): over sqrt(k)), the material's and the terms' limits (conduction,
         diffusion: :meth:`time_step_limits`)."""
         limits = list(self.time_step_limits(state, cfl).values())
-        return limits[0] if len(limits) == 1 else jnp.min(jnp.stack(limits))
+        if len(limits) == 1:
+            return limits[0]
+        if traced((self, state, cfl)):
+            return jnp.min(jnp.stack(limits))
+        # concrete: the smallest picked on the host (exact, as jnp.min; a NaN wins, as there), so a
+        # scene's dt and sim.run's check of it share time_step_limits' one compiled program
+        host = np.asarray([float(limit) for limit in limits])
+        return limits[int(np.argmax(np.isnan(host))) if np.isnan(host).any() else int(np.argmin(host))]
 
     def time_step_limits(self, state: State, cfl: float = 1.0) -> dict:
         """{name: largest stable dt, times ``cfl``}: "CFL" (h / max_p(c + |V_p|)); the scheme's own
@@ -553,6 +564,20 @@ class Simulation(eqx.Module):
         (:meth:`jaxmpm.Material.time_step_limit`, named after its class: e.g. "newtonianfluid", the
         viscous limit); and one per term that limits it (e.g. "heat": h^2 / (2 D a),
         jaxmpm.physics.transport)."""
+        if traced((self, state, cfl)):
+            return _time_step_limits(self, state, cfl)
+        # concrete (sim.run's check of dt): one compiled program, kept per model, instead of the limits'
+        # small ones op by op on a first call; a number cfl goes in weakly typed, as it was used before
+        POSITIVE.check("stable_dt", "cfl", cfl, fix="the Courant number, e.g. 0.5")
+        limits = _time_step_limits_compiled(self, state, jax.device_put(cfl) if type(cfl) in (int, float) else cfl)
+        law = type(self.material).__name__.lower()
+        if law in limits and np.isposinf(np.asarray(limits[law])):
+            # no limit of the law's own for these values (a Newtonian fluid with eta = 0: None when
+            # concrete, 3 rho h^2 / 0 = +inf once traced): no entry, as op by op
+            del limits[law]
+        return limits
+
+    def _time_step_limits(self, state: State, cfl) -> dict:
         model = self.in_precision(state.x.dtype)
         limits = {"CFL": diag.stable_dt(self.grid, model.material, state.v, cfl)}
         factor = model.scheme.time_step_factor()  # e.g. FMPM(k): 1 / sqrt(k)
@@ -703,3 +728,10 @@ def _checked_sort_every(every):
           f"Simulation: sort_every = {every!r}; give the steps between sorts of the particles by cell (a "
           "non-negative integer, 0 = never) or 'auto' (the backend table's choice)")
     return every if every == "auto" else int(every)
+
+
+def _time_step_limits(sim, state, cfl) -> dict:
+    return sim._time_step_limits(state, cfl)
+
+
+_time_step_limits_compiled = eqx.filter_jit(_time_step_limits)

@@ -153,7 +153,8 @@ class Term(eqx.Module):
         return None
 
     def time_step_limit(self, sim, state):
-        """The largest stable dt this term allows (e.g. conduction), or None: no limit."""
+        """The largest stable dt this term allows (e.g. conduction), or None: no limit.  Written in
+        jnp: :meth:`jaxmpm.Simulation.stable_dt` evaluates it inside one compiled program."""
         return None
 
     def totals(self, sim, state) -> dict:

@@ -25,6 +25,7 @@ import jax.numpy as jnp
 from ..core.errors import check
 from ..core.measures import angular_momentum
 from ..core.state import with_scheme_state
+from ..core.validate import traced
 from ..transfer.contractions import Weighted
 from ..transfer.operators import Transfer
 
@@ -219,7 +220,18 @@ def with_velocity_gradient(sim, state, gradient):
     L = jnp.asarray(gradient, state.x.dtype)
     check(L.shape[-2:] == (d, d), f"with_velocity_gradient: gradient has shape {L.shape}; give a ({d}, {d}) "
           f"matrix or one per particle ({state.x.shape[0]}, {d}, {d}), in the grid's coordinates")
+    if type(sim.scheme).state_for_velocity_gradient is Scheme.state_for_velocity_gradient:
+        return state  # no scheme state of this kind: nothing to set
     L = jnp.broadcast_to(L, (state.x.shape[0], d, d))
+    # concrete inputs (a scene's set-up): one compiled program, instead of the stencil's forty small
+    # ones op by op on a first call
+    new = (_scheme_state_for if traced((sim, state, L)) else _scheme_state_for_compiled)(sim, state, L)
+    return with_scheme_state(state, new)
+
+
+def _scheme_state_for(sim, state, L):
     stencil = sim.shape.stencil(sim.grid, state.x)
-    new = sim.scheme.state_for_velocity_gradient(stencil, state, L)
-    return state if new is state.scheme_state else with_scheme_state(state, new)
+    return sim.scheme.state_for_velocity_gradient(stencil, state, L)
+
+
+_scheme_state_for_compiled = eqx.filter_jit(_scheme_state_for)

@@ -2,6 +2,7 @@
 committed without outputs.  Each notebook also asserts its own physics (exact free fall, FLIP energy,
 recovered parameters, batch = single runs), so a cell that raises is a real failure."""
 
+import os
 import pathlib
 
 import ipykernel  # noqa: F401  (the "python3" kernel that executes the notebooks)
@@ -45,7 +46,10 @@ def test_float64_first_and_a_quick_switch(path):
 def test_notebook_executes(path, tmp_path, monkeypatch):
     monkeypatch.setenv("JAXMPM_NOTEBOOK_QUICK", "1")
     monkeypatch.setenv("MPLBACKEND", "Agg")
-    monkeypatch.setenv("JAXMPM_CACHE_DIR", str(tmp_path / "xla"))  # jm.compilation_cache() in the first cell
+    # jm.compilation_cache() in the first cell keeps the programs in the suite's folder (tests/conftest.py,
+    # shared with the other tests and kept for a run again); never in the user's own cache folder
+    if not os.environ.get("JAXMPM_CACHE_DIR"):
+        monkeypatch.setenv("JAXMPM_CACHE_DIR", str(tmp_path / "xla"))
     nb = nbformat.read(path, as_version=4)
     client = NotebookClient(nb, timeout=300, kernel_name="python3", resources={"metadata": {"path": str(tmp_path)}})
     client.execute()  # raises CellExecutionError on the first failing cell

@@ -247,22 +247,29 @@ def test_sigkill_at_ten_random_moments(tmp_path, capsys, request):
     """A chain of processes, each killed with SIGKILL: first during start-up (before the file
     exists), then as soon as the file appears (the header alone), then right after the first
     publication (the initial frame and state, before the first chunk ends), then at seven seeded
-    random moments -- a delay from the start (start-up, a resume's set-up, or stepping) or some
-    publications into the run.  After each kill the file opens and holds only the uninterrupted
-    run's frames; a copy of it is continued with `jaxmpm resume` (in this process) to the
-    uninterrupted run's file bit for bit, or, killed before any state was saved, `jaxmpm resume`
-    says to start again and the chain goes on with `jaxmpm run --force`."""
+    random moments -- a delay from the start (start-up, a resume's set-up, or stepping; a fraction of
+    how long a run lasts) or some publications into the run.  After each kill the file opens and
+    holds only the uninterrupted run's frames; a copy of it is continued with `jaxmpm resume` (in this
+    process) to the uninterrupted run's file bit for bit, or, killed before any state was saved,
+    `jaxmpm resume` says to start again and the chain goes on with `jaxmpm run --force`."""
     env = {**os.environ, "JAX_PLATFORMS": "cpu", "JAXMPM_CACHE_DIR": str(tmp_path / "cache"),
            "JAXMPM_CHUNK_SECONDS": CHUNK_SECONDS}
     whole, path = tmp_path / "whole.h5", tmp_path / "killed.h5"
     uninterrupted = jaxmpm(env, "run", *RUN, "--out", str(whole))
-    rng = random.Random(29)
-    moments = [("after", rng.uniform(0.2, 1.0)), ("published", 1, 0.0), ("published", 2, 0.0)]
-    for _ in range(7):
-        moments.append(("after", rng.uniform(0.3, 2.0)) if rng.random() < 0.3
-                       else ("published", rng.randint(1, 15), rng.uniform(0, 0.03)))
     assert uninterrupted.wait(timeout=120) == 0, uninterrupted.err()
     reference = h5_arrays(whole)
+    # the delays are fractions of how long a run lasts with its programs in the cache, as the killed
+    # ones do (about 1.5 s on the 2-core machine; fixed delays of up to 2 s outlasted most runs once
+    # start-up got faster)
+    tic = time.time()
+    again = jaxmpm(env, "run", *RUN, "--out", str(tmp_path / "again.h5"))
+    assert again.wait(timeout=120) == 0, again.err()
+    lasts = time.time() - tic
+    rng = random.Random(29)
+    moments = [("after", rng.uniform(0.1, 0.5) * lasts), ("published", 1, 0.0), ("published", 2, 0.0)]
+    for _ in range(7):
+        moments.append(("after", rng.uniform(0.15, 0.95) * lasts) if rng.random() < 0.3
+                       else ("published", rng.randint(1, 15), rng.uniform(0, 0.03)))
     resumed, log, step = [], [], None
     resumes = ThreadPoolExecutor(max_workers=1)
     request.addfinalizer(lambda: resumes.shutdown(cancel_futures=True))

@@ -190,6 +190,31 @@ def test_the_stable_time_step_is_one_program_for_any_cfl():
     assert set(sim.time_step_limits(state, 0.5)) == {"CFL", "heat"}
 
 
+def test_diagnostics_and_a_written_run_compile_no_small_programs(tmp_path):
+    """sim.diagnostics on a concrete state is one compiled program (some thirty op by op: the CLI's
+    energy summary), equal bit for bit to the same arithmetic op by op and inside the caller's jit; a
+    run written to a file (the chunked path of `jaxmpm run`) compiles its check of dt, its loop and
+    its first frame, and nothing op by op."""
+    s = jm.scene("disks")
+    sim, state = s.sim, s.state
+    jax.clear_caches()
+    got, names = compiled_by(lambda: sim.diagnostics(state))
+    assert names == ["jit(_diagnostics)"]
+    with jax.disable_jit():
+        op_by_op = sim.diagnostics(state)
+    for want in (op_by_op, jax.jit(lambda st: sim.diagnostics(st))(state)):
+        assert sorted(got) == sorted(want)
+        for key in got:
+            np.testing.assert_array_equal(got[key], want[key], err_msg=key)
+
+    def written():
+        with jm.H5Writer(tmp_path / "disks.h5", sim, state, dt=s.dt) as writer:
+            return sim.run(state, s.dt, 4, 1, writer=writer, frames_per_chunk=2)[0].x
+
+    _, names = compiled_by(written)
+    assert sorted(names) == ["jit(_advance)", "jit(_jit_first_frame)", "jit(_time_step_limits)"]
+
+
 @pytest.mark.slow
 def test_rebuilt_scenes_compile_nothing():
     """heat1d (its initial profile), the cylinder (its traction's particles) and slide's gravity ramp

@@ -627,9 +627,8 @@ class Simulation(eqx.Module):
         something; 0 without gravity, and a body force b(x, t) has none), the ``dissipated`` energy, the
         linear and angular ``momentum``.  K + U + V_g is what a run under gravity conserves.  The saved
         frames hold all but ``gravitational`` (:meth:`diagnostics_frame`)."""
-        body = self.term(BodyForce)
-        gravity = jnp.zeros(self.grid.dim, state.x.dtype) if body is None else body.gravity
-        return dict(self._frame_diagnostics(state), gravitational=diag.gravitational_potential(state, gravity))
+        # concrete: one compiled program, kept per model, instead of some thirty small ones op by op
+        return (_diagnostics if traced((self, state)) else _diagnostics_compiled)(self, state)
 
     def _frame_diagnostics(self, state: State) -> dict:
         return dict(
@@ -735,3 +734,12 @@ def _time_step_limits(sim, state, cfl) -> dict:
 
 
 _time_step_limits_compiled = eqx.filter_jit(_time_step_limits)
+
+
+def _diagnostics(sim, state) -> dict:
+    body = sim.term(BodyForce)
+    gravity = jnp.zeros(sim.grid.dim, state.x.dtype) if body is None else body.gravity
+    return dict(sim._frame_diagnostics(state), gravitational=diag.gravitational_potential(state, gravity))
+
+
+_diagnostics_compiled = eqx.filter_jit(_diagnostics)

@@ -248,7 +248,10 @@ def run(
         fields = held
     fields = _chosen_fields(sim, state, () if fields is None else fields, save_particles)
     traced = _is_traced((sim, state, dt))
-    dt = jnp.asarray(dt, state.x.dtype)  # an array, so a new dt value does not recompile
+    # an array, so a new dt value does not recompile; a number put on the device as it is (jnp.asarray
+    # compiles a conversion program for it, the first time in a process)
+    dtype = state.x.dtype
+    dt = jax.device_put(np.asarray(dt, dtype)) if isinstance(dt, (int, float)) else jnp.asarray(dt, dtype)
     if not traced:
         dtc = float(np.asarray(dt))
         check(math.isfinite(dtc) and dtc > 0, f"run: dt = {dtc} must be a positive number")
@@ -520,11 +523,11 @@ def _run_chunked(sim, state, dt, frames, save_every, save_particles, check_stabi
     if writer is not None:
         state_bytes = tree_bytes(state)
         publisher = _Publisher(writer, dict(start_step=start_step, steps=total, save_every=save_every), state_bytes)
-    none = Failure(jnp.array(-1, jnp.int32), jnp.array(0, jnp.int32), jnp.array(-1, jnp.int32))
+    none = Failure(*(jax.device_put(np.int32(i)) for i in (-1, 0, -1)))  # device_put: nothing compiled
 
     def advance(s, n_frames, per_frame):
         """``n_frames`` frames of ``per_frame`` steps from ``s``: one call of the compiled loop."""
-        return _advance(sim, s, none, dt, jnp.asarray(n_frames, jnp.int32), jnp.asarray(per_frame, jnp.int32),
+        return _advance(sim, s, none, dt, jax.device_put(np.int32(n_frames)), jax.device_put(np.int32(per_frame)),
                         buffer_frames, save_particles, check_stability, fields)
 
     try:
@@ -534,9 +537,8 @@ def _run_chunked(sim, state, dt, frames, save_every, save_particles, check_stabi
                 if done_steps < total:
                     jax.block_until_ready(advance(state, 0, 1))
                 if done_steps == 0 and (writer is None or writer.frames == 0):
-                    first = jax.block_until_ready(_jit_frame(sim, state, save_particles, fields))
+                    first = jax.block_until_ready(_jit_first_frame(sim, state, save_particles, fields))
             if first is not None:
-                first = jax.tree_util.tree_map(lambda a: a[None], first)
                 if writer is None:
                     pieces.append(first)
                 else:  # before the first step: from here on the file can be continued
@@ -555,7 +557,8 @@ def _run_chunked(sim, state, dt, frames, save_every, save_particles, check_stabi
                 failed = bad_step >= 0 and check_stability
                 if failed:  # the frames strictly before the failing step
                     kept = min(kept, max(0, (bad_step - int(state.step) - 1) // per_frame))
-                frames_kept = jax.tree_util.tree_map(lambda a: jnp.asarray(a[:kept]), buffer) if kept else None
+                # device_put: jnp.asarray of a NumPy array compiles a small program per new shape (jaxlib 0.10)
+                frames_kept = jax.tree_util.tree_map(lambda a: jax.device_put(a[:kept]), buffer) if kept else None
                 if writer is None:
                     if kept:
                         pieces.append(frames_kept)
@@ -701,6 +704,13 @@ def _in_user_order(sorting, carry):
 @eqx.filter_jit
 def _jit_frame(sim, state, save_particles, fields=()):
     return sim.diagnostics_frame(state, save_particles, fields)
+
+
+@eqx.filter_jit
+def _jit_first_frame(sim, state, save_particles, fields=()):
+    """Frame 0 of a run with its leading frame axis, in one program (indexing it op by op compiled one
+    small program per field)."""
+    return jax.tree_util.tree_map(lambda a: a[None], sim.diagnostics_frame(state, save_particles, fields))
 
 
 @eqx.filter_jit

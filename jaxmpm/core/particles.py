@@ -273,3 +273,13 @@ def fill(
     mass = None if density is None else jax.device_put(np.asarray(density) * volume)
     return Particles(x=jax.device_put(x), v=jax.device_put(np.array(v)), volume=jax.device_put(volume), mass=mass,
                      ppc=int(ppc), axisymmetric=grid.axisymmetric)
+
+
+def joined(*parts: Particles, ppc: int) -> Particles:
+    """The particles of ``parts`` (:func:`fill` results, e.g. two bodies) one after the other, in that
+    order, their masses from the material (``mass=None``); joined on the host (``jnp.concatenate``
+    compiled a small program per array on a first call)."""
+    def stacked(name):
+        return jax.device_put(np.concatenate([np.asarray(getattr(p, name)) for p in parts]))
+
+    return type(parts[0])(x=stacked("x"), v=stacked("v"), volume=stacked("volume"), mass=None, ppc=ppc)

@@ -62,7 +62,7 @@ from ..run.driver import (
     _chosen_fields,
     _chunk_seconds,
     _Clock,
-    _jit_frame,
+    _jit_first_frame,
     _Publisher,
     _raise_if_failed,
     _require_frame_memory,
@@ -456,7 +456,7 @@ class ShardedSimulation:
         def one_frame(s):
             if writing and writer is None:  # another process writes the frames
                 return None
-            return jax.tree_util.tree_map(lambda a: a[None], _jit_frame(sim, s, save_particles, fields))
+            return _jit_first_frame(sim, s, save_particles, fields)  # with its frame axis, in one program
 
         def concatenated(chunks):
             return jax.tree_util.tree_map(lambda *a: jnp.concatenate(a), *chunks)

@@ -9,6 +9,7 @@ from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ..core.errors import check
 from ..core.limits import require_steps
@@ -132,8 +133,10 @@ def contact_normal_param(terms) -> str | list | None:
 
 
 def material_ids(counts, dtype=None):
-    """Material ids 0, 1, ... for bodies of ``counts`` particles each, concatenated in that order."""
-    return jnp.concatenate([jnp.full((int(n),), float(k), dtype=dtype) for k, n in enumerate(counts)])
+    """Material ids 0, 1, ... for bodies of ``counts`` particles each, concatenated in that order (made on
+    the host: op by op jnp compiled a small program per body and one for the concatenation)."""
+    dtype = jnp.result_type(float) if dtype is None else dtype
+    return jax.device_put(np.concatenate([np.full((int(n),), float(k), dtype=dtype) for k, n in enumerate(counts)]))
 
 
 def resolve_dtype(dtype):

@@ -25,11 +25,10 @@ from __future__ import annotations
 
 import math
 
-import jax.numpy as jnp
 import numpy as np
 
 from ..core.grid import Grid
-from ..core.particles import Box, fill
+from ..core.particles import Box, fill, joined
 from ..materials import LinearElastic
 from ..model.simulation import Simulation
 from ..physics.damping import Damping
@@ -78,10 +77,7 @@ def bars_impact(
     grid = Grid.covering((-length - room,), (length + room,), h, shape=shape)
     left = fill(grid, Box((-length,), (0.0,)), ppc=ppc, velocity=(v0,))
     right = fill(grid, Box((0.0,), (length,)), ppc=ppc, velocity=(-v0,))
-    particles = type(left)(
-        x=jnp.concatenate([left.x, right.x]), v=jnp.concatenate([left.v, right.v]),
-        volume=jnp.concatenate([left.volume, right.volume]), mass=None, ppc=ppc,
-    )
+    particles = joined(left, right, ppc=ppc)
     terms, multimaterial = contact_model(contact, 0.0)
     sim = Simulation(grid=grid, shape=shape, material=LinearElastic(E=E, nu=0.0, density=density),
                      scheme=scheme, damping=damping, update=update, terms=terms)

@@ -16,10 +16,8 @@ and couples them with :class:`jaxmpm.Contact`; the default "none" is the single-
 
 from __future__ import annotations
 
-import jax.numpy as jnp
-
 from ..core.grid import Grid
-from ..core.particles import Disk, fill
+from ..core.particles import Disk, fill, joined
 from ..materials import LinearElastic
 from ..model.simulation import Simulation
 from ..physics.damping import Damping
@@ -67,10 +65,7 @@ def disks(
     grid = Grid.covering((0.0, 0.0), (1.0, 1.0), spacing, shape=shape, pad=pad)
     a = fill(grid, Disk((0.2, 0.2), 0.2), ppc=ppc, velocity=(speed, speed))
     b = fill(grid, Disk((0.8, 0.8), 0.2), ppc=ppc, velocity=(-speed, -speed))
-    particles = type(a)(
-        x=jnp.concatenate([a.x, b.x]), v=jnp.concatenate([a.v, b.v]),
-        volume=jnp.concatenate([a.volume, b.volume]), mass=None, ppc=ppc,
-    )
+    particles = joined(a, b, ppc=ppc)
     terms, multimaterial = contact_model(contact, friction, normal, separation=separation)
     sim = Simulation(grid=grid, shape=shape, material=LinearElastic(E=E, nu=nu, density=density),
                      scheme=scheme, damping=damping, update=update, terms=terms)

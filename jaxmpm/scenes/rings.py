@@ -10,11 +10,9 @@ energy a scheme loses is its dissipation (docs/design.md "Scenes").
 
 from __future__ import annotations
 
-import jax.numpy as jnp
-
 from ..core.errors import check
 from ..core.grid import Grid
-from ..core.particles import Ring, fill
+from ..core.particles import Ring, fill, joined
 from ..materials import NeoHookean
 from ..model.simulation import Simulation
 from ..physics.damping import Damping
@@ -66,10 +64,7 @@ def rings(
     half = 0.5 * separation
     a = fill(grid, Ring((-half, 0.0), inner, outer), ppc=ppc, velocity=(speed, 0.0))
     b = fill(grid, Ring((half, 0.0), inner, outer), ppc=ppc, velocity=(-speed, 0.0))
-    particles = type(a)(
-        x=jnp.concatenate([a.x, b.x]), v=jnp.concatenate([a.v, b.v]),
-        volume=jnp.concatenate([a.volume, b.volume]), mass=None, ppc=ppc,
-    )
+    particles = joined(a, b, ppc=ppc)
     material = NeoHookean(E=E, nu=nu, density=density)
     terms, multimaterial = contact_model(contact, friction, normal)
     sim = Simulation(grid=grid, shape=shape, material=material, scheme=scheme, damping=damping, update=update,

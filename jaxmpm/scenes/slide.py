@@ -50,7 +50,7 @@ import numpy as np
 
 from ..core.errors import check
 from ..core.grid import Grid
-from ..core.particles import Box, fill
+from ..core.particles import Box, fill, joined
 from ..materials import LinearElastic
 from ..model.simulation import Simulation
 from ..physics.conditions import Fixed
@@ -129,10 +129,7 @@ def slide(
     grid = Grid.covering(SLAB[0], upper, spacing, shape=shape)
     slab = fill(grid, Box(*SLAB), ppc=ppc)
     block = fill(grid, Box(*BLOCK), ppc=ppc, velocity=(speed, 0.0))
-    particles = type(slab)(
-        x=jnp.concatenate([slab.x, block.x]), v=jnp.concatenate([slab.v, block.v]),
-        volume=jnp.concatenate([slab.volume, block.volume]), mass=None, ppc=ppc,
-    )
+    particles = joined(slab, block, ppc=ppc)
     base = Fixed(where=lambda x: x[:, 1] <= SLAB[0][1] + 1e-9 * spacing)  # the slab's bottom face (and below)
     terms, multimaterial = contact_model(contact, friction, normal)
     g = (gravity * sin, -gravity * cos)

@@ -2,11 +2,9 @@
 
 from __future__ import annotations
 
-import equinox as eqx
-import jax
 import jax.numpy as jnp
 
-from .validate import POSITIVE, traced
+from .validate import POSITIVE, compiled_when_concrete
 
 
 def kinetic_energy(state):
@@ -92,21 +90,13 @@ def stable_dt(grid, material, velocity, cfl: float = 1.0):
             unchecked).
     """
     POSITIVE.check("stable_dt", "cfl", cfl, fix="the Courant number, e.g. 0.5")
-    scale = cfl * grid.h  # a Python float for a number cfl, as before
-    if traced((material, velocity, scale)):
-        return _cfl_limit(material, velocity, grid.dim, scale)
-    # concrete (a scene's dt, sim.run's check of dt): one compiled program, kept per material and
-    # shapes, instead of the eight small ones this arithmetic compiles op by op on a first call; a
-    # number's scale goes in weakly typed (device_put: jnp.asarray compiles a program for it), so it
-    # rounds to the velocities' precision as before
-    return _cfl_limit_compiled(material, velocity, grid.dim, jax.device_put(scale) if type(scale) is float else scale)
+    # concrete (a scene's dt): one compiled program instead of the eight small ones op by op
+    return _cfl_limit(material, velocity, grid.dim, cfl * grid.h)
 
 
+@compiled_when_concrete
 def _cfl_limit(material, velocity, dim: int, scale):
     """CFL h / max_p (c + |V_p|), ``scale`` = CFL h."""
     c = material.wave_speed(dim)
     speed = c + jnp.max(jnp.sqrt(jnp.sum(velocity**2, axis=-1)))
     return scale / speed
-
-
-_cfl_limit_compiled = eqx.filter_jit(_cfl_limit)

@@ -22,10 +22,12 @@ passes through unchanged; a concrete JAX array or NumPy scalar is checked like a
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import numbers
 import sys
 
+import equinox as eqx
 import jax
 import numpy as np
 
@@ -45,6 +47,24 @@ def traced(value) -> bool:
         return any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(value))
     except Exception:  # an object jax cannot flatten: not traced
         return False
+
+
+def compiled_when_concrete(fn):
+    """``fn`` run as one compiled program (``eqx.filter_jit``, kept per static structure) when none of
+    its arguments is traced, and inline, as written, inside a caller's jit/grad/vmap.  Op by op, jnp
+    compiles a small program for each operation the first time a process runs it.  A Python float
+    argument goes in as a weakly typed array (``jax.device_put``; ``jnp.asarray`` compiles a program
+    for it), so a new value compiles nothing and rounds to the other operands' precision as before;
+    ints and other non-arrays stay static."""
+    compiled = eqx.filter_jit(fn)
+
+    @functools.wraps(fn)
+    def call(*args):
+        if traced(args):
+            return fn(*args)
+        return compiled(*(jax.device_put(a) if type(a) is float else a for a in args))
+
+    return call
 
 
 def concrete(x):

@@ -22,7 +22,7 @@ from ..core.linalg import det, identities
 from ..core.particles import Particles
 from ..core.registry import MATERIALS, SCHEMES, SHAPES, scheme_from_name, shape_from_name
 from ..core.state import State
-from ..core.validate import FINITE, POSITIVE, concrete, show, traced
+from ..core.validate import FINITE, POSITIVE, compiled_when_concrete, concrete, show, traced
 from ..core.warn import warn
 from ..materials.base import Material
 from ..physics.body_force import BodyForce
@@ -564,16 +564,15 @@ class Simulation(eqx.Module):
         (:meth:`jaxmpm.Material.time_step_limit`, named after its class: e.g. "newtonianfluid", the
         viscous limit); and one per term that limits it (e.g. "heat": h^2 / (2 D a),
         jaxmpm.physics.transport)."""
-        if traced((self, state, cfl)):
-            return _time_step_limits(self, state, cfl)
+        POSITIVE.check("stable_dt", "cfl", cfl, fix="the Courant number, e.g. 0.5")  # a traced one passes
         # concrete (sim.run's check of dt): one compiled program, kept per model, instead of the limits'
-        # small ones op by op on a first call; a number cfl goes in weakly typed, as it was used before
-        POSITIVE.check("stable_dt", "cfl", cfl, fix="the Courant number, e.g. 0.5")
-        limits = _time_step_limits_compiled(self, state, jax.device_put(cfl) if type(cfl) in (int, float) else cfl)
+        # small ones op by op on a first call
+        limits = _time_step_limits(self, state, cfl)
         law = type(self.material).__name__.lower()
-        if law in limits and np.isposinf(np.asarray(limits[law])):
+        value = concrete(limits[law]) if law in limits else None
+        if value is not None and np.isposinf(value):
             # no limit of the law's own for these values (a Newtonian fluid with eta = 0: None when
-            # concrete, 3 rho h^2 / 0 = +inf once traced): no entry, as op by op
+            # concrete, 3 rho h^2 / 0 = +inf once compiled): no entry, as op by op
             del limits[law]
         return limits
 
@@ -628,7 +627,7 @@ class Simulation(eqx.Module):
         linear and angular ``momentum``.  K + U + V_g is what a run under gravity conserves.  The saved
         frames hold all but ``gravitational`` (:meth:`diagnostics_frame`)."""
         # concrete: one compiled program, kept per model, instead of some thirty small ones op by op
-        return (_diagnostics if traced((self, state)) else _diagnostics_compiled)(self, state)
+        return _diagnostics(self, state)
 
     def _frame_diagnostics(self, state: State) -> dict:
         return dict(
@@ -729,17 +728,13 @@ def _checked_sort_every(every):
     return every if every == "auto" else int(every)
 
 
+@compiled_when_concrete
 def _time_step_limits(sim, state, cfl) -> dict:
     return sim._time_step_limits(state, cfl)
 
 
-_time_step_limits_compiled = eqx.filter_jit(_time_step_limits)
-
-
+@compiled_when_concrete
 def _diagnostics(sim, state) -> dict:
     body = sim.term(BodyForce)
     gravity = jnp.zeros(sim.grid.dim, state.x.dtype) if body is None else body.gravity
     return dict(sim._frame_diagnostics(state), gravitational=diag.gravitational_potential(state, gravity))
-
-
-_diagnostics_compiled = eqx.filter_jit(_diagnostics)

@@ -25,7 +25,7 @@ import jax.numpy as jnp
 from ..core.errors import check
 from ..core.measures import angular_momentum
 from ..core.state import with_scheme_state
-from ..core.validate import traced
+from ..core.validate import compiled_when_concrete
 from ..transfer.contractions import Weighted
 from ..transfer.operators import Transfer
 
@@ -225,13 +225,10 @@ def with_velocity_gradient(sim, state, gradient):
     L = jnp.broadcast_to(L, (state.x.shape[0], d, d))
     # concrete inputs (a scene's set-up): one compiled program, instead of the stencil's forty small
     # ones op by op on a first call
-    new = (_scheme_state_for if traced((sim, state, L)) else _scheme_state_for_compiled)(sim, state, L)
-    return with_scheme_state(state, new)
+    return with_scheme_state(state, _scheme_state_for(sim, state, L))
 
 
+@compiled_when_concrete
 def _scheme_state_for(sim, state, L):
     stencil = sim.shape.stencil(sim.grid, state.x)
     return sim.scheme.state_for_velocity_gradient(stencil, state, L)
-
-
-_scheme_state_for_compiled = eqx.filter_jit(_scheme_state_for)

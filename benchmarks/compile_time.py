@@ -80,7 +80,8 @@ SCENES = {
     "heat1d": ("heat1d", {}, 400, "conductivity"),
 }
 QUICK_LEFT_OUT = ("bar_xpic8",)
-CHECKPOINTS = {"True": True, "False": False, "low_memory": "low_memory"}  # sim.run's checkpoint options
+# sim.run's checkpoint options
+CHECKPOINTS = {"True": True, "False": False, "low_memory": "low_memory", "states": "states", "auto": "auto"}
 PROGRAMS = ("rollout", "gradient", "ensemble", "calibrate")
 ENSEMBLE_MEMBERS = 4
 FRAMES = 10  # saved frames per run (plus the initial one)

@@ -389,7 +389,8 @@ def main(argv=None) -> int:
     parser.add_argument("--warps", type=int, default=None,
                         help="warps per program of the Pallas kernel on Triton (default: the kernel module's WARPS)")
     parser.add_argument("--checkpoint", default="auto", type=lambda v: {"true": True, "false": False}.get(v.lower(), v),
-                        help="the gradient part's sim.run(checkpoint=...): auto (default), true, false, low_memory")
+                        help="the gradient part's sim.run(checkpoint=...): auto (default), true, false, states, "
+                             "low_memory")
     parser.add_argument("--sort-every", default="auto", type=lambda v: v if v == "auto" else int(v), metavar="K",
                         help="sort the particles by cell every K steps (0: never; default auto: the library's table)")
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="folder of gpu.md and gpu.csv")

@@ -2,7 +2,7 @@
 # Every GPU number of issue 32 in one lease of a device: the kernels checked against XLA on the device, then
 # benchmarks/gpu.py with the tables' choice (next to Taichi CUDA), 3D on the XLA kernel, the Pallas kernel
 # unsorted in 2D and 3D, the XLA kernel summing over the stencil's slots as one reduction (--stencil-sum
-# reduce, not yet timed), and the scheme / gradient / ensemble parts.  Each stage has its own time limit, so
+# reduce, not yet timed), and the scheme / gradient (auto, and two levels) / ensemble parts.  Each stage has its own time limit, so
 # one slow stage cannot take the others' time; every row is printed as it is measured (the log is the record
 # if a stage is cut).
 #
@@ -39,6 +39,7 @@ log=$out/log.txt
   stage stencil_sum 60 --parts mpm88 mpm3d --kernel xla --stencil-sum reduce --no-taichi
   stage schemes 75 --parts schemes --no-taichi
   stage gradient 65 --parts gradient --no-taichi
+  stage gradient_two_levels 65 --parts gradient --no-taichi --checkpoint true  # "auto" keeps every step's state
   stage ensemble 50 --parts ensemble --no-taichi
 } 2>&1 | tee "$log"
 # one table and one CSV for the stages that finished

@@ -34,7 +34,8 @@ import jaxmpm as jm  # noqa: E402
 
 SCENES = {"bar": ({"cells": 128}, 1000), "disks": ({}, 300), "mpm88": ({}, 100)}
 SCHEMES = {"flip": "flip", "xpic2": "xpic:2", "fmpm2": "fmpm:2", "apic": "apic"}
-CHECKPOINTS = {"True": True, "False": False, "low_memory": "low_memory"}  # jm rollout's checkpoint options
+# sim.run's checkpoint options
+CHECKPOINTS = {"True": True, "False": False, "low_memory": "low_memory", "states": "states", "auto": "auto"}
 FIELDS = ["scene", "scheme", "particles", "steps", "adjoint", "checkpoint", "forward_s", "grad_s", "ratio",
           "forward_compile_s", "grad_compile_s"]
 

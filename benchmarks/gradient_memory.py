@@ -5,7 +5,8 @@ The gradient is d(final kinetic energy)/d(alpha_g) of the ``bar`` scene (FMPM(2)
 or (``--scene disks`` / ``--scene mpm88``, ``--particles`` for mpm88) the derivative of the final kinetic
 energy with respect to a factor on the initial velocities,
 with ``sim.run(..., checkpoint=False)`` (every intermediate of every step is kept for the backward pass)
-and ``checkpoint=True`` (segments of about sqrt(steps) steps are recomputed: O(sqrt T) memory).
+and ``checkpoint=True`` (segments of about sqrt(steps) steps are recomputed: O(sqrt T) memory), or
+``--checkpoint states`` (every step's state kept, each step recomputed once: O(T) states).
 
 Each configuration runs in a fresh subprocess, which reports
 
@@ -45,6 +46,7 @@ from _results import write_csv
 DEFAULT_CSV = Path(__file__).resolve().parent / "results" / "gradient_memory.csv"
 SCHEMES = ("fmpm2", "flip", "xpic2", "apic")
 SCENES = ("bar", "disks", "mpm88")
+CHECKPOINTS = {"False": False, "True": True, "states": "states"}  # sim.run's checkpoint= (one level: "states")
 FIELDS = ["scene", "scheme", "cells", "particles", "steps", "checkpoint", "temp_MiB", "forward_temp_MiB",
           "rss_compile_MiB", "rss_peak_MiB", "baseline_rss_MiB", "compile_s", "grad_s", "forward_s", "ratio",
           "gradient", "load_1min"]
@@ -71,7 +73,7 @@ def build(scene: str, scheme: str, size: int):
     return jax, jm, jm.scene(scene, scheme=chosen, **options), ("amplitude", 1.0)
 
 
-def child(scene: str, scheme: str, size: int, steps: int, checkpoint: bool, repeat: int = 3) -> dict:
+def child(scene: str, scheme: str, size: int, steps: int, checkpoint, repeat: int = 3) -> dict:
     """One configuration, measured in this (fresh) process."""
     jax, jm, setup, (name, value) = build(scene, scheme, size)
     import equinox as eqx
@@ -145,7 +147,7 @@ def main(argv=None) -> int:
     parser.add_argument("--cells", type=int, default=128, help="cells along the bar (2 particles each)")
     parser.add_argument("--particles", type=int, default=8192, help="mpm88's particles")
     parser.add_argument("--scheme", choices=SCHEMES, nargs="+", default=["fmpm2"], help="one or more scheme families")
-    parser.add_argument("--checkpoint", choices=("False", "True"), nargs="+", default=["False", "True"],
+    parser.add_argument("--checkpoint", choices=("False", "True", "states"), nargs="+", default=["False", "True"],
                         help="the schedules measured (default both)")
     parser.add_argument("--repeat", type=int, default=3, help="timed calls of each program (best of; 1: no warm-up)")
     parser.add_argument("--precision", choices=("float64", "float32"), default="float64",
@@ -159,7 +161,7 @@ def main(argv=None) -> int:
             result = baseline(args.child[1], args.child[2], int(args.child[3]))
         else:
             scene, scheme, size, steps, checkpoint, repeat = args.child
-            result = child(scene, scheme, int(size), int(steps), checkpoint == "True", int(repeat))
+            result = child(scene, scheme, int(size), int(steps), CHECKPOINTS[checkpoint], int(repeat))
         print(json.dumps(result))
         return 0
 

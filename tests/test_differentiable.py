@@ -134,7 +134,7 @@ def test_checkpointed_gradient_equals_plain():
     setup = jm.scene("bar", scheme=jm.FMPM(order=2))
     params = {"alpha_g": jnp.asarray(0.05), "E": jnp.asarray(100.0), "amplitude": jnp.asarray(1.0)}
     plain = jax.jit(jax.grad(make_loss(setup, 400, params, checkpoint=False)))(params)
-    for checkpoint in (True, "low_memory"):  # (an int L runs True's two-level code: test_checkpoint_segments)
+    for checkpoint in ("states", True, "low_memory"):  # (an int L runs True's code: test_checkpoint_segments)
         remat = jax.jit(jax.grad(make_loss(setup, 400, params, checkpoint=checkpoint)))(params)
         for k in params:
             assert abs(remat[k] - plain[k]) <= 1e-10 * abs(plain[k]), (k, checkpoint)
@@ -157,6 +157,7 @@ def test_checkpoint_segments():
     assert _segment_length(100, True, frames=10) == 25  # 40 + 25, against 20 + 50 or 100 + 10
     assert _segment_length(10, True, frames=10) == 10  # 10 + 10
     assert _segment_length(100, "low_memory", frames=10) == 10
+    assert _segment_length(100, "states", frames=10) == 100  # one level: a frame's steps, each state kept
     assert _segment_length(100, 4, frames=10) == 4 and _segment_length(100, False) is None
 
 

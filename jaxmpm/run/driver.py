@@ -106,6 +106,10 @@ def check_state(state) -> None:
           + "); cast it to one dtype first, e.g. jm.scenes.cast_state(state, jnp.float32)")
 
 
+def _is(checkpoint, name: str) -> bool:
+    return isinstance(checkpoint, str) and checkpoint == name
+
+
 @with_fewer_collections
 def rollout(sim, state: State, dt, frames: int, save_every: int = 1, save_particles: bool = True,
             checkpoint="auto", history_gradients: bool = True, fields: tuple = (), memory=None):
@@ -117,12 +121,15 @@ def rollout(sim, state: State, dt, frames: int, save_every: int = 1, save_partic
 
     ``checkpoint`` (reverse mode only; the forward pass is unchanged):
 
-    * ``"auto"`` (default): one of the three below, chosen at trace time from the budget
+    * ``"auto"`` (default): one of the four below, chosen at trace time from the budget
       ``memory`` (bytes or a string such as ``"4 GiB"``; default half the device's free memory)
-      and the backend's measured preference (:mod:`jaxmpm.run.memory`): on the CPU ``True``
-      unless its states outgrow the budget (then ``"low_memory"``); on a GPU ``False`` where every
-      step's residuals fit in 64 MiB and the budget, else as on the CPU.
-    * ``True`` (default): two levels.  The forward pass keeps the state at the start of every
+      and the backend's measured preference (:mod:`jaxmpm.run.memory`): on the CPU ``"states"``
+      unless every step's state outgrows the budget (then ``True``, then ``"low_memory"``); on a
+      GPU ``False`` where every step's residuals fit in 64 MiB and the budget, else as on the CPU.
+    * ``"states"``: one level.  The forward pass keeps every step's state (T states); the backward
+      pass recomputes each step once for its pullback: one forward run fewer than ``True`` (on
+      the CPU gradient / forward 3.0-6.8 against 3.9-7.4, benchmarks/gradient_cost.py).
+    * ``True``: two levels.  The forward pass keeps the state at the start of every
       segment of L steps (L a divisor of ``save_every``, chosen to minimise the states kept,
       frames * save_every / L + L: about 2 sqrt(T) for T steps); the backward pass recomputes
       each segment once, keeping its L step states, and each step once more for its pullback.
@@ -145,8 +152,10 @@ def rollout(sim, state: State, dt, frames: int, save_every: int = 1, save_partic
     if isinstance(checkpoint, str) and checkpoint == "auto":
         checkpoint, _ = choose_checkpoint(sim, state, dt, frames, save_every, memory)
     segment = _segment_length(save_every, checkpoint, frames)
-    remat = (lambda f: f) if segment is None else jax.checkpoint  # noqa: E731
-    remat_frames = jax.checkpoint if isinstance(checkpoint, str) else (lambda f: f)  # noqa: E731  ("low_memory")
+    kept = lambda f: f  # noqa: E731  (a level whose states are kept by the scan, not recomputed)
+    remat = kept if segment is None else jax.checkpoint
+    remat_segments = kept if _is(checkpoint, "states") else remat  # one level: every step's state kept
+    remat_frames = jax.checkpoint if _is(checkpoint, "low_memory") else kept
 
     sorting = sim.sorting(state)  # particles sorted by cell every K steps, or None (jaxmpm.run.sorting)
     advance = _stepper(sim, sorting, dt)
@@ -157,7 +166,7 @@ def rollout(sim, state: State, dt, frames: int, save_every: int = 1, save_partic
 
     seg_len = save_every if segment is None else segment
 
-    @remat
+    @remat_segments
     def one_segment(carry, _):
         carry, _ = jax.lax.scan(one_step, carry, None, length=seg_len)
         return carry, None

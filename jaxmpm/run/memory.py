@@ -5,18 +5,25 @@ residuals, R bytes per step).  Three schedules trade that memory against recompu
 (:func:`jaxmpm.run.driver.rollout`, ``checkpoint=``):
 
 * ``False`` -- every step's residuals stored: T R bytes, no recomputation;
+* ``"states"`` -- one level: every step's state kept (T S bytes, S << R), each step recomputed
+  once for its pullback: T S + R bytes, one forward run in the backward pass;
 * ``True`` -- two levels: T / L + L states of S bytes kept (L ~ sqrt T), each segment recomputed
-  once and each step once more for its pullback: about (2 sqrt T) S + R bytes;
+  once and each step once more for its pullback: about (2 sqrt T) S + R bytes, two forward runs in
+  the backward pass;
 * ``"low_memory"`` -- three levels: about (frames + 2 sqrt(save_every)) S + R bytes, a third
   forward pass.
 
 ``checkpoint="auto"`` (the default) picks one from the budget ``memory`` (bytes, or a string such
 as ``"4 GiB"``; default: half the device's free memory) and the backend's measured preference
 (:data:`jaxmpm.transfer.backend.STORE_RESIDUALS_UP_TO`): store the residuals where they fit and the
-backend gains by storing them; else two levels where the kept states fit; else three.  On the
-CPU storing has never paid (the recomputing schedule was faster in every case measured), so
-"auto" is ``True`` there unless the states outgrow the budget -- the numbers are those of the
-schedule it picks (every schedule gives the same gradient to round-off).
+backend gains by storing them; else one level where every step's state fits the budget and the
+backend's limit (:data:`jaxmpm.transfer.backend.KEEP_STATES_UP_TO`); else two levels where their kept
+states fit; else three.  On the CPU storing residuals has never paid (the recomputing schedules were
+faster in every case measured), and one level runs one forward pass fewer than two levels (gradient /
+forward 3.9-7.4 -> 3.0-6.8, benchmarks/gradient_cost.py), so "auto" is ``"states"`` there unless the
+states outgrow the budget, or 16 MiB in 1D (where a step costs no more than moving its state through
+memory) -- the numbers are those of the schedule it picks (every schedule gives the same gradient to
+round-off).
 """
 
 from __future__ import annotations
@@ -29,7 +36,7 @@ import numpy as np
 
 from ..core.errors import check
 from ..core.limits import available_bytes
-from ..transfer.backend import STORE_RESIDUALS_UP_TO, resolve
+from ..transfer.backend import KEEP_STATES_UP_TO, STORE_RESIDUALS_UP_TO, resolve
 
 _UNITS = {"": 1, "b": 1, "kb": 10**3, "mb": 10**6, "gb": 10**9, "tb": 10**12,
           "kib": 2**10, "mib": 2**20, "gib": 2**30, "tib": 2**40}
@@ -93,6 +100,10 @@ def choose_checkpoint(sim, state, dt, frames: int, save_every: int, memory=None)
         stored = steps * residual_bytes(sim.step, state, dt)
         if stored <= min(limit, budget):
             return False, f"every step's residuals stored ({stored / 2**20:.1f} MiB)"
+    one_level = steps * state_bytes
+    keep = KEEP_STATES_UP_TO[resolve(sim.backend)].get(state.x.shape[-1])
+    if one_level <= budget and (keep is None or one_level <= keep):
+        return "states", f"one level, every step's state kept ({one_level / 2**20:.1f} MiB of states)"
     segment = _segment_length(save_every, True, frames)
     two_levels = (steps // segment + segment) * state_bytes
     if two_levels <= budget:
@@ -107,6 +118,8 @@ def _segment_length(save_every: int, checkpoint, frames: int = 1):
     """Steps per rematerialised segment, or None for no checkpointing (see :func:`rollout`)."""
     if checkpoint is False or checkpoint is None:
         return None
+    if isinstance(checkpoint, str) and checkpoint == "states":  # one level: a frame's steps in one segment
+        return save_every
     divisors = [d for d in range(1, save_every + 1) if save_every % d == 0]
     if checkpoint is True:  # two levels: fewest states kept, frames * save_every / L segment starts + L steps
         return min(divisors, key=lambda d: (frames * save_every // d + d, d))
@@ -114,6 +127,6 @@ def _segment_length(save_every: int, checkpoint, frames: int = 1):
         return min(divisors, key=lambda d: abs(d - math.sqrt(save_every)))
     check(isinstance(checkpoint, (int, np.integer)) and not isinstance(checkpoint, (bool, str)) and checkpoint >= 1
           and save_every % checkpoint == 0,
-          f"checkpoint = {checkpoint!r} must be 'auto', True, False, 'low_memory' or a positive divisor of "
+          f"checkpoint = {checkpoint!r} must be 'auto', 'states', True, False, 'low_memory' or a positive divisor of "
           f"save_every = {save_every}")
     return int(checkpoint)

@@ -120,6 +120,21 @@ def evaluate_once(fn, *args):
 #   1.12-1.34x) and 131k particles (11-14 GiB for 100 steps: 1.12-1.36x) recomputing won.
 STORE_RESIDUALS_UP_TO = {"cpu": 0, "gpu": 64 * 2**20}
 
+# Bytes of kept states up to which a reverse-mode rollout keeps every step's state and recomputes each
+# step once (``checkpoint="states"``) rather than running two levels (``True``), per policy and
+# dimension; a dimension not listed: as many as the memory budget allows.  From
+# benchmarks/gradient_memory.py (one pinned core, float64, 2026-11-28; gradient / forward, two levels ->
+# one level, the kept states in brackets):
+# * cpu, 1D (bar, 256 particles, 10 kB a state): 1000 steps (10 MB) 4.15 -> 3.10 (FLIP), 4.29 -> 3.91
+#   (APIC); 4000 steps (39 MB) 4.21 -> 4.58 and 4.21 -> 4.26; 16000 steps (156 MB) 4.15 -> 4.57.  A 1D step
+#   is so cheap (14 ns a particle) that, once the states leave the cache, writing and reading them back
+#   costs what recomputing them does;
+# * cpu, 2D: disks 1000 steps (32 MB) 6.37 -> 5.58, 4000 steps (128 MB) 6.00 -> 5.43; mpm88 8k particles,
+#   1000 steps (0.9 GB) 6.27 -> 5.36 (FLIP), 7.08 -> 6.44 (APIC);
+# * cpu, 3D: not measured; kept as 2D (more work per state byte);
+# * gpu: not measured (benchmarks/gpu_session.sh times "auto" against two levels); kept as the CPU's 2D.
+KEEP_STATES_UP_TO = {"cpu": {1: 16 * 2**20}, "gpu": {}}
+
 
 def scatter_row_width(width: int) -> int:
     """How many columns a scatter-add of ``width`` columns per (node) row is given: under the CPU

@@ -14,6 +14,11 @@ with one XLA thread so that other load on the machine stays out of the ratios,
 
 Adding ``--xla_cpu_experimental_ynn_fusion_type=`` to XLA_FLAGS (jax 0.10) turns off the library
 kernels XLA:CPU uses for reductions, to see what they cost (see the benchmarks README).
+
+Next to each ratio it prints the floor of any schedule that runs every step forward twice and
+transposes it once (one level, ``checkpoint="states"``, is that schedule): 2 + the step's transpose
+alone / the step, in CPU time and in XLA's operation count (``step_adjoint.floor_numbers``; the step
+is the scene's, under the same adjoint).
 """
 
 from __future__ import annotations
@@ -29,6 +34,7 @@ jax.config.update("jax_enable_x64", True)
 import equinox as eqx  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 from _results import cpu_best, write_csv  # noqa: E402
+from step_adjoint import floor_numbers  # noqa: E402
 
 import jaxmpm as jm  # noqa: E402
 
@@ -37,13 +43,16 @@ SCHEMES = {"flip": "flip", "xpic2": "xpic:2", "fmpm2": "fmpm:2", "apic": "apic"}
 # sim.run's checkpoint options
 CHECKPOINTS = {"True": True, "False": False, "low_memory": "low_memory", "states": "states", "auto": "auto"}
 FIELDS = ["scene", "scheme", "particles", "steps", "adjoint", "checkpoint", "forward_s", "grad_s", "ratio",
-          "forward_compile_s", "grad_compile_s"]
+          "forward_compile_s", "grad_compile_s", "floor_time", "floor_ops"]
 
 
 def compiled(fn, *args):
     start = time.process_time()
     out = jax.jit(fn).lower(*args).compile()
     return out, time.process_time() - start
+
+
+FLOORS = {}  # (scene, scheme, adjoint) -> step_adjoint.floor_numbers
 
 
 def measure(scene, scheme, adjoint, checkpoint, repeat):
@@ -56,13 +65,17 @@ def measure(scene, scheme, adjoint, checkpoint, repeat):
         final, _ = sim.run(start, dt, steps, steps // 10, save_particles=False, checkpoint=checkpoint)
         return jnp.sum(final.v ** 2) + jnp.sum(final.x ** 2)
 
+    if (scene, scheme, adjoint) not in FLOORS:  # 2 + this step's transpose alone / its forward
+        FLOORS[scene, scheme, adjoint] = floor_numbers(sim, state, dt, max(repeat, 5))
+    floor = FLOORS[scene, scheme, adjoint]
     forward, forward_compile = compiled(loss, state.v)
     grad, grad_compile = compiled(jax.grad(loss), state.v)
     forward_s = cpu_best(forward, state.v, repeat=repeat)
     grad_s = cpu_best(grad, state.v, repeat=repeat)
     return dict(scene=scene, scheme=scheme, particles=int(state.x.shape[0]), steps=steps, adjoint=adjoint,
                 checkpoint=checkpoint, forward_s=forward_s, grad_s=grad_s, ratio=grad_s / forward_s,
-                forward_compile_s=forward_compile, grad_compile_s=grad_compile)
+                forward_compile_s=forward_compile, grad_compile_s=grad_compile, floor_time=floor["floor_time"],
+                floor_ops=floor["floor_ops"])
 
 
 def main():
@@ -75,8 +88,8 @@ def main():
     parser.add_argument("--csv", default=str(Path(__file__).resolve().parent / "results" / "gradient_cost.csv"))
     args = parser.parse_args()
     print("| scene | scheme | particles | steps | adjoint | checkpoint | forward (s) | gradient (s) | gradient / "
-          "forward | compile forward / gradient (s) |")
-    print("|---" * 10 + "|")
+          "forward | floor: time / ops | compile forward / gradient (s) |")
+    print("|---" * 11 + "|")
     rows = []
     for scene in args.scenes:
         for scheme in args.schemes:
@@ -86,6 +99,7 @@ def main():
                     rows.append(r)
                     print(f"| {scene} | {scheme} | {r['particles']} | {r['steps']} | {adjoint} | {checkpoint} | "
                           f"{r['forward_s']:.3f} | {r['grad_s']:.3f} | {r['ratio']:.2f} | "
+                          f"{r['floor_time']:.2f} / {r['floor_ops']:.2f} | "
                           f"{r['forward_compile_s']:.1f} / {r['grad_compile_s']:.1f} |", flush=True)
     print(f"wrote {write_csv(args.csv, FIELDS, rows)}")
 

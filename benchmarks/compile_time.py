@@ -44,8 +44,9 @@ run and the XLA compilations it triggers are counted (``jax.monitoring``).
     python benchmarks/compile_time.py --scenes bar --programs rollout gradient --steps 10
     python benchmarks/compile_time.py --scenes bar --programs gradient --checkpoint False --adjoint autodiff
 
-``--checkpoint`` and ``--adjoint`` set ``sim.run``'s checkpoint and the simulation's adjoint in the
-gradient and calibrate programs (columns ``checkpoint``, ``adjoint``); XLA_FLAGS and
+``--checkpoint`` (default ``auto``, what ``sim.run`` picks: one level, ``"states"``, on the CPU for these
+scenes; the tables before 2026-11-28 used ``True``) and ``--adjoint`` set ``sim.run``'s checkpoint and the
+simulation's adjoint in the gradient and calibrate programs (columns ``checkpoint``, ``adjoint``); XLA_FLAGS and
 JAX_DISABLE_MOST_OPTIMIZATIONS in the environment reach the measuring processes.
 
 On a shared machine compare the CPU-second columns and ratios from one run; each row has the load
@@ -125,7 +126,7 @@ def _count_instructions(text: str) -> int:
     return sum(1 for line in text.splitlines() if _INSTRUCTION.match(line))
 
 
-def _program(name: str, program: str, steps: int, checkpoint=True, adjoint=None):
+def _program(name: str, program: str, steps: int, checkpoint="auto", adjoint=None):
     """(function, args, steps, particles) of one program of scene ``name``; the function is pure in its
     array args."""
     import equinox as eqx
@@ -191,7 +192,7 @@ def _op_counts(text: str) -> str:
     return " ".join(f"{op}={len(re.findall(rf' {op}[(]', text))}" for op in ops)
 
 
-def measure(name: str, program: str, steps: int, repeat: int, timed_run: bool, checkpoint=True,
+def measure(name: str, program: str, steps: int, repeat: int, timed_run: bool, checkpoint="auto",
             adjoint=None) -> dict:
     """Stage times, sizes and costs of one program, compiled in this process."""
     import jax
@@ -384,8 +385,8 @@ def main(argv=None) -> int:
     parser.add_argument("--programs", nargs="+", choices=PROGRAMS, default=list(PROGRAMS))
     parser.add_argument("--steps", type=int, default=None, help="steps of every run (default: the scene's)")
     parser.add_argument("--repeat", type=int, default=None, help="timed calls of each program (default 3)")
-    parser.add_argument("--checkpoint", choices=list(CHECKPOINTS), default="True",
-                        help="sim.run's checkpoint in the gradient and calibrate programs (default True)")
+    parser.add_argument("--checkpoint", choices=list(CHECKPOINTS), default="auto",
+                        help="sim.run's checkpoint in the gradient and calibrate programs (default auto)")
     parser.add_argument("--adjoint", choices=["structured", "autodiff"], default=None,
                         help="Simulation.with_adjoint in the gradient and calibrate programs (default: the scene's)")
     parser.add_argument("--no-warm", action="store_true", help="skip the second, warm-cache process")

@@ -37,6 +37,7 @@ from .run.cache import compilation_cache, enable_by_default as _enable_compilati
 from .run.calibrate import CalibrationResult, calibrate
 from .run.driver import History, RunInterrupted, StableTimeStepWarning
 from .run.ensemble import ensemble
+from .run.memory import gradient_schedule
 from .model.simulation import Simulation, backend_info
 from .model.step import folds_force, g2p, grid_phases, grid_solve, p2g
 from .io.hdf5 import H5Writer, load_h5, save_h5
@@ -71,7 +72,7 @@ __all__ = [
     "DruckerPrager",
     "CamClay",
     "NewtonianFluid",
-    "backend_info",
+    "backend_info", "gradient_schedule",
 ]
 
 # help(jm.Grid.__init__) and call tips show the Args of the class docstring (an equinox module's

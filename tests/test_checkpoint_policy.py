@@ -110,3 +110,23 @@ def test_one_level_recomputes_each_step_once(bar):
     one, two, three = (flops(jax.grad(lambda E, c=c: loss(E, c)), E) for c in ("states", True, "low_memory"))
     assert 0.9 * step <= two - one <= 1.3 * step, (step, one, two)
     assert 0.9 * step <= three - two <= 1.3 * step, (step, two, three)
+
+
+def test_gradient_schedule_reports_what_auto_runs(bar):
+    """jm.gradient_schedule: the schedule checkpoint="auto" picks, what it keeps, how many forward passes
+    the backward pass runs again; nothing compiled."""
+    sim, state, dt = bar.sim.with_backend("cpu"), bar.state, bar.dt
+    one = jm.gradient_schedule(sim, state, dt, 1000, 100)
+    assert one["checkpoint"] == "states" and one["recomputations"] == 1
+    assert one["state_bytes"] == tree_bytes(state) and one["kept_bytes"] == 1000 * tree_bytes(state)
+    assert one["step_residual_bytes"] == residual_bytes(sim.step, state, dt) > one["state_bytes"]
+    assert one["reason"] == choose_checkpoint(sim, state, dt, 10, 100)[1]
+    two = jm.gradient_schedule(sim, state, dt, 1000, 100, memory=one["kept_bytes"] - 1)
+    assert two["checkpoint"] is True and two["recomputations"] == 2
+    assert two["kept_bytes"] == (1000 // 25 + 25) * tree_bytes(state) <= two["budget_bytes"]
+    three = jm.gradient_schedule(sim, state, dt, 1000, 100, memory=two["kept_bytes"] - 1)
+    assert three["checkpoint"] == "low_memory" and three["recomputations"] == 3
+    assert three["kept_bytes"] < two["kept_bytes"]
+    for steps, save_every in ((1000, 300), (0, 1), (10.0, 1)):
+        with pytest.raises(jm.InputError, match="steps"):
+            jm.gradient_schedule(sim, state, dt, steps, save_every)

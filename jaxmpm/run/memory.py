@@ -99,19 +99,82 @@ def choose_checkpoint(sim, state, dt, frames: int, save_every: int, memory=None)
     if limit > 0:
         stored = steps * residual_bytes(sim.step, state, dt)
         if stored <= min(limit, budget):
-            return False, f"every step's residuals stored ({stored / 2**20:.1f} MiB)"
+            return False, f"every step's residuals stored ({_size(stored)})"
     one_level = steps * state_bytes
     keep = KEEP_STATES_UP_TO[resolve(sim.backend)].get(state.x.shape[-1])
     if one_level <= budget and (keep is None or one_level <= keep):
-        return "states", f"one level, every step's state kept ({one_level / 2**20:.1f} MiB of states)"
+        return "states", f"one level, every step's state kept ({_size(one_level)} of states)"
     segment = _segment_length(save_every, True, frames)
     two_levels = (steps // segment + segment) * state_bytes
     if two_levels <= budget:
-        return True, f"two levels, segments of {segment} steps ({two_levels / 2**20:.1f} MiB of states)"
+        return True, f"two levels, segments of {segment} steps ({_size(two_levels)} of states)"
     segment = _segment_length(save_every, "low_memory", frames)
     three_levels = (frames + save_every // segment + segment) * state_bytes
-    return "low_memory", (f"three levels ({three_levels / 2**20:.1f} MiB of states; two levels would keep "
-                          f"{two_levels / 2**20:.1f} MiB, over the budget of {budget / 2**20:.1f} MiB)")
+    return "low_memory", (f"three levels ({_size(three_levels)} of states; two levels would keep "
+                          f"{_size(two_levels)}, over the budget of {_size(budget)})")
+
+
+def _size(nbytes) -> str:
+    """Bytes for a reader: '312.5 KiB', '1.4 GiB'."""
+    for unit, scale in (("GiB", 2**30), ("MiB", 2**20), ("KiB", 2**10)):
+        if nbytes >= scale:
+            return f"{nbytes / scale:.1f} {unit}"
+    return f"{int(nbytes)} B"
+
+
+def gradient_schedule(sim, state, dt, steps: int, save_every: int = 1, memory=None) -> dict:
+    """What reverse mode through ``sim.run(state, dt, steps, save_every, memory=memory)`` keeps, as
+    ``checkpoint="auto"`` chooses it (module docstring), without compiling anything::
+
+        setup = jm.scene("bar", scheme=jm.FMPM(order=2))        # float64
+        jm.gradient_schedule(setup.sim, setup.state, setup.dt, 400, 20)
+        # {'checkpoint': 'states', 'reason': "one level, every step's state kept (507.8 KiB of states)",
+        #  'recomputations': 1, 'kept_bytes': 520000, 'state_bytes': 1300, 'step_residual_bytes': 20149,
+        #  'budget_bytes': ...}
+
+    Args:
+        sim: the model, as given to ``sim.run`` (:class:`jaxmpm.Simulation`).
+        state: the initial state.
+        dt: the time step.
+        steps: steps of the run, a multiple of ``save_every``.
+        save_every: steps between saved frames, as in ``sim.run``.
+        memory: the budget, bytes or a string such as ``"4 GiB"``; default half the device's free memory.
+
+    Returns a dict:
+
+    * ``checkpoint``: the schedule (``False``, ``"states"``, ``True`` or ``"low_memory"``) and
+      ``reason``, why;
+    * ``recomputations``: forward passes the backward pass runs again (0, 1, 2 or 3), on top of the
+      forward run that yields the loss;
+    * ``kept_bytes``: what the schedule keeps between the forward and the backward pass (residuals or
+      states, the saved frames apart), ``state_bytes`` one state, ``step_residual_bytes`` what one
+      step's pullback reads (each recomputed step holds it while it is transposed);
+    * ``budget_bytes``: the budget it was chosen from (``memory``, default half the free memory).
+
+    The step's residuals are read off ``jax.vjp``'s pullback by shape (``jax.eval_shape``: traced,
+    not compiled)."""
+    check(isinstance(steps, (int, np.integer)) and isinstance(save_every, (int, np.integer)) and save_every >= 1
+          and steps >= save_every and steps % save_every == 0,
+          f"gradient_schedule: steps = {steps!r} must be a positive multiple of save_every = {save_every!r}")
+    sim = sim.in_precision(state.x.dtype)  # as sim.run: the model computes in its state's precision
+    dt = jax.numpy.asarray(dt, state.x.dtype)
+    frames = steps // save_every
+    budget = parse_memory(memory)
+    budget = default_budget() if budget is None else budget
+    checkpoint, reason = choose_checkpoint(sim, state, dt, frames, save_every, budget)
+    state_bytes, residual = tree_bytes(state), residual_bytes(sim.step, state, dt)
+    if checkpoint is False:
+        kept, again = steps * residual, 0
+    elif checkpoint == "states":
+        kept, again = steps * state_bytes, 1
+    elif checkpoint is True:
+        segment = _segment_length(save_every, True, frames)
+        kept, again = (steps // segment + segment) * state_bytes, 2
+    else:
+        segment = _segment_length(save_every, "low_memory", frames)
+        kept, again = (frames + save_every // segment + segment) * state_bytes, 3
+    return dict(checkpoint=checkpoint, reason=reason, recomputations=again, kept_bytes=int(kept),
+                state_bytes=state_bytes, step_residual_bytes=residual, budget_bytes=budget)
 
 
 def _segment_length(save_every: int, checkpoint, frames: int = 1):

@@ -124,7 +124,8 @@ def rollout(sim, state: State, dt, frames: int, save_every: int = 1, save_partic
     * ``"auto"`` (default): one of the four below, chosen at trace time from the budget
       ``memory`` (bytes or a string such as ``"4 GiB"``; default half the device's free memory)
       and the backend's measured preference (:mod:`jaxmpm.run.memory`): on the CPU ``"states"``
-      unless every step's state outgrows the budget (then ``True``, then ``"low_memory"``); on a
+      unless every step's state outgrows the budget, or 16 MiB in 1D (then ``True``, then
+      ``"low_memory"``); on a
       GPU ``False`` where every step's residuals fit in 64 MiB and the budget, else as on the CPU.
     * ``"states"``: one level.  The forward pass keeps every step's state (T states); the backward
       pass recomputes each step once for its pullback: one forward run fewer than ``True`` (on

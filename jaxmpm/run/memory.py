@@ -1,7 +1,7 @@
 """The checkpoint schedule of a reverse-mode rollout, chosen from a memory budget (issue 30 item 3).
 
 A gradient through T steps needs, for the backward pass, what each step's pullback reads (its
-residuals, R bytes per step).  Three schedules trade that memory against recomputation
+residuals, R bytes per step).  Four schedules trade that memory against recomputation
 (:func:`jaxmpm.run.driver.rollout`, ``checkpoint=``):
 
 * ``False`` -- every step's residuals stored: T R bytes, no recomputation;

@@ -32,6 +32,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from ..core.errors import check
 from ..core.params import _where, _with_owner, check_value, set_params
 from ..core.validate import POSITIVE, batch_members, positive_int
+from .memory import default_budget, parse_memory
 from .progress import shown, shown_call
 
 
@@ -116,7 +117,7 @@ def plan(strategy: str, chunk: int | None, members: int, particles: int, platfor
 
 def ensemble(sim, state, dt, steps: int, save_every: int = 1, *, params: dict | None = None, states=None,
              save_particles: bool = False, devices=None, progress: bool | None = None, strategy: str = "auto",
-             chunk: int | None = None):
+             chunk: int | None = None, memory=None):
     """Run a batch of simulations at once, in one compiled program.
 
     When several devices are present the batch is split over as many of them as divide the batch
@@ -152,6 +153,11 @@ def ensemble(sim, state, dt, steps: int, save_every: int = 1, *, params: dict | 
             vmapped in chunks of about ``CPU_CHUNK_PARTICLES`` (512) particles (:func:`plan`).
         chunk: with ``strategy="vmap"``: members vmapped together, chunks one after another (fewer
             members' arrays in memory at once); None (default): all members of a device at once.
+        memory: for gradients through the ensemble (``jax.grad`` of a loss of its results): the
+            reverse-mode budget of a device's members together, bytes or a string such as
+            ``"4 GiB"``; each member's rollout picks its schedule (``checkpoint="auto"`` of
+            :meth:`Simulation.run`, :func:`jaxmpm.gradient_schedule`) from an even share of it.
+            None (default): half the device's free memory.  The forward run is the same either way.
 
     Returns:
         ``(final_states, histories, failure_steps)``; ``failure_steps[b]`` is the first unstable
@@ -173,6 +179,7 @@ def ensemble(sim, state, dt, steps: int, save_every: int = 1, *, params: dict | 
     if steps % save_every:
         check(False, f"ensemble: steps = {steps} must be a multiple of save_every = {save_every}")
     frames = steps // save_every
+    parse_memory(memory)  # a bad budget is an error here, not inside the trace
 
     dt = jnp.asarray(dt, state.x.dtype)
     devices = jax.devices() if devices is None else list(devices)
@@ -182,22 +189,28 @@ def ensemble(sim, state, dt, steps: int, save_every: int = 1, *, params: dict | 
     if mesh is not None:
         inputs = _shard(inputs, mesh)
     how = plan(strategy, chunk, batch // used, int(state.x.shape[0]), devices[0].platform)
-    out = shown_call(_batched_rollout, (sim, state, dt, frames, save_every, save_particles, *how, mesh, *inputs),
+    out = shown_call(_batched_rollout, (sim, state, dt, frames, save_every, save_particles, *how, mesh, memory,
+                                        *inputs),
                      f"jaxmpm ensemble: {batch} members x {steps} steps", show)
     return _gathered(out) if mesh is not None and mesh.is_multi_process else out
 
 
 @eqx.filter_jit
-def _batched_rollout(sim, state, dt, frames, save_every, save_particles, strategy, chunk, mesh, params, states):
+def _batched_rollout(sim, state, dt, frames, save_every, save_particles, strategy, chunk, mesh, memory, params,
+                     states):
     """Every member's rollout, as :func:`plan` resolved ``strategy`` and ``chunk``, in each device's
     share of the batch (``mesh``: a ``shard_map`` over its "batch" axis; None: one device); a
-    module-level filter_jit, so repeated calls reuse the compilation."""
+    module-level filter_jit, so repeated calls reuse the compilation.  Reverse mode: each member's
+    schedule is chosen (when traced) from its share of the device's budget ``memory``."""
 
     def members(sim, state, dt, params, states):
+        budget = parse_memory(memory)
+        share = max(1, (default_budget() if budget is None else budget) // _batch_size((params, states)))
+
         def member(p, s):
             member_sim = set_params(sim, **p) if p else sim
             final, hist, failure = member_sim.rollout(state if s is None else s, dt, frames, save_every,
-                                                      save_particles, checkpoint=False)
+                                                      save_particles, checkpoint="auto", memory=share)
             return final, hist, failure.step
 
         if strategy == "vmap" and chunk is None:

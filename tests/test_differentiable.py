@@ -239,6 +239,11 @@ SHARDED = textwrap.dedent("""
     out = {s + str(c): np.asarray(jm.ensemble(setup.sim, setup.state, setup.dt, 100, 25, params={"beta": betas},
                                               strategy=s, chunk=c)[0].v)
            for s, c in (("auto", None), ("sequential", None), ("vmap", 2))}
+    # and the gradient of a loss of the sharded ensemble (vmapped members), d/d beta
+    def loss(b):
+        final = jm.ensemble(setup.sim, setup.state, setup.dt, 100, 25, params={"beta": b}, strategy="vmap")[0]
+        return jnp.sum(jax.vmap(jm.kinetic_energy)(final))
+    out["grad"] = np.asarray(jax.grad(loss)(betas))
     np.savez(sys.argv[1], **out)
 """)
 
@@ -251,6 +256,14 @@ def test_ensemble_sharded_over_two_host_devices(tmp_path):
     betas = jnp.linspace(0.0, 0.9, 16)
     final, _, _ = jm.ensemble(setup.sim, setup.state, setup.dt, 100, 25, params={"beta": betas})
     sharded = np.load(out)
-    assert sorted(sharded.files) == ["autoNone", "sequentialNone", "vmap2"]
-    for name in sharded.files:
+    assert sorted(sharded.files) == ["autoNone", "grad", "sequentialNone", "vmap2"]
+    for name in ("autoNone", "sequentialNone", "vmap2"):
         np.testing.assert_allclose(sharded[name], np.asarray(final.v), rtol=1e-12, atol=1e-15)
+
+    def loss(b):
+        final = jm.ensemble(setup.sim, setup.state, setup.dt, 100, 25, params={"beta": b}, strategy="vmap")[0]
+        return jnp.sum(jax.vmap(jm.kinetic_energy)(final))
+
+    one_device = np.asarray(jax.grad(loss)(betas))
+    assert np.all(np.isfinite(one_device)) and np.any(one_device != 0)
+    np.testing.assert_allclose(sharded["grad"], one_device, rtol=1e-10, atol=1e-300)

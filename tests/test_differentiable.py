@@ -273,7 +273,7 @@ def test_forward_over_reverse_through_a_rollout():
     """jax.jacfwd(jax.grad(loss)) (a Hessian, forward over reverse) through sim.run equals central
     differences of the gradient (float64).  It recursed without end until 2026-11-28: the CPU
     policy's stage boundaries were a custom_vmap whose rule called itself, and forward mode over the
-    reverse pass vmapped that rule again at every level (jaxmpm.transfer.backend._batched_barrier)."""
+    reverse pass vmapped that rule again at every level (now jaxmpm.transfer.backend._barrier)."""
     setup = jm.scene("bar")
 
     def loss(E):

@@ -10,9 +10,8 @@ policy's business:
   transfer (measured 3x slower mpm88 step).  ``lax.optimization_barrier`` is removed before
   fusion on the CPU, so the boundary is a conditional whose predicate, ``not (x > +inf)``, is true
   for every float (NaN included) but cannot be folded: the taken branch is the identity and the
-  values are exactly the inputs (under ``vmap`` it stays one conditional over the whole batch:
-  :func:`_batched_barrier`, and the predicate itself is unbatched, :func:`_taken_for_the_batch`,
-  so that the tangent boundary stays transposable).  Code run op by op, outside any trace, has no
+  values are exactly the inputs (under ``vmap`` it stays one conditional over the whole batch, its
+  predicate unbatched: :func:`_taken_for_the_batch`).  Code run op by op, outside any trace, has no
   program to steer: there a boundary is skipped (:func:`_eager`).
 * ``"gpu"`` (every other backend's default): boundaries are identities.  On a GPU the
   conditional costs a device-to-host round trip of its predicate per boundary (measured on an
@@ -240,8 +239,16 @@ def _barrier(fn, operands, witness=None):
     """``fn(operands)`` inside a conditional that is always taken (see the module docstring); its
     predicate reads ``witness`` (default: the first float of ``operands``).  ``fn`` is traced once,
     into a jaxpr that gives the untaken branch its output types and that the taken branch replays
-    (tracing ``fn`` for the types and again for the branch doubled the boundaries' tracing, and
-    under ``vmap`` quadrupled it: :func:`_batched_barrier`); the branch's program is the same."""
+    (tracing ``fn`` for the types and again for the branch doubled the boundaries' tracing); the
+    branch's program is the same.
+
+    Under ``jax.vmap`` the predicate stays unbatched (:func:`_taken_for_the_batch`), so vmap batches
+    ``fn`` inside one conditional over the whole batch.  A batched predicate would make the
+    conditional a ``select`` of both branches, which XLA fuses through: the boundary lost, a vmapped
+    CPU step ran at half the speed of a single one (mpm88, 8k particles: 0.44x, with all 16
+    boundaries gone).  The conditional stays differentiable in every order.  (Until 2026-11-28 the
+    primal boundaries were a ``custom_vmap`` whose rule called itself, through which forward over
+    reverse, ``jax.jacfwd(jax.grad(loss))``, recursed without end.)"""
     if witness is None:
         witness = next(leaf for leaf in jax.tree_util.tree_leaves(operands) if jnp.issubdtype(leaf.dtype, jnp.floating))
     closed, out = jax.make_jaxpr(fn, return_shape=True)(operands)
@@ -305,21 +312,9 @@ def _(axis_size, in_batched, witness):
 # transpose would be a second conditional that runs the branch again.
 
 
-def _batched_barrier(fn, operands):
-    """:func:`_barrier`, which stays a conditional under ``jax.vmap``.  vmap turns a conditional
-    whose predicate is batched into a ``select`` of both branches, which XLA fuses through: the
-    boundary is lost, and a vmapped CPU step ran at half the speed of a single one (mpm88, 8k
-    particles: 0.44x, with all 16 boundaries gone).  The predicate is unbatched at every level of
-    vmap (:func:`_taken_for_the_batch`), so vmap batches ``fn`` inside one conditional over the whole
-    batch, and the conditional stays differentiable in every order.  (Until 2026-11-28 this was a
-    ``custom_vmap`` whose rule called itself; forward-over-reverse, ``jax.jacfwd(jax.grad(loss))``,
-    recursed through that rule without end.)"""
-    return _barrier(fn, operands)
-
-
 @jax.custom_jvp
 def _held(arrays):
-    return _batched_barrier(lambda a: a, arrays)
+    return _barrier(lambda a: a, arrays)
 
 
 @_held.defjvp
@@ -330,7 +325,7 @@ def _held_jvp(primals, tangents):
 
 @partial(jax.custom_jvp, nondiff_argnums=(0,))
 def _held_computation(closed, consts, args):
-    return _batched_barrier(lambda ca: closed(*ca[1], *ca[0]), (consts, args))
+    return _barrier(lambda ca: closed(*ca[1], *ca[0]), (consts, args))
 
 
 @_held_computation.defjvp

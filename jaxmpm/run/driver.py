@@ -19,7 +19,7 @@ from ..core.limits import require_memory, require_steps
 from ..core.state import State
 from ..core.warn import warn
 from .collector import with_fewer_collections
-from .memory import _segment_length, choose_checkpoint, parse_memory, tree_bytes  # noqa: F401  (_segment_length: tests)
+from .memory import _segment_length, choose_checkpoint, is_schedule, parse_memory, tree_bytes  # noqa: F401  (_segment_length: tests)
 
 CAUSES = {
     1: "NaN or Inf in the particle state",
@@ -106,10 +106,6 @@ def check_state(state) -> None:
           + "); cast it to one dtype first, e.g. jm.scenes.cast_state(state, jnp.float32)")
 
 
-def _is(checkpoint, name: str) -> bool:
-    return isinstance(checkpoint, str) and checkpoint == name
-
-
 @with_fewer_collections
 def rollout(sim, state: State, dt, frames: int, save_every: int = 1, save_particles: bool = True,
             checkpoint="auto", history_gradients: bool = True, fields: tuple = (), memory=None):
@@ -125,8 +121,8 @@ def rollout(sim, state: State, dt, frames: int, save_every: int = 1, save_partic
       ``memory`` (bytes or a string such as ``"4 GiB"``; default half the device's free memory)
       and the backend's measured preference (:mod:`jaxmpm.run.memory`): on the CPU ``"states"``
       unless every step's state outgrows the budget, or 16 MiB in 1D (then ``True``, then
-      ``"low_memory"``); on a
-      GPU ``False`` where every step's residuals fit in 64 MiB and the budget, else as on the CPU.
+      ``"low_memory"``); on a GPU ``False`` where every step's residuals fit in 64 MiB and the
+      budget, else as on the CPU.
     * ``"states"``: one level.  The forward pass keeps every step's state (T states); the backward
       pass recomputes each step once for its pullback: one forward run fewer than ``True`` (on
       the CPU gradient / forward 3.0-6.8 against 3.9-7.4, benchmarks/gradient_cost.py).
@@ -150,13 +146,13 @@ def rollout(sim, state: State, dt, frames: int, save_every: int = 1, save_partic
     fields = _chosen_fields(sim, state, fields, save_particles)
     dt = jnp.asarray(dt, state.x.dtype)
     none = Failure(jnp.array(-1, jnp.int32), jnp.array(0, jnp.int32), jnp.array(-1, jnp.int32))
-    if isinstance(checkpoint, str) and checkpoint == "auto":
+    if is_schedule(checkpoint, "auto"):
         checkpoint, _ = choose_checkpoint(sim, state, dt, frames, save_every, memory)
     segment = _segment_length(save_every, checkpoint, frames)
     kept = lambda f: f  # noqa: E731  (a level whose states are kept by the scan, not recomputed)
     remat = kept if segment is None else jax.checkpoint
-    remat_segments = kept if _is(checkpoint, "states") else remat  # one level: every step's state kept
-    remat_frames = jax.checkpoint if _is(checkpoint, "low_memory") else kept
+    remat_segments = kept if is_schedule(checkpoint, "states") else remat  # one level: every step's state kept
+    remat_frames = jax.checkpoint if is_schedule(checkpoint, "low_memory") else kept
 
     sorting = sim.sorting(state)  # particles sorted by cell every K steps, or None (jaxmpm.run.sorting)
     advance = _stepper(sim, sorting, dt)
@@ -517,7 +513,7 @@ def _run_chunked(sim, state, dt, frames, save_every, save_particles, check_stabi
     :class:`_Clock`'s."""
     import time
 
-    if not (isinstance(checkpoint, str) and checkpoint == "auto"):
+    if not is_schedule(checkpoint, "auto"):
         _segment_length(save_every, checkpoint, frames)  # validated; the chunked runner is forward only
     start_step = int(state.step) if start_step is None else int(start_step)
     done_steps = int(state.step) - start_step

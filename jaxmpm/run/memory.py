@@ -89,29 +89,43 @@ def residual_bytes(step, state, dt) -> int:
     return tree_bytes(pullback)
 
 
+def is_schedule(checkpoint, name: str) -> bool:
+    """Whether ``checkpoint`` (``sim.run``'s argument: a bool, an int or a name) is the schedule ``name``."""
+    return isinstance(checkpoint, str) and checkpoint == name
+
+
 def choose_checkpoint(sim, state, dt, frames: int, save_every: int, memory=None):
     """``(checkpoint, why)``: the schedule ``checkpoint="auto"`` runs (module docstring)."""
     budget = parse_memory(memory)
-    budget = default_budget() if budget is None else budget
+    return _schedule(sim, state, dt, frames, save_every, default_budget() if budget is None else budget)[:2]
+
+
+def _schedule(sim, state, dt, frames: int, save_every: int, budget: int, residual=None):
+    """``(checkpoint, why, kept bytes)`` of the schedule "auto" picks within ``budget``; ``residual``:
+    one step's residual bytes if already known (read off the step only where the backend may store them)."""
     steps = frames * save_every
     state_bytes = tree_bytes(state)
     limit = STORE_RESIDUALS_UP_TO[resolve(sim.backend)]
     if limit > 0:
-        stored = steps * residual_bytes(sim.step, state, dt)
+        stored = steps * (residual_bytes(sim.step, state, dt) if residual is None else residual)
         if stored <= min(limit, budget):
-            return False, f"every step's residuals stored ({_size(stored)})"
+            return False, f"every step's residuals stored ({_size(stored)})", stored
     one_level = steps * state_bytes
     keep = KEEP_STATES_UP_TO[resolve(sim.backend)].get(state.x.shape[-1])
     if one_level <= budget and (keep is None or one_level <= keep):
-        return "states", f"one level, every step's state kept ({_size(one_level)} of states)"
+        return "states", f"one level, every step's state kept ({_size(one_level)} of states)", one_level
     segment = _segment_length(save_every, True, frames)
     two_levels = (steps // segment + segment) * state_bytes
     if two_levels <= budget:
-        return True, f"two levels, segments of {segment} steps ({_size(two_levels)} of states)"
+        return True, f"two levels, segments of {segment} steps ({_size(two_levels)} of states)", two_levels
     segment = _segment_length(save_every, "low_memory", frames)
     three_levels = (frames + save_every // segment + segment) * state_bytes
     return "low_memory", (f"three levels ({_size(three_levels)} of states; two levels would keep "
-                          f"{_size(two_levels)}, over the budget of {_size(budget)})")
+                          f"{_size(two_levels)}, over the budget of {_size(budget)})"), three_levels
+
+
+#: forward passes the backward pass runs again under each schedule (on top of the one that yields the loss)
+RECOMPUTATIONS = {False: 0, "states": 1, True: 2, "low_memory": 3}
 
 
 def _size(nbytes) -> str:
@@ -161,32 +175,22 @@ def gradient_schedule(sim, state, dt, steps: int, save_every: int = 1, memory=No
     frames = steps // save_every
     budget = parse_memory(memory)
     budget = default_budget() if budget is None else budget
-    checkpoint, reason = choose_checkpoint(sim, state, dt, frames, save_every, budget)
-    state_bytes, residual = tree_bytes(state), residual_bytes(sim.step, state, dt)
-    if checkpoint is False:
-        kept, again = steps * residual, 0
-    elif checkpoint == "states":
-        kept, again = steps * state_bytes, 1
-    elif checkpoint is True:
-        segment = _segment_length(save_every, True, frames)
-        kept, again = (steps // segment + segment) * state_bytes, 2
-    else:
-        segment = _segment_length(save_every, "low_memory", frames)
-        kept, again = (frames + save_every // segment + segment) * state_bytes, 3
-    return dict(checkpoint=checkpoint, reason=reason, recomputations=again, kept_bytes=int(kept),
-                state_bytes=state_bytes, step_residual_bytes=residual, budget_bytes=budget)
+    residual = residual_bytes(sim.step, state, dt)
+    checkpoint, reason, kept = _schedule(sim, state, dt, frames, save_every, budget, residual)
+    return dict(checkpoint=checkpoint, reason=reason, recomputations=RECOMPUTATIONS[checkpoint], kept_bytes=int(kept),
+                state_bytes=tree_bytes(state), step_residual_bytes=residual, budget_bytes=budget)
 
 
 def _segment_length(save_every: int, checkpoint, frames: int = 1):
     """Steps per rematerialised segment, or None for no checkpointing (see :func:`rollout`)."""
     if checkpoint is False or checkpoint is None:
         return None
-    if isinstance(checkpoint, str) and checkpoint == "states":  # one level: a frame's steps in one segment
+    if is_schedule(checkpoint, "states"):  # one level: a frame's steps in one segment
         return save_every
     divisors = [d for d in range(1, save_every + 1) if save_every % d == 0]
     if checkpoint is True:  # two levels: fewest states kept, frames * save_every / L segment starts + L steps
         return min(divisors, key=lambda d: (frames * save_every // d + d, d))
-    if isinstance(checkpoint, str) and checkpoint == "low_memory":  # three levels: segments of ~sqrt(save_every)
+    if is_schedule(checkpoint, "low_memory"):  # three levels: segments of ~sqrt(save_every)
         return min(divisors, key=lambda d: abs(d - math.sqrt(save_every)))
     check(isinstance(checkpoint, (int, np.integer)) and not isinstance(checkpoint, (bool, str)) and checkpoint >= 1
           and save_every % checkpoint == 0,

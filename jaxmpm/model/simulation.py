@@ -552,10 +552,9 @@ class Simulation(eqx.Module):
             return limits[0]
         if traced((self, state, cfl)):
             return jnp.min(jnp.stack(limits))
-        # concrete: the smallest picked on the host (exact, as jnp.min; a NaN wins, as there), so a
-        # scene's dt and sim.run's check of it share time_step_limits' one compiled program
-        host = np.asarray([float(limit) for limit in limits])
-        return limits[int(np.argmax(np.isnan(host))) if np.isnan(host).any() else int(np.argmin(host))]
+        # concrete: the smallest picked on the host (exact, as jnp.min; np.argmin, like it, gives the first
+        # NaN), so a scene's dt and sim.run's check of it share time_step_limits' one compiled program
+        return limits[int(np.argmin([float(limit) for limit in limits]))]
 
     def time_step_limits(self, state: State, cfl: float = 1.0) -> dict:
         """{name: largest stable dt, times ``cfl``}: "CFL" (h / max_p(c + |V_p|)); the scheme's own

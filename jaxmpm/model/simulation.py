@@ -37,6 +37,7 @@ from ..transfer.backend import (
     ADJOINTS,
     KERNEL_CHOICES,
     POLICIES,
+    choose_chunking,
     choose_kernel,
     choose_sorting,
     resolve,
@@ -48,6 +49,7 @@ from ..transfer.backend import (
 from ..transfer.kernels.windowed import active_window, on_window
 from ..transfer.shapes import UGIMP, ShapeFunction, field_stencil
 from . import frame_fields
+from .chunks import chunk_obstacle, num_chunks, step_in_chunks
 from .step import folds_force
 from .step import step as _step
 
@@ -160,6 +162,10 @@ class Simulation(eqx.Module):
             this many steps (``jaxmpm.run.sorting``; frames and the final state stay in the user's
             order), 0 never; "auto" (default): as the backend table says (``jm.backend_info``).
             Speed only: a sorted run equals an unsorted one to round-off.
+        chunk_particles: a step runs over its particles in chunks of about this many
+            (``jaxmpm.model.chunks``: USL with a local scheme and local terms), 0 never; "auto"
+            (default): as the backend table says (``jm.backend_info``).  Speed only: a step in
+            chunks equals the whole step to round-off.
     """
 
     grid: Grid
@@ -176,6 +182,7 @@ class Simulation(eqx.Module):
     constrained_force: str = eqx.field(static=True, default="zero")
     kernel: str = eqx.field(static=True, default="auto")
     sort_every: object = eqx.field(static=True, default="auto")
+    chunk_particles: object = eqx.field(static=True, default="auto")
 
     def __init__(
         self,
@@ -196,6 +203,7 @@ class Simulation(eqx.Module):
         constrained_force: str | None = None,
         kernel: str = "auto",
         sort_every="auto",
+        chunk_particles="auto",
     ):
         check(isinstance(grid, Grid), f"Simulation: grid must be a jm.Grid, got {type(grid).__name__}")
         # a step holds a few nodal fields of 1 + D (mass, momentum) up to D^2 columns per node
@@ -269,6 +277,7 @@ class Simulation(eqx.Module):
         check(kernel in KERNEL_CHOICES, f"Simulation: kernel = {kernel!r}; choose one of {', '.join(KERNEL_CHOICES)}")
         self.kernel = kernel
         self.sort_every = _checked_sort_every(sort_every)
+        self.chunk_particles = _checked_chunk_particles(chunk_particles)
         self._check_terms()
 
     def _check_terms(self):
@@ -339,6 +348,25 @@ class Simulation(eqx.Module):
             return self.sort_every, f"sort_every={self.sort_every} given"
         kernel = self._kernel_row(num_particles, dtype)[0] or "xla"
         return choose_sorting(self.backend, self.grid.dim, num_particles, kernel)
+
+    def with_chunks(self, particles):
+        """A copy whose steps run over the particles in chunks of about ``particles`` (0: never;
+        "auto": the backend table's choice; ``chunk_particles`` in the class docstring)."""
+        return self._with_static(chunk_particles=_checked_chunk_particles(particles))
+
+    def _chunk_row(self, state: State) -> tuple:
+        """(particles per chunk, 0 for the whole step; why) for a step of ``state``."""
+        n, dtype = state.x.shape[0], state.x.dtype
+        if self.chunk_particles != "auto":
+            per, why = self.chunk_particles, f"chunk_particles={self.chunk_particles} given"
+        else:
+            per, why = choose_chunking(self.backend, n, dtype)
+        if not per or per >= n:
+            return 0, why if not per else f"{why}; {n} particles fit one chunk: the whole step"
+        obstacle = chunk_obstacle(self, state, per, self._kernel_row(n, dtype)[0] or "xla")
+        if obstacle is not None:
+            return 0, f"the whole step: {obstacle} ({why})"
+        return per, f"{why}: {num_chunks(n, per)} chunks of {n // num_chunks(n, per)} particles"
 
     def with_conventions(self, conventions: str, constrained_force: str | None = None):
         """A copy of a model built in jaxmpm's conventions that follows another code's rules where
@@ -519,6 +547,9 @@ class Simulation(eqx.Module):
         float32 state) are cast to the state's dtype on entry."""
         name, options, _ = self._kernel_row(state.x.shape[0], state.x.dtype)
         with use_policy(self.backend), use_adjoint(self.adjoint), use_kernel(name, options):
+            per_chunk, _ = self._chunk_row(state)
+            if per_chunk:  # backend tuning: the same step with a working set that fits the cache
+                return step_in_chunks(self.in_precision(state.x.dtype), state, dt, per_chunk)
             return _step(self.in_precision(state.x.dtype), state, dt)
 
     def _kernel_row(self, num_particles: int, dtype) -> tuple:
@@ -701,23 +732,36 @@ def backend_info(sim: Simulation, state: State) -> dict:
         {"kernel": "xla" or "pallas", "options": the kernel's options, "policy": "cpu" or "gpu",
         "dimension", "particles_per_cell", "dtype", "reason": the table row's reason,
         "sort_every": the steps between the runs' sorts of the particles by cell (0: never),
-        "sort_reason": why, and for the XLA kernel "xla_layout": {"p2g": "planar" or "rows",
-        "p2g_derivatives": "planar" or "rows", "hold_gathers": bool}, its "auto" options for this
-        policy and dtype (``jaxmpm.transfer.backend.XLA_LAYOUT``)}.
+        "sort_reason": why, "chunk_particles": the particles per chunk of a step (0: the whole step at
+        once, ``jaxmpm.model.chunks``), "chunk_reason": why, and for the XLA kernel "xla_layout":
+        {"p2g": "planar" or "rows", "p2g_derivatives": "planar" or "rows", "hold_gathers": bool}, its
+        "auto" options for this policy and dtype (``jaxmpm.transfer.backend.XLA_LAYOUT``)}.
     """
     check(isinstance(sim, Simulation), f"backend_info: sim must be a jm.Simulation, got {type(sim).__name__}")
     check(isinstance(state, State), f"backend_info: state must be a jm.State, got {type(state).__name__}")
     n, dtype = state.x.shape[-2], state.x.dtype
     name, options, why = sim._kernel_row(n, dtype)
     every, sort_why = sim._sort_row(n, dtype)
+    member = state if state.x.ndim == 2 else jax.tree_util.tree_map(lambda a: a[0], state)  # an ensemble's
+    with use_policy(sim.backend):
+        per_chunk, chunk_why = sim._chunk_row(member)
     info = {"kernel": name or "xla", "options": dict(options), "policy": resolve(sim.backend),
             "dimension": sim.grid.dim, "particles_per_cell": n / max(1, int(np.prod(sim.grid.cells))),
-            "dtype": jnp.dtype(dtype).name, "reason": why, "sort_every": every, "sort_reason": sort_why}
+            "dtype": jnp.dtype(dtype).name, "reason": why, "sort_every": every, "sort_reason": sort_why,
+            "chunk_particles": per_chunk, "chunk_reason": chunk_why}
     if info["kernel"] == "xla":
         with use_policy(sim.backend):
             p2g, derivatives, hold = xla_layout(dtype)
         info["xla_layout"] = {"p2g": p2g, "p2g_derivatives": derivatives, "hold_gathers": hold}
     return info
+
+
+def _checked_chunk_particles(particles):
+    check(particles == "auto" or (isinstance(particles, (int, np.integer)) and not isinstance(particles, bool)
+                                  and particles >= 0),
+          f"Simulation: chunk_particles = {particles!r}; give the particles per chunk of a step (a non-negative "
+          "integer, 0 = the whole step at once) or 'auto' (the backend table's choice)")
+    return particles if particles == "auto" else int(particles)
 
 
 def _checked_sort_every(every):

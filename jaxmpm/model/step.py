@@ -137,13 +137,7 @@ def p2g(sim, state, force: bool = True, dt=None) -> GridFields:
     Returns:
         The :class:`jaxmpm.GridFields`, with the step's :class:`jaxmpm.Transfer`.
     """
-    stencil = sim.stencil(state)
-    columns = {"mass": Weighted(state.mass), "momentum": as_terms(sim.scheme.momentum_contributions(stencil, state))}
-    exchanger = sim.exchange_term
-    terms = sim.terms if force or dt is not None else ([] if exchanger is None else [exchanger])
-    columns.update(term_quantities(sim, state, stencil, terms))
-    if dt is not None:
-        columns["updated_momentum"] = columns.pop("momentum") + _scaled(columns.pop("force"), dt)
+    stencil, columns = p2g_quantities(sim, state, force, dt)
     nodal = scatter_quantities(stencil, columns, sim.field_nodes)
     if force or dt is not None:
         nodal = with_surface_forces(sim, state, nodal, dt)
@@ -152,6 +146,18 @@ def p2g(sim, state, force: bool = True, dt=None) -> GridFields:
         nodal = images.fold_columns(nodal, folded_columns(sim))
     transfer = Transfer(stencil, state.mass, nodal.pop("mass"), sim.field_nodes, images)
     return GridFields(transfer, nodal)
+
+
+def p2g_quantities(sim, state, force: bool = True, dt=None) -> tuple:
+    """(stencil, {nodal field name: contractions}): what :func:`p2g` scatters, before the scatter."""
+    stencil = sim.stencil(state)
+    columns = {"mass": Weighted(state.mass), "momentum": as_terms(sim.scheme.momentum_contributions(stencil, state))}
+    exchanger = sim.exchange_term
+    terms = sim.terms if force or dt is not None else ([] if exchanger is None else [exchanger])
+    columns.update(term_quantities(sim, state, stencil, terms))
+    if dt is not None:
+        columns["updated_momentum"] = columns.pop("momentum") + _scaled(columns.pop("force"), dt)
+    return stencil, columns
 
 
 def folded_columns(sim) -> tuple:

@@ -25,6 +25,7 @@ class BodyForce(Term):
             function or an equinox module); None (the default): gravity alone.
     """
 
+    local = True  # M_p b(x_p, t) per particle (jaxmpm.model.chunks)
     gravity: jnp.ndarray
     field: Callable | None = None
 

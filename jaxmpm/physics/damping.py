@@ -78,6 +78,7 @@ class Damping(Term, ParticleDamping):
             positions, or None (the default: everywhere).
     """
 
+    local = True  # rates per particle, gathers at its own nodes, sums over particles (jaxmpm.model.chunks)
     grid: jnp.ndarray
     particle: jnp.ndarray
     schedule: Callable | None = None

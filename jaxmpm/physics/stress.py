@@ -40,6 +40,11 @@ class StressDivergence(Term):
               f"StressDivergence: xpic = {xpic!r}; give the XPIC order m >= 1 of the stress smoothing, or 0 (off)")
         self.xpic = xpic
 
+    @property
+    def local(self) -> bool:
+        """Without the XPIC smoothing, whose S+ sums run over all particles (jaxmpm.model.chunks)."""
+        return self.xpic == 0
+
     def p2g_quantities(self, sim, state, stencil):
         tau = sim.material.stress(sim.elastic_deformation(state), state.material_state)
         if self.xpic:

@@ -55,6 +55,12 @@ from ..transfer.contractions import PerSlot
 class Term(eqx.Module):
     """Base class of physics terms (see the module docstring); every hook defaults to nothing."""
 
+    # the term's particle hooks (P2G quantities, damping, particle actions) read each particle and the
+    # grid at its own nodes alone, its particle sums add over the particles, and it has no nodal force
+    # of its own quadrature, no exchange and no collider: the step may then run over the particles in
+    # chunks (jaxmpm.model.chunks).  False (the default) keeps a term's step whole.
+    local = False
+
     # ------------------------------------------------------------------ declarations
     def particle_fields(self) -> tuple:
         """The :class:`jaxmpm.ParticleField` this term declares."""

@@ -148,6 +148,7 @@ class _AffineScheme(Scheme):
         return _zero_affine(particles)
 
     uses_lumped_velocity = False  # the update reads v_tilde, and v only for grid damping
+    local_update = True  # gathers of v_tilde (and v) and one affine moment per particle
 
     def update(self, V, X, transfer: Transfer, constraint, grid, damping: ParticleDamping, dt):
         V_new = transfer.gather(grid.v_tilde)  # 002 eq. (4)

@@ -150,6 +150,9 @@ class Scheme(eqx.Module):
     # the update reads the lumped v and a (not only v_tilde = v + a dt); schemes that read only
     # v_tilde (APIC, TPIC) let P2G scatter p + f dt in place of p and f when nothing else needs them
     uses_lumped_velocity = True
+    # the update reads the grid only at each particle's own stencil nodes (gathers; no S+ S series over
+    # all particles): the step may then run over the particles in chunks (jaxmpm.model.chunks)
+    local_update = False
 
     @abc.abstractmethod
     def update(self, V, X, transfer: Transfer, constraint, grid, damping: ParticleDamping, dt) -> ParticleUpdate:

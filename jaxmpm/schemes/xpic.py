@@ -155,6 +155,12 @@ class XPIC(Scheme):
     series: str = eqx.field(static=True)
     damping_velocity: str = eqx.field(static=True, default="lumped")
 
+    @property
+    def local_update(self) -> bool:
+        """Orders 0 and 1 (FLIP, PIC and their blends) gather the grid at each particle's own nodes;
+        higher orders run the S+ S series over all particles."""
+        return self.order <= 1
+
     def __init__(self, order: int = 2, beta=0.0, position: str = "Sv", boundary: str = "iterates",
                  series: str = "binomial", damping_velocity: str = "lumped"):
         self.order = _check_order(order, type(self).__name__)

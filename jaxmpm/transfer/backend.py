@@ -489,6 +489,38 @@ def choose_sorting(policy: str, dim: int, num_particles: int, kernel: str) -> tu
     return 0, "no row of SORT_TABLE matches: not sorted"
 
 
+# (policy, bytes per float or None for any, fewest particles) -> (particles per chunk, 0 for the whole
+# step at once; why).  The first row that matches wins (jaxmpm.model.chunks: one USL step over the
+# particles in chunks, each chunk's stencil and per-slot arrays small enough to stay in the cache).
+# CPU, 2 cores (AMD EPYC, 2 MiB L2 per core, 32 MiB L3), mpm88 (APIC), ms per step, whole step -> chunks
+# (2026-11-28, /tmp prototype, then benchmarks/vs_taichi.py):
+#   float64: 65k 6.50 -> 6.11-6.56 (chunks of 16k), 131k 14.7-15.5 -> 12.5-12.9 (16k; 32k 13.8-15.2,
+#            8k 13.8-14.4), 524k 74.6-76.6 -> 48.9-50.0 (16k; 32k 54.1, 8k 58.5); 32k 2.39 -> 2.90 (16k)
+#   float32: 131k 9.0-9.4 -> 7.7-7.9 (32k; 16k 7.9-8.0, 8k 8.9-9.0)
+# Under 100k particles the step's arrays stay in the 32 MiB L3 and a chunk only adds the second
+# evaluation of the stencil (a step of one chunk: 18% slower at 131k float64).
+CHUNK_TABLE = (
+    (("cpu", 8, 100_000), (16384, "CPU, float64, from 100k particles: the step over chunks of 16k particles, whose "
+                                  "arrays stay in the cache (mpm88, 2 cores: 131k 1.2x, 524k 1.5x the whole step)")),
+    (("cpu", 4, 100_000), (32768, "CPU, float32, from 100k particles: the step over chunks of 32k particles, whose "
+                                  "arrays stay in the cache (mpm88, 2 cores: 131k 1.2x the whole step)")),
+    (("cpu", None, 0), (0, "CPU under 100k particles: the whole step at once (its arrays stay in the L3 cache; a "
+                           "chunk adds a second evaluation of the stencil)")),
+    (("gpu", None, 0), (0, "GPU: the whole step at once (not measured in chunks)")),
+)
+
+
+def choose_chunking(policy: str, num_particles: int, dtype) -> tuple:
+    """(particles per chunk, 0 for the whole step at once; why): the first row of
+    :data:`CHUNK_TABLE` -- (policy, bytes per float, fewest particles) -> row -- that matches a
+    step of ``num_particles`` particles computing in ``dtype`` traced under ``policy``."""
+    policy, size = resolve(policy), jnp.dtype(dtype).itemsize
+    for (p, b, fewest), row in CHUNK_TABLE:
+        if p in (None, policy) and b in (None, size) and num_particles >= fewest:
+            return row
+    return 0, "no row of CHUNK_TABLE matches: the whole step at once"
+
+
 _kernel = contextvars.ContextVar("jaxmpm_transfer_kernel", default=None)
 
 

@@ -1,0 +1,118 @@
+"""One USL step over the particles in chunks: the same step (:func:`jaxmpm.model.step.step`), with
+a working set that fits the CPU's cache.
+
+P2G is a sum over the particles and G2P a map over them, so a step may take its particles a chunk
+at a time (003 §2.1):
+
+1. P2G, chunk by chunk: each chunk's stencil and quantities, scattered and added to the nodal
+   sums (003 eq. 2.1, 001 eq. 20);
+2. the grid solve, once, on the whole grid (:func:`jaxmpm.model.step.grid_phases`);
+3. G2P, chunk by chunk: each chunk's stencil again, and its particles' update from the grid
+   solution (000 eq. 3.28, 002 eq. 4, the strain and material update).
+
+Both passes are a ``lax.scan`` over chunks of equal size, so a chunk's stencil and per-slot
+arrays (about 1 kB a particle in float64 2D) stay in the cache where a whole step's leave it
+(benchmarks/README.md, "The step in chunks").  The price is a second evaluation of the stencil.
+The nodal sums are added chunk by chunk, so a step in chunks equals the whole step to round-off,
+not bit for bit; the dissipated energy is the sum of the chunks' shares.
+
+Which steps: USL, a scheme whose update is local (``Scheme.local_update``: FLIP, PIC, their
+blends, APIC, TPIC, RPIC) and terms that are (``Term.local``: the stress divergence without XPIC
+smoothing, the body force, damping), no mirror planes, the XLA kernel, one device, and a particle
+count with a divisor near the chunk size.  :func:`chunk_obstacle` names what keeps a model whole;
+the chunk size comes from the backend's table (:data:`jaxmpm.transfer.backend.CHUNK_TABLE`) or
+``Simulation(chunk_particles=...)``, and :func:`jaxmpm.backend_info` reports both.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from ..core.fields import GridFields
+from ..transfer.kernels.windowed import active_window
+from ..transfer.operators import Transfer
+from ..transfer.operators import p2g as scatter_quantities
+from .step import folds_force, g2p, grid_phases, p2g_quantities
+
+
+def _particle_part(state):
+    """The per-particle part of a state: every field but time, step and dissipated."""
+    return (state.x, state.v, state.F, state.mass, state.volume0, state.scheme_state, state.material_state,
+            state.fields)
+
+
+def _with_particle_part(state, part):
+    return eqx.tree_at(lambda s: _particle_part(s), state, part, is_leaf=lambda x: x is None)
+
+
+def num_chunks(num_particles: int, per_chunk: int) -> int:
+    """How many chunks of equal size: the least divisor C of ``num_particles`` (N) with
+    ceil(N / per_chunk) <= C <= 2 ceil(N / per_chunk), so that a chunk holds between about half of
+    ``per_chunk`` and ``per_chunk`` particles; 0 where there is none (a prime N: the step stays whole)."""
+    fewest = -(-num_particles // per_chunk)
+    for count in range(fewest, 2 * fewest + 1):
+        if num_particles % count == 0:
+            return count
+    return 0
+
+
+def chunk_obstacle(sim, state, per_chunk: int, kernel: str) -> str | None:
+    """Why ``sim`` cannot step ``state`` in chunks of ``per_chunk`` particles on ``kernel``, or None."""
+    n = state.x.shape[0]
+    if sim.update != "USL":
+        return f"update={sim.update!r}: only USL steps in chunks (USF and MUSL scatter twice)"
+    if not sim.scheme.local_update:
+        return f"{type(sim.scheme).__name__}'s update sums over all particles (an S+ S series)"
+    whole = [type(t).__name__ for t in sim.terms if not t.local]
+    if whole:
+        return f"the term(s) {', '.join(whole)} act on all particles at once (Term.local)"
+    if sim.constraint(state.x.dtype).mirror is not None:
+        return "mirror planes fold the nodal sums (jm.Mirror)"
+    if kernel != "xla":
+        return f"the {kernel} kernel runs the whole step"
+    if active_window() is not None:
+        return "the sharded step runs whole on each device"
+    lengths = {leaf.shape[0] if leaf.ndim else None for leaf in jax.tree_util.tree_leaves(_particle_part(state))}
+    if lengths != {n}:
+        return "the state holds a per-particle leaf of another length"
+    if not num_chunks(n, per_chunk):
+        return f"{n} particles have no divisor near {n // per_chunk + 1} chunks"
+    return None
+
+
+def step_in_chunks(sim, state, dt, per_chunk: int):
+    """One USL step of ``sim`` from ``state`` over chunks of about ``per_chunk`` particles (module
+    docstring); ``chunk_obstacle`` must be None.  Equal to ``jaxmpm.model.step.step`` to round-off."""
+    dt = jnp.asarray(dt, state.x.dtype)
+    constraint = sim.constraint(state.x.dtype)
+    count = num_chunks(state.x.shape[0], per_chunk)
+    split = jax.tree_util.tree_map(lambda a: a.reshape((count, -1) + a.shape[1:]), _particle_part(state))
+    folded_dt = dt if folds_force(sim) else None
+
+    def nodal_sums(chunk):  # 1. P2G of one chunk: the nodal mass and the columns' sums
+        return scatter_quantities(*p2g_quantities(sim, chunk, dt=folded_dt), sim.field_nodes)
+
+    def add_chunk(sums, part):
+        return jax.tree_util.tree_map(jnp.add, sums, nodal_sums(_with_particle_part(state, part))), None
+
+    first = _with_particle_part(state, jax.tree_util.tree_map(lambda a: a[0], split))
+    zeros = jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), jax.eval_shape(nodal_sums, first))
+    nodal, _ = jax.lax.scan(add_chunk, zeros, split)
+    mass = nodal.pop("mass")
+    # 2. the grid solve: no local term reads the stencil there
+    fields = GridFields(Transfer(None, None, mass, sim.field_nodes), nodal)
+    solution = grid_phases(sim, fields, dt, constraint, state.time)
+
+    def update_chunk(_, part):  # 3. G2P of one chunk, its own stencil again
+        chunk = _with_particle_part(state, part)
+        transfer = Transfer(sim.stencil(chunk), chunk.mass, mass, sim.field_nodes)
+        new = g2p(sim, chunk, transfer, constraint, solution, dt, fields)
+        return None, (_particle_part(new), new.dissipated - state.dissipated)
+
+    _, (parts, dissipated) = jax.lax.scan(update_chunk, None, split)
+    part = jax.tree_util.tree_map(lambda a: a.reshape((-1,) + a.shape[2:]), parts)
+    new = _with_particle_part(state, part)
+    return eqx.tree_at(lambda s: (s.time, s.step, s.dissipated), new,
+                       (state.time + dt, state.step + 1, state.dissipated + jnp.sum(dissipated)))

@@ -1,0 +1,118 @@
+"""A step over the particles in chunks (jaxmpm/model/chunks.py, backend tuning for the CPU's cache): the
+same USL step, P2G a sum and G2P a map over the particles (003 §2.1), so that stepping chunk by chunk
+equals the whole step to round-off -- states, gradients and vmapped ensembles -- and a model whose
+step sums over all particles (an S+ S series, MUSL's second P2G) stays whole.  Small mpm88 scenes
+(16^2 grid, 512 particles in random order, float64), chunks of 128 particles."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxmpm as jm
+from jaxmpm.model.chunks import num_chunks
+from jaxmpm.transfer.backend import CHUNK_TABLE, choose_chunking
+
+STEPS = 20
+
+
+def _scene(**options):
+    setup = jm.scene("mpm88", n_particles=512, n_grid=16, **options)
+    return setup.sim, setup.state, setup.dt
+
+
+def _assert_same(a, b, tol=1e-12):
+    """Every float leaf of ``b`` equals ``a``'s to ``tol`` of the leaf's scale; integers exactly."""
+    for (path, x), y in zip(jax.tree_util.tree_leaves_with_path(a), jax.tree_util.tree_leaves(b)):
+        x, y = np.asarray(x), np.asarray(y)
+        if np.issubdtype(x.dtype, np.floating):
+            finite = np.abs(x[np.isfinite(x)])  # APIC's dissipated energy is NaN ("not computed") in both
+            np.testing.assert_allclose(y, x, rtol=0, atol=tol * max(1e-300, finite.max(initial=0.0)),
+                                       err_msg=jax.tree_util.keystr(path))
+        else:
+            np.testing.assert_array_equal(y, x, err_msg=jax.tree_util.keystr(path))
+
+
+@eqx.filter_jit
+def _advance(sim, state, dt):
+    return jax.lax.scan(lambda s, _: (sim.step(s, dt), None), state, None, length=STEPS)[0]
+
+
+@pytest.mark.parametrize("name, options", [
+    ("APIC (mpm88's own: p + f dt folded)", {}),
+    ("FLIP with grid and particle damping", {"scheme": jm.FLIP(), "damping": jm.Damping(grid=2.0, particle=1.0)}),
+    ("PIC/FLIP blend, force-form damping", {"scheme": jm.XPIC(order=1, beta=0.9),
+                                            "damping": jm.Damping(grid=2.0, approach="force")}),
+])
+def test_a_step_in_chunks_equals_the_whole_step(name, options):
+    """20 steps in 4 chunks of 128 particles against the whole step: every leaf of the state (x, v, F,
+    APIC's B_p, time, step, the dissipated energy summed over the chunks) to 1e-12 of its scale."""
+    sim, state, dt = _scene(**options)
+    chunked = sim.with_chunks(128)
+    info = jm.backend_info(chunked, state)
+    assert info["chunk_particles"] == 128, info["chunk_reason"]
+    assert "4 chunks of 128 particles" in info["chunk_reason"]
+    whole = _advance(sim.with_chunks(0), state, dt)
+    assert int(whole.step) == STEPS and float(jnp.max(jnp.abs(whole.x - state.x))) > 1e-3  # the particles moved
+    _assert_same(whole, _advance(chunked, state, dt))
+
+
+def test_gradients_and_ensembles_through_the_chunked_step():
+    """d(kinetic energy after 20 steps)/d(E, V0) through the chunks equals the whole step's to 1e-10
+    (relative), and a vmapped ensemble of two initial velocities equals the members stepped alone."""
+    sim, state, dt = _scene()
+
+    def loss(E, v, model):
+        final = _advance(jm.set_params(model, E=E), eqx.tree_at(lambda s: s.v, state, v), dt)
+        return jnp.sum(final.mass[:, None] * final.v ** 2)
+
+    def grad(model):
+        return jax.jit(jax.grad(lambda E, v: loss(E, v, model), argnums=(0, 1)))(jnp.asarray(400.0), state.v)
+
+    whole, chunked = grad(sim.with_chunks(0)), grad(sim.with_chunks(128))
+    assert abs(float(whole[0])) > 0
+    np.testing.assert_allclose(float(chunked[0]), float(whole[0]), rtol=1e-10)
+    np.testing.assert_allclose(np.asarray(chunked[1]), np.asarray(whole[1]), rtol=0,
+                               atol=1e-10 * float(jnp.max(jnp.abs(whole[1]))))
+
+    model = sim.with_chunks(128)
+    members = [state, eqx.tree_at(lambda s: s.v, state, state.v * 0.5)]
+    batch = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *members)
+    together = jax.vmap(lambda s: _advance(model, s, dt))(batch)
+    for i, member in enumerate(members):
+        _assert_same(_advance(sim.with_chunks(0), member, dt), jax.tree_util.tree_map(lambda a, i=i: a[i], together))
+
+
+@pytest.mark.parametrize("options, reason", [
+    ({"scheme": jm.XPIC(order=2)}, "XPIC's update sums over all particles"),
+    ({"scheme": jm.FLIP(), "update": "MUSL"}, "only USL steps in chunks"),
+])
+def test_a_step_that_sums_over_all_particles_stays_whole(options, reason):
+    """XPIC(2)'s S+ S series and MUSL's re-extrapolated P2G read every particle: forced chunks leave
+    the step whole and backend_info says why."""
+    sim, state, _ = _scene(**options)
+    info = jm.backend_info(sim.with_chunks(128), state)
+    assert info["chunk_particles"] == 0 and reason in info["chunk_reason"], info["chunk_reason"]
+
+
+def test_chunk_count_and_the_backend_table():
+    """num_chunks picks the least divisor between ceil(N / per_chunk) and twice that (none for a prime
+    count); CHUNK_TABLE chunks CPU steps from 100k particles (16k float64, 32k float32), not smaller
+    ones and not on a GPU; a bad chunk_particles is an InputError naming it."""
+    assert num_chunks(131072, 16384) == 8
+    assert num_chunks(524288, 16384) == 32
+    assert num_chunks(100, 30) == 4  # 25 particles a chunk
+    assert num_chunks(150_000, 16384) == 10  # ceil is 10: 15000 a chunk
+    assert num_chunks(97, 10) == 0  # prime
+    assert choose_chunking("cpu", 131072, jnp.float64)[0] == 16384
+    assert choose_chunking("cpu", 131072, jnp.float32)[0] == 32768
+    assert choose_chunking("cpu", 65536, jnp.float64)[0] == 0
+    assert choose_chunking("gpu", 2_000_000, jnp.float32)[0] == 0
+    assert all(len(key) == 3 and len(row) == 2 for key, row in CHUNK_TABLE)
+    sim, state, _ = _scene()
+    assert jm.backend_info(sim, state)["chunk_particles"] == 0  # 512 particles: whole
+    info = jm.backend_info(sim.with_chunks(97), jm.scene("mpm88", n_particles=509, n_grid=16).state)
+    assert info["chunk_particles"] == 0 and "no divisor" in info["chunk_reason"]
+    with pytest.raises(jm.InputError, match="chunk_particles"):
+        sim.with_chunks(-1)

@@ -59,8 +59,9 @@ def test_a_step_in_chunks_equals_the_whole_step(name, options):
 
 
 def test_gradients_and_ensembles_through_the_chunked_step():
-    """d(kinetic energy after 20 steps)/d(E, V0) through the chunks equals the whole step's to 1e-10
-    (relative), and a vmapped ensemble of two initial velocities equals the members stepped alone."""
+    """d(kinetic energy after 20 steps)/d(E, V0) of a chunked model equals the whole step's to 1e-10
+    (relative: its derivative rule differentiates the whole step, chunks.step_in_chunks), and a vmapped
+    ensemble of two initial velocities equals the members stepped alone."""
     sim, state, dt = _scene()
 
     def loss(E, v, model):

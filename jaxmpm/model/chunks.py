@@ -15,6 +15,7 @@ arrays (about 1 kB a particle in float64 2D) stay in the cache where a whole ste
 (benchmarks/README.md, "The step in chunks").  The price is a second evaluation of the stencil.
 The nodal sums are added chunk by chunk, so a step in chunks equals the whole step to round-off,
 not bit for bit; the dissipated energy is the sum of the chunks' shares.
+Derivatives differentiate the whole step (:func:`step_in_chunks`): its gradient is the faster.
 
 Which steps: USL, a scheme whose update is local (``Scheme.local_update``: FLIP, PIC, their
 blends, APIC, TPIC, RPIC) and terms that are (``Term.local``: the stress divergence without XPIC
@@ -35,6 +36,7 @@ from ..transfer.kernels.windowed import active_window
 from ..transfer.operators import Transfer
 from ..transfer.operators import p2g as scatter_quantities
 from .step import folds_force, g2p, grid_phases, p2g_quantities
+from .step import step as whole_step
 
 
 def _particle_part(state):
@@ -83,6 +85,26 @@ def chunk_obstacle(sim, state, per_chunk: int, kernel: str) -> str | None:
 
 
 def step_in_chunks(sim, state, dt, per_chunk: int):
+    """One step in chunks (:func:`chunked_step`) whose derivatives are the whole step's: forward runs
+    take the chunks, while JVPs and gradients (the linearised step and its transpose) differentiate
+    :func:`jaxmpm.model.step.step`, whose gradient ran 1.25x faster than the chunked one's (mpm88,
+    131k particles, float64, a 20-step rollout: 131 against 163 ms a step).  Both give the same
+    values to round-off."""
+    dt = jnp.asarray(dt, state.x.dtype)
+    arrays, static = eqx.partition(sim, eqx.is_array)
+
+    @jax.custom_jvp
+    def stepped(arrays, state, dt):
+        return chunked_step(eqx.combine(arrays, static), state, dt, per_chunk)
+
+    @stepped.defjvp
+    def _(primals, tangents):
+        return jax.jvp(lambda a, s, d: whole_step(eqx.combine(a, static), s, d), primals, tangents)
+
+    return stepped(arrays, state, dt)
+
+
+def chunked_step(sim, state, dt, per_chunk: int):
     """One USL step of ``sim`` from ``state`` over chunks of about ``per_chunk`` particles (module
     docstring); ``chunk_obstacle`` must be None.  Equal to ``jaxmpm.model.step.step`` to round-off."""
     dt = jnp.asarray(dt, state.x.dtype)

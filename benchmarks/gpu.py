@@ -28,9 +28,10 @@ process when ``taichi`` is importable (CUDA on a GPU, its CPU backend on a CPU; 
 jaxmpm first and Taichi's runtime shut down after each run (its worker threads would slow what follows).
 ``--quick`` runs every part at small sizes and few steps; ``--smallest`` keeps only each part's first size.
 ``--kernel xla|pallas|auto`` picks jaxmpm's transfer kernel (``Simulation.with_kernel``; default "auto", the
-library's table) and ``--sort-every K`` how often the particles are sorted by cell (``Simulation.with_sorting``; 0
-never, default "auto", the library's table); each row records the kernel and sorting its run used
-(``jm.backend_info``).
+library's table), ``--sort-every K`` how often the particles are sorted by cell (``Simulation.with_sorting``; 0
+never, default "auto", the library's table) and ``--chunk-particles P`` the particles per chunk of a step
+(``Simulation.with_chunks``; 0 the whole step, default "auto", the library's table); each row records the kernel,
+sorting and chunks its run used (``jm.backend_info``).
 
 Writes ``benchmarks/results/gpu.md`` and ``gpu.csv`` (``--out`` another folder).
 """
@@ -88,19 +89,21 @@ FIELDS = ["part", "case", "particles", "grid", "steps", "dtype", "engine", "kern
 
 # ------------------------------------------------------------------------------------------- scenes
 SORT_EVERY = "auto"  # --sort-every: steps between sorts of the particles by cell ("auto": the library's table)
+CHUNK_PARTICLES = "auto"  # --chunk-particles: particles per chunk of a step (0: whole; "auto": the library's table)
 
 
 def with_kernel(sim, kernel: str):
     """``sim`` with its transfers on ``kernel`` ("xla", "pallas"), or as the library chooses ("auto"), sorting its
-    particles by cell as ``--sort-every`` says."""
+    particles by cell as ``--sort-every`` says and stepping them in chunks as ``--chunk-particles`` does."""
     sim = sim if kernel == "auto" else sim.with_kernel(kernel)
-    return sim.with_sorting(SORT_EVERY)
+    return sim.with_sorting(SORT_EVERY).with_chunks(CHUNK_PARTICLES)
 
 
 def kernel_of(sim, state) -> str:
-    """The transfer kernel ``sim`` steps ``state`` with (``jm.backend_info``), and its sorting if any."""
+    """The transfer kernel ``sim`` steps ``state`` with (``jm.backend_info``), its sorting and chunks if any."""
     info = jm.backend_info(sim, state)
-    return info["kernel"] + (f", sorted/{info['sort_every']}" if info.get("sort_every") else "")
+    return (info["kernel"] + (f", sorted/{info['sort_every']}" if info.get("sort_every") else "")
+            + (f", chunks/{info['chunk_particles']}" if info.get("chunk_particles") else ""))
 
 
 def mpm88(n: int, dtype: str, scheme=None, dt: float = DT, kernel: str = "auto"):
@@ -393,10 +396,13 @@ def main(argv=None) -> int:
                              "low_memory")
     parser.add_argument("--sort-every", default="auto", type=lambda v: v if v == "auto" else int(v), metavar="K",
                         help="sort the particles by cell every K steps (0: never; default auto: the library's table)")
+    parser.add_argument("--chunk-particles", default="auto", type=lambda v: v if v == "auto" else int(v), metavar="P",
+                        help="step the particles in chunks of about P (Simulation.with_chunks; 0: the whole step; "
+                             "default auto: the library's table)")
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="folder of gpu.md and gpu.csv")
     args = parser.parse_args(argv)
-    global SORT_EVERY
-    SORT_EVERY = args.sort_every
+    global SORT_EVERY, CHUNK_PARTICLES
+    SORT_EVERY, CHUNK_PARTICLES = args.sort_every, args.chunk_particles
     from jaxmpm.transfer import backend
     from jaxmpm.transfer.kernels import pallas
 
@@ -426,7 +432,7 @@ def main(argv=None) -> int:
               f"jax {common['jax']}, jaxmpm {jm.__version__}, "
               f"Taichi {taichi.version if taichi.ti else 'skipped: ' + taichi.why}, {common['date']}\n\n"
               f"jaxmpm {args.dtype}, --kernel {args.kernel}{' ' + variant if variant else ''}, "
-              f"--sort-every {args.sort_every} "
+              f"--sort-every {args.sort_every} --chunk-particles {args.chunk_particles} "
               f"(the kernel each run used in brackets), Taichi f32; "
               f"best of {repeats}; {os.cpu_count()} CPUs, {platform.machine()}, "
               f"load {os.getloadavg()[0]:.2f} at the start.")

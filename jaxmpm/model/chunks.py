@@ -10,9 +10,11 @@ at a time (003 §2.1):
 3. G2P, chunk by chunk: each chunk's stencil again, and its particles' update from the grid
    solution (000 eq. 3.28, 002 eq. 4, the strain and material update).
 
-Both passes are a ``lax.scan`` over chunks of equal size, so a chunk's stencil and per-slot
-arrays (about 1 kB a particle in float64 2D) stay in the cache where a whole step's leave it
-(benchmarks/README.md, "The step in chunks").  The price is a second evaluation of the stencil.
+Both passes are loops over chunks of equal size, so a chunk's stencil and per-slot arrays (about
+1 kB a particle in float64 2D) stay in the cache where a whole step's leave it (benchmarks/README.md,
+"The step in chunks").  The G2P pass writes each chunk's new rows over its old ones or stacks them
+as a scan's outputs, as the backend says (:data:`jaxmpm.transfer.backend.CHUNK_OUTPUT`).  The price
+is a second evaluation of the stencil.
 The nodal sums are added chunk by chunk, so a step in chunks equals the whole step to round-off,
 not bit for bit; the dissipated energy is the sum of the chunks' shares.
 Derivatives differentiate the whole step (:func:`step_in_chunks`): its gradient is the faster.
@@ -32,6 +34,7 @@ import jax
 import jax.numpy as jnp
 
 from ..core.fields import GridFields
+from ..transfer.backend import chunk_output
 from ..transfer.kernels.windowed import active_window
 from ..transfer.operators import Transfer
 from ..transfer.operators import p2g as scatter_quantities
@@ -127,14 +130,30 @@ def chunked_step(sim, state, dt, per_chunk: int):
     fields = GridFields(Transfer(None, None, mass, sim.field_nodes), nodal)
     solution = grid_phases(sim, fields, dt, constraint, state.time)
 
-    def update_chunk(_, part):  # 3. G2P of one chunk, its own stencil again
+    def updated(part):  # 3. G2P of one chunk, its own stencil again: its new rows and dissipated energy
         chunk = _with_particle_part(state, part)
         transfer = Transfer(sim.stencil(chunk), chunk.mass, mass, sim.field_nodes)
         new = g2p(sim, chunk, transfer, constraint, solution, dt, fields)
-        return None, (_particle_part(new), new.dissipated - state.dissipated)
+        return _particle_part(new), new.dissipated - state.dissipated
 
-    _, (parts, dissipated) = jax.lax.scan(update_chunk, None, split)
-    part = jax.tree_util.tree_map(lambda a: a.reshape((-1,) + a.shape[2:]), parts)
+    if chunk_output(state.x.dtype) == "stacked":  # backend tuning: how the new rows are written
+        _, (parts, dissipated) = jax.lax.scan(lambda _, part: (None, updated(part)), None, split)
+        part = jax.tree_util.tree_map(lambda a: a.reshape((-1,) + a.shape[2:]), parts)
+        return _finished(state, part, dt, jnp.sum(dissipated))
+    size = state.x.shape[0] // count
+
+    def in_place(i, carry):  # each chunk's new rows written over its old ones
+        part, dissipated = carry
+        rows, lost = updated(jax.tree_util.tree_map(lambda a: jax.lax.dynamic_slice_in_dim(a, i * size, size), part))
+        part = jax.tree_util.tree_map(lambda a, b: jax.lax.dynamic_update_slice_in_dim(a, b, i * size, 0), part, rows)
+        return part, dissipated + lost
+
+    part, dissipated = jax.lax.fori_loop(0, count, in_place, (_particle_part(state), jnp.zeros_like(state.dissipated)))
+    return _finished(state, part, dt, dissipated)
+
+
+def _finished(state, part, dt, dissipated):
+    """The new state: the chunks' particle rows, the clock advanced, the chunks' dissipated energy added."""
     new = _with_particle_part(state, part)
     return eqx.tree_at(lambda s: (s.time, s.step, s.dissipated), new,
-                       (state.time + dt, state.step + 1, state.dissipated + jnp.sum(dissipated)))
+                       (state.time + dt, state.step + 1, state.dissipated + dissipated))

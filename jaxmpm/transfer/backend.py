@@ -493,21 +493,38 @@ def choose_sorting(policy: str, dim: int, num_particles: int, kernel: str) -> tu
 # step at once; why).  The first row that matches wins (jaxmpm.model.chunks: one USL step over the
 # particles in chunks, each chunk's stencil and per-slot arrays small enough to stay in the cache).
 # CPU, 2 cores (AMD EPYC, 2 MiB L2 per core, 32 MiB L3), mpm88 (APIC), ms per step, whole step -> chunks
-# (2026-11-28, /tmp prototype, then benchmarks/vs_taichi.py):
-#   float64: 65k 6.50 -> 6.11-6.56 (chunks of 16k), 131k 14.7-15.5 -> 12.5-12.9 (16k; 32k 13.8-15.2,
-#            8k 13.8-14.4), 524k 74.6-76.6 -> 48.9-50.0 (16k; 32k 54.1, 8k 58.5); 32k 2.39 -> 2.90 (16k)
-#   float32: 131k 9.0-9.4 -> 7.7-7.9 (32k; 16k 7.9-8.0, 8k 8.9-9.0)
-# Under 100k particles the step's arrays stay in the 32 MiB L3 and a chunk only adds the second
-# evaluation of the stencil (a step of one chunk: 18% slower at 131k float64).
+# (2026-11-28, two runs each, the G2P pass written as CHUNK_OUTPUT says):
+#   float64: 32k 2.52-2.57 -> 2.85-2.93 (chunks of 16k), 65k 6.51-6.89 -> 5.56-5.74 (16k; 32k 6.10-6.28),
+#            131k 14.9-15.4 -> 11.5-11.6 (16k; 8k 13.0-13.6, 32k 12.4), 524k 74.6-76.6 -> 48.9-50.0 (16k,
+#            stacked outputs; 8k 58.5, 32k 54.1)
+#   float32: 65k 3.50-3.60 -> 4.20-4.26 (32k), 131k 9.0-9.4 -> 7.7-8.1 (32k; 16k 7.9-8.9, 64k 9.0)
+# Smaller steps keep their arrays in the 32 MiB L3, and a chunk only adds the second evaluation of the
+# stencil (a step of one chunk: 18% slower at 131k float64).
 CHUNK_TABLE = (
-    (("cpu", 8, 100_000), (16384, "CPU, float64, from 100k particles: the step over chunks of 16k particles, whose "
-                                  "arrays stay in the cache (mpm88, 2 cores: 131k 1.2x, 524k 1.5x the whole step)")),
+    (("cpu", 8, 60_000), (16384, "CPU, float64, from 60k particles: the step over chunks of 16k particles, whose "
+                                 "arrays stay in the cache (mpm88, 2 cores: 65k 1.2x, 131k 1.3x, 524k 1.5x the whole "
+                                 "step; 32k 0.88x)")),
     (("cpu", 4, 100_000), (32768, "CPU, float32, from 100k particles: the step over chunks of 32k particles, whose "
-                                  "arrays stay in the cache (mpm88, 2 cores: 131k 1.2x the whole step)")),
-    (("cpu", None, 0), (0, "CPU under 100k particles: the whole step at once (its arrays stay in the L3 cache; a "
-                           "chunk adds a second evaluation of the stencil)")),
+                                  "arrays stay in the cache (mpm88, 2 cores: 131k 1.1-1.2x the whole step; 65k "
+                                  "0.84x)")),
+    (("cpu", None, 0), (0, "CPU, smaller steps: the whole step at once (its arrays stay in the L3 cache; a chunk "
+                           "adds a second evaluation of the stencil)")),
     (("gpu", None, 0), (0, "GPU: the whole step at once (not measured in chunks)")),
 )
+
+
+# How a step in chunks writes its G2P pass's new particle rows (jaxmpm.model.chunks), per (policy, bytes per
+# float): "in_place" (a fori_loop carrying the particle arrays, each chunk's rows written over its old
+# ones) or "stacked" (a scan whose stacked outputs are the new arrays: XLA zeroes and copies them).  mpm88
+# at 131k particles, 2 cores, ms per step, alternated with a git worktree (2026-11-28): float64 chunks of
+# 16k, stacked 12.06 and 12.65, in place 11.52 and 11.77; float32 chunks of 32k, stacked 7.80 and 7.95,
+# in place 8.57 and 8.62.
+CHUNK_OUTPUT = {("cpu", 8): "in_place", ("cpu", 4): "stacked"}
+
+
+def chunk_output(dtype) -> str:
+    """"in_place" or "stacked" (:data:`CHUNK_OUTPUT`) for a step in chunks traced now in ``dtype``."""
+    return CHUNK_OUTPUT.get((active(), jnp.dtype(dtype).itemsize), "stacked")
 
 
 def choose_chunking(policy: str, num_particles: int, dtype) -> tuple:

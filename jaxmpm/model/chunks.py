@@ -21,7 +21,7 @@ Derivatives differentiate the whole step (:func:`step_in_chunks`): its gradient 
 
 Which steps: USL, a scheme whose update is local (``Scheme.local_update``: FLIP, PIC, their
 blends, APIC, TPIC, RPIC) and terms that are (``Term.local``: the stress divergence without XPIC
-smoothing, the body force, damping), no mirror planes, the XLA kernel, one device, and a particle
+smoothing, the body force, damping, colliders), no mirror planes, the XLA kernel, one device, and a particle
 count with a divisor near the chunk size.  :func:`chunk_obstacle` names what keeps a model whole;
 the chunk size comes from the backend's table (:data:`jaxmpm.transfer.backend.CHUNK_TABLE`) or
 ``Simulation(chunk_particles=...)``, and :func:`jaxmpm.backend_info` reports both.

@@ -323,6 +323,7 @@ class Collider(Term):
             different names.
     """
 
+    local = True  # a condition on nodes, each particle's share gathered at its own nodes (jaxmpm.model.chunks)
     shape: LevelSet
     friction: jnp.ndarray
     velocity: jnp.ndarray | Callable | None

@@ -56,9 +56,10 @@ class Term(eqx.Module):
     """Base class of physics terms (see the module docstring); every hook defaults to nothing."""
 
     # the term's particle hooks (P2G quantities, damping, particle actions) read each particle and the
-    # grid at its own nodes alone, its particle sums add over the particles, and it has no nodal force
-    # of its own quadrature, no exchange and no collider: the step may then run over the particles in
-    # chunks (jaxmpm.model.chunks).  False (the default) keeps a term's step whole.
+    # grid at its own nodes alone, its particle sums add over the particles, its grid hooks read the
+    # assembled nodal fields only (no transfer over the particles there), and it has no nodal force of
+    # its own quadrature and no exchange: the step may then run over the particles in chunks
+    # (jaxmpm.model.chunks).  False (the default) keeps a term's step whole.
     local = False
 
     # ------------------------------------------------------------------ declarations

@@ -18,6 +18,7 @@ from .core.measures import angular_momentum, kinetic_energy, linear_momentum, st
 from .transfer.shapes import (AxisymmetricStencil, CubicBSpline, Linear, QuadraticBSpline, ShapeFunction, Stencil,
                               StencilBase, TensorStencil, UGIMP)
 from .transfer.contractions import Affine, Contraction, Divergence, Gradient, Hoop, PerSlot, Weighted
+from .transfer.backend import compiler_options
 from .transfer.kernels import Kernel, register_kernel
 from .transfer.operators import Transfer, gather, scatter
 from .transfer.series import exchange_series, mass_matrix_series, series
@@ -72,7 +73,7 @@ __all__ = [
     "DruckerPrager",
     "CamClay",
     "NewtonianFluid",
-    "backend_info", "gradient_schedule",
+    "backend_info", "gradient_schedule", "compiler_options",
 ]
 
 # help(jm.Grid.__init__) and call tips show the Args of the class docstring (an equinox module's

@@ -26,6 +26,7 @@ import optax
 
 from ..core.errors import check
 from ..core.params import default_bounds
+from ..transfer.backend import compiler_options
 from .progress import AheadOfTime, bar, shown
 
 
@@ -101,7 +102,8 @@ def _make_update(loss_ref, optimizer, bounds) -> _Update:
             grad_norm = jnp.sqrt(sum(jnp.sum(jnp.square(g)) for g in jax.tree_util.tree_leaves(grads)))  # shown
         return optax.apply_updates(r, masked(updates, free)), s, value, grad_norm
 
-    return _Update(jax.jit(update), {})
+    # the backend's XLA options for gradients of steps (jm.compiler_options: 1.3x at 131k particles)
+    return _Update(jax.jit(update, compiler_options=compiler_options()), {})
 
 
 def _update_for(loss, optimizer, bounds) -> _Update:

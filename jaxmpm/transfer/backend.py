@@ -48,7 +48,7 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
-from functools import partial, wraps
+from functools import cache, partial, wraps
 
 import jax
 import jax.numpy as jnp
@@ -487,6 +487,41 @@ def choose_sorting(policy: str, dim: int, num_particles: int, kernel: str) -> tu
         if p in (None, policy) and d in (None, dim) and k in (None, kernel) and num_particles >= fewest:
             return row
     return 0, "no row of SORT_TABLE matches: not sorted"
+
+
+# XLA compile options for programs built from the library's steps, per policy (``jm.compiler_options``;
+# jm.calibrate compiles with them).  CPU: no XNNPACK/YNN library fusions.  XLA:CPU (jax 0.10.2) hands
+# reductions to a library ("ynn_fusion"), and a gradient's transposed slot broadcasts are (K, N)
+# multiply-reduce over the K stencil slots: at 131k particles each ran at about 2.7 GB/s, 7-8 ms, and
+# 14 of them took 70 of a gradient step's 128 ms (mpm88 float64, jax.profiler).  Without them, XLA's
+# own loops: the gradient of a 20-step rollout at 131k float64 128.8 -> 98.5 ms a step (two threads); at
+# 8k, on the disks and the bar, and every forward step from 8k to 131k, within noise (gradient / forward
+# one pinned core: mpm88 FLIP 6.09 -> 6.05, APIC 6.91 -> 6.81, disks 5.32 -> 5.30, bar 3.29 -> 3.26).
+# An option a jaxlib does not know is left out (``compiler_options`` checks each once).
+XLA_OPTIONS = {"cpu": {"xla_cpu_experimental_ynn_fusion_type": ""}, "gpu": {}}
+
+
+@cache
+def _known_option(name: str, value: str) -> bool:
+    """Whether this jaxlib's XLA compiles a program with ``name=value`` (an unknown option is an error)."""
+    try:
+        jax.jit(lambda a: a + 1, compiler_options={name: value}).lower(jnp.zeros(1)).compile()
+    except Exception:  # noqa: BLE001 - XLA says INVALID_ARGUMENT in an error type that moves between versions
+        return False
+    return True
+
+
+def compiler_options(policy: str = "auto") -> dict:
+    """The XLA compile options (:data:`XLA_OPTIONS`) for programs built from the library's steps under
+    ``policy``, those this jaxlib knows: ``jax.jit(loss, compiler_options=jm.compiler_options())``.
+
+    Args:
+        policy: "auto" (default: the default JAX backend's), "cpu" or "gpu".
+
+    Returns:
+        {option name: value}, possibly empty.
+    """
+    return {name: value for name, value in XLA_OPTIONS[resolve(policy)].items() if _known_option(name, value)}
 
 
 # (policy, bytes per float or None for any, fewest particles) -> (particles per chunk, 0 for the whole

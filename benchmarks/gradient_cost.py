@@ -48,7 +48,7 @@ FIELDS = ["scene", "scheme", "particles", "steps", "adjoint", "checkpoint", "for
 
 def compiled(fn, *args):
     start = time.process_time()
-    out = jax.jit(fn).lower(*args).compile()
+    out = jax.jit(fn, compiler_options=jm.compiler_options()).lower(*args).compile()  # as jm.calibrate compiles
     return out, time.process_time() - start
 
 

@@ -15,7 +15,8 @@ Each configuration runs in a fresh subprocess, which reports
 * ``rss_compile_MiB`` / ``rss_peak_MiB``: the process's peak resident memory (``ru_maxrss``) after compiling
   and after running, minus that of a baseline process that imports jax and jaxmpm and builds the scene
   but compiles nothing (so they include XLA's compile-time memory and the arrays of the run);
-* ``compile_s``: lowering + compiling the gradient (``jax.jit(grad).lower(x).compile()``);
+* ``compile_s``: lowering + compiling the gradient (``jax.jit(grad, compiler_options=jm.compiler_options())``,
+  as ``jm.calibrate`` compiles; ``.lower(x).compile()``);
 * ``grad_s`` / ``forward_s``: best of ``--repeat`` calls (3) after a warm-up call (none with
   ``--repeat 1``, for runs of minutes); ``ratio`` = grad_s / forward_s.
 
@@ -90,9 +91,10 @@ def child(scene: str, scheme: str, size: int, steps: int, checkpoint, repeat: in
 
     x = jnp.asarray(value)
     start = time.perf_counter()
-    grad = jax.jit(jax.grad(loss)).lower(x).compile()
+    options = jm.compiler_options()  # what jm.calibrate compiles with (neutral at small sizes)
+    grad = jax.jit(jax.grad(loss), compiler_options=options).lower(x).compile()
     compile_s = time.perf_counter() - start
-    forward = jax.jit(loss).lower(x).compile()
+    forward = jax.jit(loss, compiler_options=options).lower(x).compile()
     rss_compile = peak_rss_mib()
 
     def best(fn):

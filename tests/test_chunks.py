@@ -66,6 +66,22 @@ def test_a_step_in_chunks_equals_the_whole_step(name, options, output, monkeypat
     _assert_same(whole, fresh(chunked, state, dt))
 
 
+def test_a_3d_step_in_chunks_equals_the_whole_step():
+    """mpm88's physics in 3D (benchmarks/gpu.py's mpm3d: 27 stencil slots a particle, APIC, walls on six
+    faces), 256 particles on an 8^3 grid in 4 chunks of 64, 20 steps: every leaf to 1e-12."""
+    x = np.random.default_rng(0).random((256, 3)) * 0.4 + 0.2
+    particles = jm.Particles(x=x, v=np.tile([0.0, -1.0, 0.0], (256, 1)), volume=np.full(256, (0.5 / 8) ** 3), ppc=2)
+    sim = jm.Simulation(grid=jm.Grid((0.0,) * 3, (1.0,) * 3, (8,) * 3), shape=jm.QuadraticBSpline(),
+                        material=jm.VolumetricFluid(E=400.0, density=1.0), scheme=jm.APIC(), damping=False,
+                        boundary=tuple(jm.Wall(face, layers=2) for face in ("x-", "x+", "y-", "y+", "z-", "z+")),
+                        gravity=(0.0, -9.8, 0.0))
+    state = sim.init(particles)
+    assert jm.backend_info(sim.with_chunks(64), state)["chunk_particles"] == 64
+    whole = _advance(sim.with_chunks(0), state, 2e-4)
+    assert float(jnp.max(jnp.abs(whole.x - state.x))) > 1e-4  # the particles moved
+    _assert_same(whole, _advance(sim.with_chunks(64), state, 2e-4))
+
+
 def test_a_collider_scene_steps_in_chunks():
     """The incline (a rigid level-set solid, jm.Collider: a condition on the nodes, each particle's share
     of its force gathered at its own nodes) in 4 chunks of 32 particles equals the whole step over 20
@@ -126,13 +142,17 @@ def test_chunk_count_and_the_backend_table():
     assert num_chunks(100, 30) == 4  # 25 particles a chunk
     assert num_chunks(150_000, 16384) == 10  # ceil is 10: 15000 a chunk
     assert num_chunks(97, 10) == 0  # prime
-    assert choose_chunking("cpu", 131072, jnp.float64)[0] == 16384
-    assert choose_chunking("cpu", 131072, jnp.float32)[0] == 32768
-    assert choose_chunking("cpu", 65536, jnp.float64)[0] == 16384
-    assert choose_chunking("cpu", 32768, jnp.float64)[0] == 0
-    assert choose_chunking("cpu", 65536, jnp.float32)[0] == 0
-    assert choose_chunking("gpu", 2_000_000, jnp.float32)[0] == 0
-    assert all(len(key) == 3 and len(row) == 2 for key, row in CHUNK_TABLE)
+    assert choose_chunking("cpu", 2, 131072, jnp.float64)[0] == 16384
+    assert choose_chunking("cpu", 2, 131072, jnp.float32)[0] == 32768
+    assert choose_chunking("cpu", 2, 65536, jnp.float64)[0] == 16384
+    assert choose_chunking("cpu", 2, 32768, jnp.float64)[0] == 0
+    assert choose_chunking("cpu", 2, 65536, jnp.float32)[0] == 0
+    assert choose_chunking("cpu", 3, 131072, jnp.float64)[0] == 4096  # 3D: 27 slots a particle, smaller chunks
+    assert choose_chunking("cpu", 3, 32768, jnp.float32)[0] == 8192
+    assert choose_chunking("cpu", 3, 8192, jnp.float64)[0] == 0
+    assert choose_chunking("cpu", 1, 10**6, jnp.float64)[0] == 0  # 1D: not measured
+    assert choose_chunking("gpu", 2, 2_000_000, jnp.float32)[0] == 0
+    assert all(len(key) == 4 and len(row) == 2 for key, row in CHUNK_TABLE)
     sim, state, _ = _scene()
     assert jm.backend_info(sim, state)["chunk_particles"] == 0  # 512 particles: whole
     info = jm.backend_info(sim.with_chunks(97), jm.scene("mpm88", n_particles=509, n_grid=16).state)

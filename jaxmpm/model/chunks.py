@@ -11,7 +11,7 @@ at a time (003 §2.1):
    solution (000 eq. 3.28, 002 eq. 4, the strain and material update).
 
 Both passes are loops over chunks of equal size, so a chunk's stencil and per-slot arrays (about
-1 kB a particle in float64 2D) stay in the cache where a whole step's leave it (benchmarks/README.md,
+1 kB a particle in float64 2D, 3 kB in 3D) stay in the cache where a whole step's leave it (benchmarks/README.md,
 "The step in chunks").  The G2P pass writes each chunk's new rows over its old ones or stacks them
 as a scan's outputs, as the backend says (:data:`jaxmpm.transfer.backend.CHUNK_OUTPUT`).  The price
 is a second evaluation of the stencil.

@@ -360,7 +360,7 @@ class Simulation(eqx.Module):
         if self.chunk_particles != "auto":
             per, why = self.chunk_particles, f"chunk_particles={self.chunk_particles} given"
         else:
-            per, why = choose_chunking(self.backend, n, dtype)
+            per, why = choose_chunking(self.backend, self.grid.dim, n, dtype)
         if not per or per >= n:
             return 0, why if not per else f"{why}; {n} particles fit one chunk: the whole step"
         obstacle = chunk_obstacle(self, state, per, self._kernel_row(n, dtype)[0] or "xla")

@@ -524,27 +524,39 @@ def compiler_options(policy: str = "auto") -> dict:
     return {name: value for name, value in XLA_OPTIONS[resolve(policy)].items() if _known_option(name, value)}
 
 
-# (policy, bytes per float or None for any, fewest particles) -> (particles per chunk, 0 for the whole
-# step at once; why).  The first row that matches wins (jaxmpm.model.chunks: one USL step over the
-# particles in chunks, each chunk's stencil and per-slot arrays small enough to stay in the cache).
-# CPU, 2 cores (AMD EPYC, 2 MiB L2 per core, 32 MiB L3), mpm88 (APIC), ms per step, whole step -> chunks
+# (policy, dimension or None for any, bytes per float or None for any, fewest particles) -> (particles per
+# chunk, 0 for the whole step at once; why).  The first row that matches wins (jaxmpm.model.chunks: one USL
+# step over the particles in chunks, each chunk's stencil and per-slot arrays small enough to stay in the
+# cache).  CPU, 2 cores (AMD EPYC, 2 MiB L2 per core, 32 MiB L3), ms per step, whole step -> chunks
 # (2026-11-28, two runs each, the G2P pass written as CHUNK_OUTPUT says):
+# * 2D, mpm88 (APIC, quadratic, 128^2 grid):
 #   float64: 32k 2.52-2.57 -> 2.85-2.93 (chunks of 16k), 65k 6.51-6.89 -> 5.56-5.74 (16k; 32k 6.10-6.28),
 #            131k 14.9-15.4 -> 11.5-11.6 (16k; 8k 13.0-13.6, 32k 12.4), 524k 74.6-76.6 -> 48.9-50.0 (16k,
 #            stacked outputs; 8k 58.5, 32k 54.1)
 #   float32: 65k 3.50-3.60 -> 4.20-4.26 (32k), 131k 9.0-9.4 -> 7.7-8.1 (32k; 16k 7.9-8.9, 64k 9.0)
+# * 3D, benchmarks/gpu.py's mpm3d (27 slots a particle: about 3x the bytes, so smaller chunks), 10 steps:
+#   float64: 8k (20^3) 5.25-6.26 -> 6.27-6.53 (4k), 16k (24^3) 10.5-10.8 -> 8.1-8.2 (4k), 32k (32^3)
+#            22.8-23.1 -> 16.3-16.7 (4k; 8k 18.3-18.5), 131k (64^3) 106-108 -> 84-88 (4k; 8k 90, 16k 94-98)
+#   float32: 8k 3.05-3.11 -> 3.63-3.68 (4k), 32k 17.4-17.9 -> 13.9-14.2 (8k; 4k 15.6-15.7), 65k (48^3)
+#            38.4-38.9 -> 28.4-29.8 (8k), 131k 77.5-84 -> 59.5-63.4 (8k; 16k 64-68, 32k 69-70)
 # Smaller steps keep their arrays in the 32 MiB L3, and a chunk only adds the second evaluation of the
-# stencil (a step of one chunk: 18% slower at 131k float64).
+# stencil (a step of one chunk: 18% slower at 131k float64 in 2D).  1D is not measured: whole.
 CHUNK_TABLE = (
-    (("cpu", 8, 60_000), (16384, "CPU, float64, from 60k particles: the step over chunks of 16k particles, whose "
-                                 "arrays stay in the cache (mpm88, 2 cores: 65k 1.2x, 131k 1.3x, 524k 1.5x the whole "
-                                 "step; 32k 0.88x)")),
-    (("cpu", 4, 100_000), (32768, "CPU, float32, from 100k particles: the step over chunks of 32k particles, whose "
-                                  "arrays stay in the cache (mpm88, 2 cores: 131k 1.1-1.2x the whole step; 65k "
-                                  "0.84x)")),
-    (("cpu", None, 0), (0, "CPU, smaller steps: the whole step at once (its arrays stay in the L3 cache; a chunk "
-                           "adds a second evaluation of the stencil)")),
-    (("gpu", None, 0), (0, "GPU: the whole step at once (not measured in chunks)")),
+    (("cpu", 3, 8, 16_000), (4096, "CPU, 3D float64, from 16k particles: the step over chunks of 4k particles, "
+                                   "whose arrays stay in the cache (mpm3d, 2 cores: 16k 1.3x, 32k 1.4x, 131k 1.2x "
+                                   "the whole step; 8k 0.84-1.0x)")),
+    (("cpu", 3, 4, 32_000), (8192, "CPU, 3D float32, from 32k particles: the step over chunks of 8k particles, "
+                                   "whose arrays stay in the cache (mpm3d, 2 cores: 32k 1.25x, 65k 1.3x, 131k 1.3x "
+                                   "the whole step; 8k 0.85x)")),
+    (("cpu", 2, 8, 60_000), (16384, "CPU, 2D float64, from 60k particles: the step over chunks of 16k particles, "
+                                    "whose arrays stay in the cache (mpm88, 2 cores: 65k 1.2x, 131k 1.3x, 524k 1.65x "
+                                    "the whole step; 32k 0.88x)")),
+    (("cpu", 2, 4, 100_000), (32768, "CPU, 2D float32, from 100k particles: the step over chunks of 32k particles, "
+                                     "whose arrays stay in the cache (mpm88, 2 cores: 131k 1.1-1.2x the whole step; "
+                                     "65k 0.84x)")),
+    (("cpu", None, None, 0), (0, "CPU, smaller steps and 1D: the whole step at once (its arrays stay in the L3 "
+                                 "cache; a chunk adds a second evaluation of the stencil)")),
+    (("gpu", None, None, 0), (0, "GPU: the whole step at once (not measured in chunks)")),
 )
 
 
@@ -562,13 +574,14 @@ def chunk_output(dtype) -> str:
     return CHUNK_OUTPUT.get((active(), jnp.dtype(dtype).itemsize), "stacked")
 
 
-def choose_chunking(policy: str, num_particles: int, dtype) -> tuple:
+def choose_chunking(policy: str, dim: int, num_particles: int, dtype) -> tuple:
     """(particles per chunk, 0 for the whole step at once; why): the first row of
-    :data:`CHUNK_TABLE` -- (policy, bytes per float, fewest particles) -> row -- that matches a
-    step of ``num_particles`` particles computing in ``dtype`` traced under ``policy``."""
+    :data:`CHUNK_TABLE` -- (policy, dimension, bytes per float, fewest particles) -> row -- that
+    matches a ``dim``-dimensional step of ``num_particles`` particles computing in ``dtype`` traced
+    under ``policy``."""
     policy, size = resolve(policy), jnp.dtype(dtype).itemsize
-    for (p, b, fewest), row in CHUNK_TABLE:
-        if p in (None, policy) and b in (None, size) and num_particles >= fewest:
+    for (p, d, b, fewest), row in CHUNK_TABLE:
+        if p in (None, policy) and d in (None, dim) and b in (None, size) and num_particles >= fewest:
             return row
     return 0, "no row of CHUNK_TABLE matches: the whole step at once"
 

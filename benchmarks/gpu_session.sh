@@ -41,8 +41,8 @@ log=$out/log.txt
   stage gradient 65 --parts gradient --no-taichi
   stage gradient_two_levels 65 --parts gradient --no-taichi --checkpoint true  # "auto" keeps every step's state
   stage ensemble 50 --parts ensemble --no-taichi
-  # the step over its particles in chunks (the CPU's default from 100k particles; CHUNK_TABLE's GPU row is
-  # unmeasured): time and program bytes per particle against the whole step's rows of the "auto" stage
+  # the step over its particles in chunks (the CPU's default in 2D from 60k-100k particles, in 3D from 16k-32k;
+  # CHUNK_TABLE's GPU row is unmeasured): time and program bytes per particle against the whole step's rows of the "auto" stage
   stage chunks 60 --parts mpm88 --sizes 524288 2097152 --chunk-particles 262144 --no-taichi
 } 2>&1 | tee "$log"
 # one table and one CSV for the stages that finished

@@ -354,8 +354,9 @@ class Simulation(eqx.Module):
         "auto": the backend table's choice; ``chunk_particles`` in the class docstring)."""
         return self._with_static(chunk_particles=_checked_chunk_particles(particles))
 
-    def _chunk_row(self, state: State) -> tuple:
-        """(particles per chunk, 0 for the whole step; why) for a step of ``state``."""
+    def _chunk_row(self, state: State, kernel: str | None = None) -> tuple:
+        """(particles per chunk, 0 for the whole step; why) for a step of ``state`` whose transfers run
+        on ``kernel`` ("xla", "pallas"; None: looked up, :meth:`_kernel_row`)."""
         n, dtype = state.x.shape[0], state.x.dtype
         if self.chunk_particles != "auto":
             per, why = self.chunk_particles, f"chunk_particles={self.chunk_particles} given"
@@ -363,10 +364,12 @@ class Simulation(eqx.Module):
             per, why = choose_chunking(self.backend, self.grid.dim, n, dtype)
         if not per or per >= n:
             return 0, why if not per else f"{why}; {n} particles fit one chunk: the whole step"
-        obstacle = chunk_obstacle(self, state, per, self._kernel_row(n, dtype)[0] or "xla")
+        kernel = kernel or self._kernel_row(n, dtype)[0] or "xla"
+        obstacle = chunk_obstacle(self, state, per, kernel)
         if obstacle is not None:
             return 0, f"the whole step: {obstacle} ({why})"
-        return per, f"{why}: {num_chunks(n, per)} chunks of {n // num_chunks(n, per)} particles"
+        count = num_chunks(n, per)
+        return per, f"{why}: {count} chunks of {n // count} particles"
 
     def with_conventions(self, conventions: str, constrained_force: str | None = None):
         """A copy of a model built in jaxmpm's conventions that follows another code's rules where
@@ -547,7 +550,7 @@ class Simulation(eqx.Module):
         float32 state) are cast to the state's dtype on entry."""
         name, options, _ = self._kernel_row(state.x.shape[0], state.x.dtype)
         with use_policy(self.backend), use_adjoint(self.adjoint), use_kernel(name, options):
-            per_chunk, _ = self._chunk_row(state)
+            per_chunk, _ = self._chunk_row(state, name or "xla")
             if per_chunk:  # backend tuning: the same step with a working set that fits the cache
                 return step_in_chunks(self.in_precision(state.x.dtype), state, dt, per_chunk)
             return _step(self.in_precision(state.x.dtype), state, dt)

@@ -34,6 +34,26 @@ def rows(a):
     return list(jnp.unstack(a, axis=0))
 
 
+def _kept(owner, key, compute):
+    """``compute()``, kept on ``owner`` (a frozen module) under ``key``: every use of a stencil's weight,
+    gradient or offset in one trace then reads one set of values, so reverse mode sums their cotangents
+    before transposing the products once (mpm88 used the weight 3 times, the gradient and the offset
+    twice each, per step).  A value is kept only if it belongs to the trace of ``owner``'s arrays: one
+    computed inside a nested trace (a stage boundary's branch, a derivative rule) is used there and not
+    kept, so no value escapes its trace."""
+    cache = owner.__dict__.get("_kept")
+    if cache is None:
+        cache = {}
+        object.__setattr__(owner, "_kept", cache)
+    if key in cache:
+        return cache[key]
+    value = compute()
+    home = getattr(jax.tree_util.tree_leaves(owner)[0], "_trace", None)
+    if all(getattr(leaf, "_trace", None) is home for leaf in jax.tree_util.tree_leaves(value)):
+        cache[key] = value
+    return value
+
+
 class StencilBase(eqx.Module):
     """Per-particle view of the grid, stored node-slot-major with the particle axis last
     ("planar": every per-(node, particle) quantity is a stack of length-N rows, so the arithmetic
@@ -168,22 +188,34 @@ class TensorStencil(StencilBase):
         d = self.dim
         return jnp.stack([jnp.stack([m2[a] if a == b else m1[a] * m1[b] for b in range(d)]) for a in range(d)])
 
+    def _once(self, key, compute):
+        """``compute()``, kept on this stencil for the trace its factors belong to (see :func:`_kept`)."""
+        return _kept(self, key, compute)
+
+    def factor_rows(self, name: str) -> list:
+        """[f_0, f_1, ...]: the per-axis (K1, N) factors of ``w``, ``dw`` or ``dx``, split once per stencil."""
+        return self._once(("rows", name), lambda: rows(getattr(self, name)))
+
     @property
     def weight(self):
-        return _tensor(rows(self.w), jnp.multiply)
+        return self._once("weight", lambda: _tensor(self.factor_rows("w"), jnp.multiply))
 
     @property
     def gradient(self):
-        d = self.dim
-        w, dw = rows(self.w), rows(self.dw)
-        return jnp.stack([_tensor([dw[b] if b == a else w[b] for b in range(d)], jnp.multiply) for a in range(d)])
+        def compute():
+            d = self.dim
+            w, dw = self.factor_rows("w"), self.factor_rows("dw")
+            return jnp.stack([_tensor([dw[b] if b == a else w[b] for b in range(d)], jnp.multiply) for a in range(d)])
+        return self._once("gradient", compute)
 
     @property
     def offset(self):
-        d = self.dim
-        dx = rows(self.dx)
-        zero = jnp.zeros_like(dx[0])
-        return jnp.stack([_tensor([dx[b] if b == a else zero for b in range(d)], jnp.add) for a in range(d)])
+        def compute():
+            d = self.dim
+            dx = self.factor_rows("dx")
+            zero = jnp.zeros_like(dx[0])
+            return jnp.stack([_tensor([dx[b] if b == a else zero for b in range(d)], jnp.add) for a in range(d)])
+        return self._once("offset", compute)
 
 
 class AxisymmetricStencil(TensorStencil):

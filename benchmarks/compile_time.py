@@ -43,11 +43,14 @@ run and the XLA compilations it triggers are counted (``jax.monitoring``).
     python benchmarks/compile_time.py --quick                # 20 steps, 1 repeat, no XPIC(8) bar
     python benchmarks/compile_time.py --scenes bar --programs rollout gradient --steps 10
     python benchmarks/compile_time.py --scenes bar --programs gradient --checkpoint False --adjoint autodiff
+    python benchmarks/compile_time.py --programs rollout gradient --fast-compile --no-warm --no-recompiles
 
 ``--checkpoint`` (default ``auto``, what ``sim.run`` picks: one level, ``"states"``, on the CPU for these
 scenes; the tables before 2026-11-28 used ``True``) and ``--adjoint`` set ``sim.run``'s checkpoint and the
 simulation's adjoint in the gradient and calibrate programs (columns ``checkpoint``, ``adjoint``); XLA_FLAGS and
-JAX_DISABLE_MOST_OPTIMIZATIONS in the environment reach the measuring processes.
+JAX_DISABLE_MOST_OPTIMIZATIONS in the environment reach the measuring processes.  ``--fast-compile`` compiles the
+gradient and calibrate programs with ``jm.compiler_options(fast_compile=True)`` (column ``options``), the rollout
+and ensemble as ``sim.run`` and ``jm.ensemble`` do.
 
 On a shared machine compare the CPU-second columns and ratios from one run; each row has the load
 average.
@@ -86,8 +89,8 @@ CHECKPOINTS = {"True": True, "False": False, "low_memory": "low_memory", "states
 PROGRAMS = ("rollout", "gradient", "ensemble", "calibrate")
 ENSEMBLE_MEMBERS = 4
 FRAMES = 10  # saved frames per run (plus the initial one)
-FIELDS = ["scene", "program", "particles", "steps", "checkpoint", "adjoint", "trace_s", "lower_s", "compile_s",
-          "first_call_s", "trace_cpu_s", "lower_cpu_s", "compile_cpu_s", "first_call_cpu_s", "jaxpr_eqns",
+FIELDS = ["scene", "program", "particles", "steps", "checkpoint", "adjoint", "options", "trace_s", "lower_s",
+          "compile_s", "first_call_s", "trace_cpu_s", "lower_cpu_s", "compile_cpu_s", "first_call_cpu_s", "jaxpr_eqns",
           "stablehlo_ops", "hlo_instructions", "hlo_op_counts", "flops", "bytes_accessed", "flops_vs_rollout", "run_s",
           "warm_trace_s", "warm_lower_s", "warm_compile_s", "warm_s", "warm_hits", "load_1min", "jax", "cpus"]
 RECOMPILE_FIELDS = ["change", "compiles", "compile_s", "programs", "load_1min", "jax", "cpus"]
@@ -193,16 +196,20 @@ def _op_counts(text: str) -> str:
 
 
 def measure(name: str, program: str, steps: int, repeat: int, timed_run: bool, checkpoint="auto",
-            adjoint=None) -> dict:
-    """Stage times, sizes and costs of one program, compiled in this process."""
+            adjoint=None, fast_compile: bool = False) -> dict:
+    """Stage times, sizes and costs of one program, compiled in this process (``fast_compile``: a gradient
+    or calibrate program with ``jm.compiler_options(fast_compile=True)``)."""
     import jax
+
+    import jaxmpm as jm
 
     hits = []
     jax.monitoring.register_event_listener(
         lambda event, **kw: hits.append(event) if event == "/jax/compilation_cache/cache_hits" else None)
     fn, args, steps, particles = _program(name, program, steps, checkpoint, adjoint)
     jax.block_until_ready(args)
-    jitted = jax.jit(fn)
+    fast = fast_compile and program in ("gradient", "calibrate")
+    jitted = jax.jit(fn, compiler_options=jm.compiler_options(fast_compile=True)) if fast else jax.jit(fn)
     hits.clear()
     t0, c0 = time.perf_counter(), time.process_time()
     traced = jitted.trace(*args)
@@ -215,7 +222,7 @@ def measure(name: str, program: str, steps: int, repeat: int, timed_run: bool, c
     text = compiled.as_text()
     cost = (cost[0] if isinstance(cost, (list, tuple)) else cost) or {}
     row = dict(scene=name, program=program, particles=particles, steps=steps, checkpoint=str(checkpoint),
-               adjoint=adjoint or "default",
+               adjoint=adjoint or "default", options="fast_compile" if fast else "default",
                trace_s=t1 - t0, lower_s=t2 - t1, compile_s=t3 - t2, trace_cpu_s=c1 - c0, lower_cpu_s=c2 - c1,
                compile_cpu_s=c3 - c2, first_call_s=t3 - t0, first_call_cpu_s=c3 - c0,
                jaxpr_eqns=_count_eqns(traced.jaxpr.jaxpr), stablehlo_ops=_count_instructions(lowered.as_text()),
@@ -241,7 +248,7 @@ def worker(args) -> None:
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     row = measure(args.worker[0], args.worker[1], args.steps, args.repeat, not args.warm,
-                  CHECKPOINTS[args.checkpoint], args.adjoint)
+                  CHECKPOINTS[args.checkpoint], args.adjoint, args.fast_compile)
     print("RESULT " + json.dumps(row), flush=True)
 
 
@@ -359,10 +366,10 @@ def _environment():
     return dict(jax=jax.__version__, cpus=os.cpu_count())
 
 
-def _worker_run(scene, program, steps, repeat, cache, warm, checkpoint, adjoint) -> dict:
+def _worker_run(scene, program, steps, repeat, cache, warm, checkpoint, adjoint, fast_compile=False) -> dict:
     cmd = [sys.executable, __file__, "--worker", scene, program, "--steps", str(steps), "--repeat", str(repeat),
            "--cache", cache, "--checkpoint", checkpoint] + (["--adjoint", adjoint] if adjoint else []) + \
-        (["--warm"] if warm else [])
+        (["--warm"] if warm else []) + (["--fast-compile"] if fast_compile else [])
     out = subprocess.run(cmd, capture_output=True, text=True)
     results = [line[7:] for line in out.stdout.splitlines() if line.startswith("RESULT ")]
     if out.returncode or not results:
@@ -390,6 +397,8 @@ def main(argv=None) -> int:
     parser.add_argument("--adjoint", choices=["structured", "autodiff"], default=None,
                         help="Simulation.with_adjoint in the gradient and calibrate programs (default: the scene's)")
     parser.add_argument("--no-warm", action="store_true", help="skip the second, warm-cache process")
+    parser.add_argument("--fast-compile", action="store_true",
+                        help="compile the gradient and calibrate programs with jm.compiler_options(fast_compile=True)")
     parser.add_argument("--no-recompiles", action="store_true", help="skip the recompilation count")
     parser.add_argument("--csv", default=str(DEFAULT_CSV))
     parser.add_argument("--worker", nargs=2, metavar=("SCENE", "PROGRAM"), help=argparse.SUPPRESS)
@@ -416,10 +425,12 @@ def main(argv=None) -> int:
         for program in args.programs:
             with tempfile.TemporaryDirectory(prefix="jaxmpm-compile-time-") as cache:
                 load = os.getloadavg()[0]
-                r = _worker_run(scene, program, steps, repeat, cache, False, args.checkpoint, args.adjoint)
+                r = _worker_run(scene, program, steps, repeat, cache, False, args.checkpoint, args.adjoint,
+                                args.fast_compile)
                 r.pop("hits")
                 if not args.no_warm:
-                    w = _worker_run(scene, program, steps, repeat, cache, True, args.checkpoint, args.adjoint)
+                    w = _worker_run(scene, program, steps, repeat, cache, True, args.checkpoint, args.adjoint,
+                                    args.fast_compile)
                     r.update(warm_trace_s=w["trace_s"], warm_lower_s=w["lower_s"], warm_compile_s=w["compile_s"],
                              warm_s=w["first_call_s"], warm_hits=w["hits"])
                 else:

@@ -39,3 +39,41 @@ def test_unknown_options_are_left_out(monkeypatch):
     monkeypatch.setattr(backend, "XLA_OPTIONS", {"cpu": {"xla_cpu_no_such_option": "", **backend.XLA_OPTIONS["cpu"]},
                                                  "gpu": {}})
     assert "xla_cpu_no_such_option" not in jm.compiler_options("cpu")
+
+
+def test_fast_compile_keeps_the_gradient():
+    """``fast_compile=True`` (XLA's older CPU emitters, XLA_FAST_COMPILE): the mpm88 gradient above equal
+    to the default program's to 1e-12 (relative); a GPU gets nothing more; a bad value is an InputError."""
+    setup = jm.scene("mpm88", n_particles=512, n_grid=16)
+
+    def loss(E):
+        final = jm.set_params(setup.sim, E=E).rollout(setup.state, setup.dt, 1, save_every=10)[0]
+        return jnp.sum(final.mass[:, None] * final.v ** 2)
+
+    fast = jm.compiler_options("cpu", fast_compile=True)
+    assert fast == {**jm.compiler_options("cpu"), "xla_cpu_use_fusion_emitters": False}
+    assert jm.compiler_options("gpu", fast_compile=True) == {}
+    E = jnp.asarray(400.0)
+    plain = jax.jit(jax.grad(loss), compiler_options=jm.compiler_options("cpu"))
+    quick = jax.jit(jax.grad(loss), compiler_options=fast)
+    np.testing.assert_allclose(float(quick(E)), float(plain(E)), rtol=1e-12)
+    with pytest.raises(jm.InputError, match="fast_compile = 'yes'; pass True or False"):
+        jm.compiler_options(fast_compile="yes")
+
+
+def test_calibrate_fast_compile():
+    """``jm.calibrate(..., fast_compile=True)``: the same iterates as the default program's (to 1e-12: another
+    code generator may round differently), its own compiled update, and a bad value is an InputError."""
+
+    def loss(params):
+        return jnp.log(params["scale"] / 2.0) ** 2 + 0.5 * (params["shift"] + 1.0) ** 2
+
+    init, bounds = {"scale": 0.5, "shift": 0.3}, {"scale": "positive", "shift": None}
+    default = jm.calibrate(loss, init, bounds=bounds, steps=5)
+    fast = jm.calibrate(loss, init, bounds=bounds, steps=5, fast_compile=True)
+    assert fast.compile_time > 0  # not the default's program, reused
+    np.testing.assert_allclose(fast.losses, default.losses, rtol=1e-12)
+    for k in init:
+        np.testing.assert_allclose(fast.params[k], default.params[k], rtol=1e-12)
+    with pytest.raises(jm.InputError, match="calibrate: fast_compile = 1; pass True or False"):
+        jm.calibrate(loss, init, bounds=bounds, steps=5, fast_compile=1)

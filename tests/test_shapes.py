@@ -194,3 +194,34 @@ def test_ugimp_is_domain_average_of_tent(ppc, seed):
         )
         np.testing.assert_allclose(np.asarray(st_.weight), expected_w, rtol=0, atol=1e-14)
         np.testing.assert_allclose(np.asarray(st_.gradient), expected_g, rtol=0, atol=1e-13 / h.min())
+
+
+def test_a_stencil_forms_its_products_once_per_trace():
+    """``TensorStencil.weight``, ``gradient`` and ``offset`` are formed once per trace and read again
+    (mpm88 used the weight three times a step, and reverse mode summed one cotangent per use); a value
+    formed inside a nested trace (here a ``jax.jit`` that closes over the stencil) is not kept, so the
+    outer trace's later use forms its own and no tracer escapes; the values equal the plain products."""
+    import jax
+
+    grid = jm.Grid((0.0, 0.0), (4.0, 4.0), (4, 4))
+    x = jnp.asarray(np.random.default_rng(0).uniform(1.2, 2.8, (16, 2)))
+
+    def apart(x):  # each product from a stencil of its own: nothing shared
+        return tuple(getattr(jm.QuadraticBSpline().stencil(grid, x), name) for name in ("weight", "gradient", "offset"))
+
+
+    def outer(x):
+        stencil = jm.QuadraticBSpline().stencil(grid, x)
+        inner = jax.jit(lambda: stencil.weight * 2.0)()  # formed in the nested trace: not kept
+        assert stencil.weight is stencil.weight and stencil.gradient is stencil.gradient
+        return stencil.weight, stencil.gradient, stencil.offset, inner
+
+    jaxpr = jax.make_jaxpr(outer)(x)
+    splits = sum(1 for eqn in jaxpr.jaxpr.eqns if eqn.primitive.name == "unstack")
+    assert splits == 3  # one per factor array (w, dw, dx), however many products use it
+    weight, gradient, offset, inner = jax.jit(outer)(x)
+    plain = jax.jit(apart)(x)
+    np.testing.assert_array_equal(weight, plain[0])
+    np.testing.assert_array_equal(gradient, plain[1])
+    np.testing.assert_array_equal(offset, plain[2])
+    np.testing.assert_array_equal(inner, 2.0 * plain[0])

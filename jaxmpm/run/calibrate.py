@@ -77,11 +77,12 @@ class _Update:
     programs: dict
 
 
-def _make_update(loss_ref, optimizer, bounds) -> _Update:
+def _make_update(loss_ref, optimizer, bounds, fast_compile: bool = False) -> _Update:
     """The update ``(raw, optimizer state, free) -> (raw, state, loss, |gradient|)`` of the loss
     ``loss_ref()`` (a weak reference: the cache does not keep the loss, nor what it holds, alive)
     over the raw parameters with ``bounds`` (``((name, bound), ...)``); ``free`` ``{name: bool}``
-    masks the gradient and the step, so the held parameters keep their values exactly."""
+    masks the gradient and the step, so the held parameters keep their values exactly; ``fast_compile``:
+    compiled with :func:`jaxmpm.compiler_options`'s faster-compiling options."""
     transforms = {k: _transform(b) for k, b in bounds}
 
     def raw_loss(rr):
@@ -103,22 +104,22 @@ def _make_update(loss_ref, optimizer, bounds) -> _Update:
         return optax.apply_updates(r, masked(updates, free)), s, value, grad_norm
 
     # the backend's XLA options for gradients of steps (jm.compiler_options: 1.3x at 131k particles)
-    return _Update(jax.jit(update, compiler_options=compiler_options()), {})
+    return _Update(jax.jit(update, compiler_options=compiler_options(fast_compile=fast_compile)), {})
 
 
-def _update_for(loss, optimizer, bounds) -> _Update:
-    """The cached update of (``loss``, ``optimizer``, ``bounds``), made on the first call; a loss
-    that cannot be weakly referenced or hashed (or an unhashable optimizer) gets one of its own."""
-    key = (optimizer, bounds)
+def _update_for(loss, optimizer, bounds, fast_compile: bool = False) -> _Update:
+    """The cached update of (``loss``, ``optimizer``, ``bounds``, ``fast_compile``), made on the first call; a
+    loss that cannot be weakly referenced or hashed (or an unhashable optimizer) gets one of its own."""
+    key = (optimizer, bounds, fast_compile)
     try:
         kept = _UPDATES.get(loss)
         if kept is None:
             kept = _UPDATES[loss] = collections.OrderedDict()
         entry = kept.get(key)
     except TypeError:
-        return _make_update(lambda: loss, optimizer, bounds)
+        return _make_update(lambda: loss, optimizer, bounds, fast_compile)
     if entry is None:
-        entry = kept[key] = _make_update(weakref.ref(loss), optimizer, bounds)
+        entry = kept[key] = _make_update(weakref.ref(loss), optimizer, bounds, fast_compile)
         while len(kept) > _KEPT_PER_LOSS:
             kept.popitem(last=False)
     else:
@@ -171,6 +172,7 @@ def calibrate(
     callback: Callable | None = None,
     progress: bool | None = None,
     free: str | Iterable[str] | None = None,
+    fast_compile: bool = False,
 ) -> CalibrationResult:
     """Minimise ``loss(params)`` from ``init`` with ``optimizer`` (default ``optax.adam(0.05)``
     on the raw parameters; ``optax.lbfgs()`` converges in far fewer iterations on smooth,
@@ -214,6 +216,9 @@ def calibrate(
             Jupyter kernel runs it), so tests and CI stay quiet.
         free: the names of ``init`` to fit, a name or several; the others keep their initial
             values (their gradient and step are masked out); None (the default): all of them.
+        fast_compile: compile the update with ``jm.compiler_options(fast_compile=True)``: on the CPU
+            0.55-0.65x the compile time, each iteration 0.9-1.4x as long (benchmarks/README.md, "Compile
+            time"); for a calibration of a few iterations.  Default False.
 
     Returns:
         A :class:`CalibrationResult`.
@@ -247,7 +252,8 @@ def calibrate(
     opt_state = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype=a.dtype) if hasattr(a, "dtype") else a, opt_state)
 
     mask = {k: jnp.asarray(names is None or k in names) for k in init}  # the parameters fitted
-    cached = _update_for(loss, optimizer, tuple(sorted(bounds.items())))
+    check(isinstance(fast_compile, bool), f"calibrate: fast_compile = {fast_compile!r}; pass True or False")
+    cached = _update_for(loss, optimizer, tuple(sorted(bounds.items())), fast_compile)
 
     losses, trajectory = [], {k: [] for k in init}
     start = time.perf_counter()

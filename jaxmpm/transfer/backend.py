@@ -511,17 +511,35 @@ def _known_option(name: str, value: str) -> bool:
     return True
 
 
-def compiler_options(policy: str = "auto") -> dict:
+# The options ``jm.compiler_options(fast_compile=True)`` adds, per policy: a program that compiles sooner and
+# may run slower.  CPU: XLA's older LLVM emitters in place of its fusion emitters (fewer, larger fusions).
+# Gradients of 100-step rollouts (float64, 2 cores, no compilation cache, two runs each; XLA compile CPU s and
+# the gradient's run, default -> fast; benchmarks/README.md "Compile time", with compile_time.py's table of
+# every scene: 0.55-0.65x the compile, 1.06-2.09x the rollout's against 1.79-3.55x): bar 1.27 -> 0.68 s, run equal;
+# disks 2.81-2.85 -> 1.78-1.79 s, run 21.6 -> 24.0-30.2 ms; rings 3.09-3.19 -> 1.99-2.00 s, run 782-814 ->
+# 912-1000 ms; cylinder 5.15-5.39 -> 3.05-3.06 s, run 9.7-14.3 -> 11.2-15.7 ms; mpm88 8k 4.05-4.10 ->
+# 2.60-2.62 s, run equal; mpm88 131k (20 steps) 4.04-4.09 -> 2.93-2.98 s, run +3-5%.  A forward rollout
+# runs 30% slower with it (mpm88 8k), so it is for gradients and calibrations run a few times, not a default.
+XLA_FAST_COMPILE = {"cpu": {"xla_cpu_use_fusion_emitters": False}, "gpu": {}}
+
+
+def compiler_options(policy: str = "auto", fast_compile: bool = False) -> dict:
     """The XLA compile options (:data:`XLA_OPTIONS`) for programs built from the library's steps under
     ``policy``, those this jaxlib knows: ``jax.jit(loss, compiler_options=jm.compiler_options())``.
 
     Args:
         policy: "auto" (default: the default JAX backend's), "cpu" or "gpu".
+        fast_compile: also the options of :data:`XLA_FAST_COMPILE`: on the CPU the shipped scenes'
+            gradients compile in 0.55-0.65x the time and run 0.9-1.4x as long (benchmarks/README.md,
+            "Compile time"), worth it for a gradient called a few times; default False.
 
     Returns:
         {option name: value}, possibly empty.
     """
-    return {name: value for name, value in XLA_OPTIONS[resolve(policy)].items() if _known_option(name, value)}
+    check(isinstance(fast_compile, bool), f"fast_compile = {fast_compile!r}; pass True or False")
+    policy = resolve(policy)
+    options = {**XLA_OPTIONS[policy], **(XLA_FAST_COMPILE[policy] if fast_compile else {})}
+    return {name: value for name, value in options.items() if _known_option(name, value)}
 
 
 # (policy, dimension or None for any, bytes per float or None for any, fewest particles) -> (particles per

@@ -288,15 +288,17 @@ class ShapeFunction(eqx.Module):
     def stencil(self, grid, x) -> "TensorStencil":
         """S_pi and G_pi for particles at ``x`` (N, D) on ``grid`` (planar layout, see :class:`Stencil`)."""
         # a stage boundary (jaxmpm.transfer.backend): on the CPU the 1D kernels (selects, powers) are
-        # evaluated once into their own buffers instead of being fused into every consumer
-        return evaluate_once(lambda x: self._factors(grid, x), x)
+        # evaluated once into their own buffers instead of being fused into every consumer.  The planar
+        # positions are its operand, so they are laid out once, before it: inside, XLA fused the transpose
+        # of x into each factor's loop, element by element
+        return evaluate_once(lambda xp: self._factors(grid, xp), planar_positions(x))
 
-    def _factors(self, grid, x) -> "TensorStencil":
+    def _factors(self, grid, xp) -> "TensorStencil":
+        """The factors at the planar positions ``xp`` (D, N)."""
         dim = grid.dim
         k1 = self.nodes_per_axis
-        lower = jnp.asarray(grid.lower, dtype=x.dtype)
-        h = jnp.asarray(grid.spacing, dtype=x.dtype)
-        xp = planar_positions(x)  # (D, N)
+        lower = jnp.asarray(grid.lower, dtype=xp.dtype)
+        h = jnp.asarray(grid.spacing, dtype=xp.dtype)
         xi = (xp - lower[:, None]) / h[:, None]  # (D, N), in cells
         k = jnp.arange(k1, dtype=jnp.int32)[:, None]
         nodes_per_axis, ws, dws, dxs = [], [], [], []
@@ -306,13 +308,13 @@ class ShapeFunction(eqx.Module):
             # it as a failure); inside the grid the clip changes nothing
             first = jnp.clip(self._base(xi[a]), 0, grid.cells[a] + 1 - k1)  # (N,)
             nodes = first[None, :] + k  # (K1, N)
-            w, dw = self._kernel(xi[a][None, :] - nodes.astype(x.dtype))  # r = particle minus node, in cells
+            w, dw = self._kernel(xi[a][None, :] - nodes.astype(xp.dtype))  # r = particle minus node, in cells
             if a == 0 and grid.axisymmetric:
-                w, dw, t_r = _radial_factors(self, xi[a][None, :] - nodes.astype(x.dtype), w, dw, xp[0], h[a])
+                w, dw, t_r = _radial_factors(self, xi[a][None, :] - nodes.astype(xp.dtype), w, dw, xp[0], h[a])
             nodes_per_axis.append(nodes * jnp.int32(grid.strides[a]))
             ws.append(w)
             dws.append(dw / h[a])
-            dxs.append(nodes.astype(x.dtype) * h[a] + lower[a] - xp[a][None, :])  # x_i - X_p
+            dxs.append(nodes.astype(xp.dtype) * h[a] + lower[a] - xp[a][None, :])  # x_i - X_p
         index = _tensor(nodes_per_axis, jnp.add)
         if grid.axisymmetric:
             return AxisymmetricStencil(index, jnp.stack(ws), jnp.stack(dws), jnp.stack(dxs), t_r)

@@ -6,6 +6,9 @@ import csv
 import time
 from pathlib import Path
 
+#: ``sim.run``'s ``checkpoint=`` values by their command-line names (the scripts' ``--checkpoint``)
+CHECKPOINTS = {"True": True, "False": False, "low_memory": "low_memory", "states": "states", "auto": "auto"}
+
 
 def write_csv(path, fields, rows) -> Path:
     """``rows`` (dicts) as a CSV file at ``path`` with columns ``fields``; the folders are created."""

@@ -33,7 +33,7 @@ jax.config.update("jax_enable_x64", True)
 
 import equinox as eqx  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
-from _results import cpu_best, write_csv  # noqa: E402
+from _results import CHECKPOINTS, cpu_best, write_csv  # noqa: E402
 from step_adjoint import floor_numbers  # noqa: E402
 
 import jaxmpm as jm  # noqa: E402
@@ -41,7 +41,6 @@ import jaxmpm as jm  # noqa: E402
 SCENES = {"bar": ({"cells": 128}, 1000), "disks": ({}, 300), "mpm88": ({}, 100)}
 SCHEMES = {"flip": "flip", "xpic2": "xpic:2", "fmpm2": "fmpm:2", "apic": "apic"}
 # sim.run's checkpoint options
-CHECKPOINTS = {"True": True, "False": False, "low_memory": "low_memory", "states": "states", "auto": "auto"}
 FIELDS = ["scene", "scheme", "particles", "steps", "adjoint", "checkpoint", "forward_s", "grad_s", "ratio",
           "forward_compile_s", "grad_compile_s", "floor_time", "floor_ops"]
 

@@ -42,12 +42,11 @@ import sys
 import time
 from pathlib import Path
 
-from _results import write_csv
+from _results import CHECKPOINTS, write_csv
 
 DEFAULT_CSV = Path(__file__).resolve().parent / "results" / "gradient_memory.csv"
 SCHEMES = ("fmpm2", "flip", "xpic2", "apic")
 SCENES = ("bar", "disks", "mpm88")
-CHECKPOINTS = {"False": False, "True": True, "states": "states"}  # sim.run's checkpoint= (one level: "states")
 FIELDS = ["scene", "scheme", "cells", "particles", "steps", "checkpoint", "temp_MiB", "forward_temp_MiB",
           "rss_compile_MiB", "rss_peak_MiB", "baseline_rss_MiB", "compile_s", "grad_s", "forward_s", "ratio",
           "gradient", "load_1min"]

@@ -157,10 +157,31 @@ def nodal_values(stencil, u, hold: bool = True):
     index = stencil.index  # on the grid (shape functions clip it), so no bounds handling
     if u.ndim == 1:
         return materialise(u).at[index].get(mode="promise_in_bounds")
-    # the nodal field is evaluated once first: XLA would otherwise fuse its whole computation
-    # (v = p/m, boundary conditions) into the gather and repeat it for every slot
-    values = [uc.at[index].get(mode="promise_in_bounds") for uc in rows(materialise(u.T))]
+    values = gather_components(index, u)
     return materialise(values) if hold else values
+
+
+def _gather_components(index, u):
+    """[u[:, c] at every slot]: one gather of scalars per component, from the transposed (C, n) nodal
+    array.  The nodal field is evaluated once first: XLA would otherwise fuse its whole computation
+    (v = p/m, boundary conditions) into the gather and repeat it for every slot."""
+    return [uc.at[index].get(mode="promise_in_bounds") for uc in rows(materialise(u.T))]
+
+
+_gather_components_ruled = jax.custom_jvp(_gather_components)
+
+
+@_gather_components_ruled.defjvp
+def _gather_components_jvp(primals, tangents):
+    # the tangent as one gather of (n, C) rows: its transpose is one scatter-add of rows, where the
+    # components' own gathers transpose to C scalar scatters (and their updates' copies)
+    index, u = primals
+    _, u_dot = tangents
+    gathered = u_dot.at[index].get(mode="promise_in_bounds")  # (K, N, C)
+    return _gather_components_ruled(index, u), [gathered[..., c] for c in range(u.shape[1])]
+
+
+gather_components = derivative_rule(_gather_components, _gather_components_ruled)
 
 
 def gather_planar(stencil, u, hold: bool = True):

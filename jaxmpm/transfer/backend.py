@@ -583,8 +583,13 @@ CHUNK_TABLE = (
 # ones) or "stacked" (a scan whose stacked outputs are the new arrays: XLA zeroes and copies them).  mpm88
 # at 131k particles, 2 cores, ms per step, alternated with a git worktree (2026-11-28): float64 chunks of
 # 16k, stacked 12.06 and 12.65, in place 11.52 and 11.77; float32 chunks of 32k, stacked 7.80 and 7.95,
-# in place 8.57 and 8.62.
-CHUNK_OUTPUT = {("cpu", 8): "in_place", ("cpu", 4): "stacked"}
+# in place 8.57 and 8.62.  Measured again after the stencil's positions were laid out once (2026-11-28,
+# alternated in one tree, ms per step): float64 131k stacked 12.66, in place 11.71; float32 131k stacked
+# 7.82-8.45, in place 7.64-8.03 (four runs each); float32 524k stacked 32.4-32.8, in place 31.6-32.1; 3D
+# float32 65k (48^3, chunks of 8k) stacked 28.2-28.3, in place 27.6-27.7.  So
+# float32 writes in place too, and its temporaries shrink with it (524k float32, 10 compiled steps: 67.8
+# -> 26.5 bytes a particle).
+CHUNK_OUTPUT = {("cpu", 8): "in_place", ("cpu", 4): "in_place"}
 
 
 def chunk_output(dtype) -> str:

@@ -367,6 +367,11 @@ def markdown(rows, header: str) -> str:
     return "\n".join(out)
 
 
+def _auto_or_int(value: str):
+    """A command-line value: "auto" or an integer."""
+    return value if value == "auto" else int(value)
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--parts", nargs="+", choices=PARTS, default=list(PARTS))
@@ -394,9 +399,9 @@ def main(argv=None) -> int:
     parser.add_argument("--checkpoint", default="auto", type=lambda v: {"true": True, "false": False}.get(v.lower(), v),
                         help="the gradient part's sim.run(checkpoint=...): auto (default), true, false, states, "
                              "low_memory")
-    parser.add_argument("--sort-every", default="auto", type=lambda v: v if v == "auto" else int(v), metavar="K",
+    parser.add_argument("--sort-every", default="auto", type=_auto_or_int, metavar="K",
                         help="sort the particles by cell every K steps (0: never; default auto: the library's table)")
-    parser.add_argument("--chunk-particles", default="auto", type=lambda v: v if v == "auto" else int(v), metavar="P",
+    parser.add_argument("--chunk-particles", default="auto", type=_auto_or_int, metavar="P",
                         help="step the particles in chunks of about P (Simulation.with_chunks; 0: the whole step; "
                              "default auto: the library's table)")
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="folder of gpu.md and gpu.csv")

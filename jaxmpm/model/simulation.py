@@ -747,7 +747,7 @@ def backend_info(sim: Simulation, state: State) -> dict:
     every, sort_why = sim._sort_row(n, dtype)
     member = state if state.x.ndim == 2 else jax.tree_util.tree_map(lambda a: a[0], state)  # an ensemble's
     with use_policy(sim.backend):
-        per_chunk, chunk_why = sim._chunk_row(member)
+        per_chunk, chunk_why = sim._chunk_row(member, name or "xla")
     info = {"kernel": name or "xla", "options": dict(options), "policy": resolve(sim.backend),
             "dimension": sim.grid.dim, "particles_per_cell": n / max(1, int(np.prod(sim.grid.cells))),
             "dtype": jnp.dtype(dtype).name, "reason": why, "sort_every": every, "sort_reason": sort_why,
@@ -760,18 +760,20 @@ def backend_info(sim: Simulation, state: State) -> dict:
 
 
 def _checked_chunk_particles(particles):
-    check(particles == "auto" or (isinstance(particles, (int, np.integer)) and not isinstance(particles, bool)
-                                  and particles >= 0),
-          f"Simulation: chunk_particles = {particles!r}; give the particles per chunk of a step (a non-negative "
-          "integer, 0 = the whole step at once) or 'auto' (the backend table's choice)")
-    return particles if particles == "auto" else int(particles)
+    return _auto_or_count(particles, "chunk_particles", "the particles per chunk of a step",
+                          "the whole step at once")
 
 
 def _checked_sort_every(every):
-    check(every == "auto" or (isinstance(every, (int, np.integer)) and not isinstance(every, bool) and every >= 0),
-          f"Simulation: sort_every = {every!r}; give the steps between sorts of the particles by cell (a "
-          "non-negative integer, 0 = never) or 'auto' (the backend table's choice)")
-    return every if every == "auto" else int(every)
+    return _auto_or_count(every, "sort_every", "the steps between sorts of the particles by cell", "never")
+
+
+def _auto_or_count(value, name: str, what: str, zero: str):
+    """``value``: "auto" (the backend table's choice) or a non-negative integer (0 meaning ``zero``)."""
+    check(value == "auto" or (isinstance(value, (int, np.integer)) and not isinstance(value, bool) and value >= 0),
+          f"Simulation: {name} = {value!r}; give {what} (a non-negative integer, 0 = {zero}) or 'auto' (the "
+          "backend table's choice)")
+    return value if value == "auto" else int(value)
 
 
 @compiled_when_concrete

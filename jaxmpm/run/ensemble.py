@@ -32,7 +32,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from ..core.errors import check
 from ..core.params import _where, _with_owner, check_value, set_params
 from ..core.validate import POSITIVE, batch_members, positive_int
-from .memory import default_budget, parse_memory
+from .memory import budget_bytes, parse_memory
 from .progress import shown, shown_call
 
 
@@ -204,8 +204,7 @@ def _batched_rollout(sim, state, dt, frames, save_every, save_particles, strateg
     schedule is chosen (when traced) from its share of the device's budget ``memory``."""
 
     def members(sim, state, dt, params, states):
-        budget = parse_memory(memory)
-        share = max(1, (default_budget() if budget is None else budget) // _batch_size((params, states)))
+        share = max(1, budget_bytes(memory) // _batch_size((params, states)))
 
         def member(p, s):
             member_sim = set_params(sim, **p) if p else sim

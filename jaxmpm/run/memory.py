@@ -76,6 +76,12 @@ def default_budget() -> int:
     return free_memory() // 2
 
 
+def budget_bytes(memory) -> int:
+    """Bytes of the budget ``memory`` (:func:`parse_memory`), :func:`default_budget` for None."""
+    budget = parse_memory(memory)
+    return default_budget() if budget is None else budget
+
+
 def tree_bytes(tree) -> int:
     """Bytes of a pytree's array leaves (arrays, tracers or shape structs)."""
     return sum(int(np.prod(np.shape(leaf))) * np.dtype(leaf.dtype).itemsize
@@ -96,8 +102,7 @@ def is_schedule(checkpoint, name: str) -> bool:
 
 def choose_checkpoint(sim, state, dt, frames: int, save_every: int, memory=None):
     """``(checkpoint, why)``: the schedule ``checkpoint="auto"`` runs (module docstring)."""
-    budget = parse_memory(memory)
-    return _schedule(sim, state, dt, frames, save_every, default_budget() if budget is None else budget)[:2]
+    return _schedule(sim, state, dt, frames, save_every, budget_bytes(memory))[:2]
 
 
 def _schedule(sim, state, dt, frames: int, save_every: int, budget: int, residual=None):
@@ -173,8 +178,7 @@ def gradient_schedule(sim, state, dt, steps: int, save_every: int = 1, memory=No
     sim = sim.in_precision(state.x.dtype)  # as sim.run: the model computes in its state's precision
     dt = jax.numpy.asarray(dt, state.x.dtype)
     frames = steps // save_every
-    budget = parse_memory(memory)
-    budget = default_budget() if budget is None else budget
+    budget = budget_bytes(memory)
     residual = residual_bytes(sim.step, state, dt)
     checkpoint, reason, kept = _schedule(sim, state, dt, frames, save_every, budget, residual)
     return dict(checkpoint=checkpoint, reason=reason, recomputations=RECOMPUTATIONS[checkpoint], kept_bytes=int(kept),

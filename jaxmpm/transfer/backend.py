@@ -482,11 +482,17 @@ def choose_sorting(policy: str, dim: int, num_particles: int, kernel: str) -> tu
     :data:`SORT_TABLE` -- (policy, dimension, kernel, fewest particles) -> row -- that matches a
     model traced under ``policy`` in ``dim`` dimensions with ``num_particles`` particles whose
     transfers run on ``kernel``."""
-    policy = resolve(policy)
-    for (p, d, k, fewest), row in SORT_TABLE:
-        if p in (None, policy) and d in (None, dim) and k in (None, kernel) and num_particles >= fewest:
+    return _first_row(SORT_TABLE, (resolve(policy), dim, kernel), num_particles,
+                      (0, "no row of SORT_TABLE matches: not sorted"))
+
+
+def _first_row(table, keys: tuple, num_particles: int, otherwise):
+    """The row of the first entry of ``table`` -- ((key fields, None for any, ..., fewest particles), row) --
+    whose fields match ``keys`` and whose fewest particles are at most ``num_particles``; else ``otherwise``."""
+    for (*fields, fewest), row in table:
+        if num_particles >= fewest and all(f is None or f == k for f, k in zip(fields, keys)):
             return row
-    return 0, "no row of SORT_TABLE matches: not sorted"
+    return otherwise
 
 
 # XLA compile options for programs built from the library's steps, per policy (``jm.compiler_options``;
@@ -602,11 +608,8 @@ def choose_chunking(policy: str, dim: int, num_particles: int, dtype) -> tuple:
     :data:`CHUNK_TABLE` -- (policy, dimension, bytes per float, fewest particles) -> row -- that
     matches a ``dim``-dimensional step of ``num_particles`` particles computing in ``dtype`` traced
     under ``policy``."""
-    policy, size = resolve(policy), jnp.dtype(dtype).itemsize
-    for (p, d, b, fewest), row in CHUNK_TABLE:
-        if p in (None, policy) and d in (None, dim) and b in (None, size) and num_particles >= fewest:
-            return row
-    return 0, "no row of CHUNK_TABLE matches: the whole step at once"
+    return _first_row(CHUNK_TABLE, (resolve(policy), dim, jnp.dtype(dtype).itemsize), num_particles,
+                      (0, "no row of CHUNK_TABLE matches: the whole step at once"))
 
 
 _kernel = contextvars.ContextVar("jaxmpm_transfer_kernel", default=None)

@@ -139,12 +139,34 @@ def _scatter_rows_jvp(num_nodes, primals, tangents):
 scatter_rows = derivative_rule(_scatter_rows, _scatter_rows_ruled)
 
 
-def scatter_planar(index, contributions, num_nodes: int):
+def _scatter_planar(index, contributions, num_nodes: int):
     """sum_p sum_k c[..., k, p] into node ``index[k, p]``: planar ``contributions`` (K, N) -> (n,)
     or (C, K, N) -> (n, C), as (node, components) rows (:func:`scatter_rows`)."""
     if contributions.ndim == 2:
         return scatter_rows(index, contributions.reshape(-1), num_nodes)
     return scatter_rows(index, contributions.reshape(contributions.shape[0], -1).T, num_nodes)
+
+
+_scatter_planar_ruled = jax.custom_jvp(_scatter_planar, nondiff_argnums=(2,))
+
+
+@_scatter_planar_ruled.defjvp
+def _scatter_planar_jvp(num_nodes, primals, tangents):
+    # the tangent as one scalar scatter per component, behind a stage boundary: in reverse mode the
+    # nodal cotangent (n, C) is evaluated once and each component gathered on its own, planar (K, N), as
+    # the contributions' cotangent.  The rows' scatter transposes to a gather of (K N, C) rows, which every
+    # consumer of the planar contributions then reads transposed, element by element
+    (index, c), (_, c_dot) = primals, tangents
+    out = _scatter_planar_ruled(index, c, num_nodes)
+    if c.ndim == 2:
+        tangent = _scatter_rows(index, c_dot.reshape(-1), num_nodes)
+    else:
+        tangent = jnp.stack([_scatter_rows(index, row.reshape(-1), num_nodes) for row in rows(c_dot)], axis=1)
+    witness = index.reshape(-1)[:1].astype(c.dtype) if index.size else out
+    return out, hold_tangent(tangent, witness)
+
+
+scatter_planar = derivative_rule(_scatter_planar, _scatter_planar_ruled)
 
 
 def nodal_values(stencil, u, hold: bool = True):
@@ -193,10 +215,25 @@ def gather_planar(stencil, u, hold: bool = True):
     return jnp.stack([sum_over_stencil(w * vc) for vc in values])
 
 
-def to_particle_major(planar):
+def _to_particle_major(planar):
     """(C..., N) -> (N, C...), evaluated first: otherwise XLA moves the whole planar computation
     into the transpose, where it runs element by element instead of on particle vectors."""
     return jnp.moveaxis(materialise(planar), -1, 0)
+
+
+_to_particle_major_ruled = jax.custom_jvp(_to_particle_major)
+
+
+@_to_particle_major_ruled.defjvp
+def _to_particle_major_jvp(primals, tangents):
+    # the tangent behind a stage boundary, planar: in reverse mode the cotangent of a G2P result is
+    # evaluated once, laid out (C..., N), before the per-slot products that read it; without it XLA
+    # fuses the particle update's whole cotangent into those products and repeats it for every slot
+    (planar,), (planar_dot,) = primals, tangents
+    return _to_particle_major_ruled(planar), jnp.moveaxis(hold_tangent(planar_dot, planar.reshape(-1)[:1]), -1, 0)
+
+
+to_particle_major = derivative_rule(_to_particle_major, _to_particle_major_ruled)
 
 
 # ------------------------------------------------------------------ per-slot values of a contraction
@@ -420,7 +457,7 @@ class XLAKernel(Kernel):
         return to_particle_major(jnp.stack([sum_over_stencil(values * g[b]) for b in range(len(g))]))
 
     def affine_moment(self, stencil, v):
-        w, a, b = stencil.weight, nodal_values(stencil, v, self._hold(stencil)), stencil.offset
+        w, a, b = stencil.weight, nodal_values(stencil, v, self._hold(stencil)), rows(stencil.offset)
         planar = jnp.stack([jnp.stack([sum_over_stencil(w * a[i] * b[j]) for j in range(len(b))])
                             for i in range(len(a))])
         return to_particle_major(planar)

@@ -43,6 +43,15 @@ def identity(F):
     return jnp.broadcast_to(jnp.eye(F.shape[-1], dtype=F.dtype), F.shape)
 
 
+def isotropic(s, dim: int):
+    """s I, (..., D, D): ``s`` (...) on the diagonal and zeros elsewhere, stacked.  The same values as
+    ``s[..., None, None] * identity``; in reverse mode the cotangent of ``s`` is the sum of the diagonal's,
+    where the product with a broadcast identity transposes to a reduction over all D x D entries (in a
+    rollout XLA hoists the identity out of the loop, so the zeros are not known inside it)."""
+    zero = jnp.zeros_like(s)
+    return jnp.stack([jnp.stack([s if a == b else zero for b in range(dim)], axis=-1) for a in range(dim)], axis=-2)
+
+
 def trace(A):
     return jnp.trace(A, axis1=-2, axis2=-1)
 
@@ -60,7 +69,7 @@ def hooke(E, nu, strain):
     if strain.shape[-1] == 1:
         return E * strain
     lam, mu = lame(E, nu)
-    return lam * trace(strain)[..., None, None] * identity(strain) + 2.0 * mu * strain
+    return isotropic(lam * trace(strain), strain.shape[-1]) + 2.0 * mu * strain
 
 
 class Increment(eqx.Module):

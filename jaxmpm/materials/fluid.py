@@ -7,7 +7,7 @@ import jax.numpy as jnp
 from ..core.linalg import det
 from ..core.registry import register_material
 from ..core.validate import POSITIVE
-from .base import ElasticMaterial, identity
+from .base import ElasticMaterial, isotropic
 from .linear import DENSITY, E
 from .neohookean import log_det
 
@@ -17,7 +17,12 @@ def volumetric_part(F):
     alone); F itself where J <= 0, so that the instability check still sees it."""
     J = det(F)
     positive = J > 0
-    iso = (jnp.where(positive, J, 1.0) ** (1.0 / F.shape[-1]))[..., None, None] * identity(F)
+    d = F.shape[-1]
+    J = jnp.where(positive, J, 1.0)
+    # in 2D a square root, correctly rounded (the power it replaced agrees to the last bit or one unit in it,
+    # tests/test_derivative_rules.py): a reverse pass evaluates 0.5 / sqrt(J) where the power's derivative
+    # evaluated J ** -0.5 for every entry of F's cotangent (mpm88 8k: that fusion 114 -> 40 us a step)
+    iso = isotropic(jnp.sqrt(J) if d == 2 else J ** (1.0 / d), d)
     return jnp.where(positive[..., None, None], iso, F)  # J <= 0 stays visible to the instability check
 
 
@@ -40,7 +45,7 @@ class VolumetricFluid(ElasticMaterial):
 
     def kirchhoff_stress(self, F):
         J = det(F)
-        return (self.E * (J - 1.0))[..., None, None] * identity(F)
+        return isotropic(self.E * (J - 1.0), F.shape[-1])
 
     def energy_density(self, F):
         J = det(F)

@@ -69,7 +69,7 @@ def hooke(E, nu, strain):
     if strain.shape[-1] == 1:
         return E * strain
     lam, mu = lame(E, nu)
-    return isotropic(lam * trace(strain), strain.shape[-1]) + 2.0 * mu * strain
+    return lam * trace(strain)[..., None, None] * identity(strain) + 2.0 * mu * strain
 
 
 class Increment(eqx.Module):

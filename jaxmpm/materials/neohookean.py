@@ -7,7 +7,7 @@ import jax.numpy as jnp
 from ..core.linalg import det
 from ..core.registry import register_material
 from ..core.validate import POISSON, POSITIVE
-from .base import ElasticMaterial, identity, isotropic, lame
+from .base import ElasticMaterial, identity, lame
 from .linear import DENSITY, NU, E
 
 
@@ -40,7 +40,7 @@ class NeoHookean(ElasticMaterial):
     def kirchhoff_stress(self, F):
         lam, mu = lame(self.E, self.nu)
         b = F @ jnp.swapaxes(F, -1, -2)
-        return mu * (b - identity(F)) + isotropic(lam * log_det(F), F.shape[-1])
+        return mu * (b - identity(F)) + lam * log_det(F)[..., None, None] * identity(F)
 
     def energy_density(self, F):
         lam, mu = lame(self.E, self.nu)

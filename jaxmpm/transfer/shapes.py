@@ -299,22 +299,29 @@ class ShapeFunction(eqx.Module):
         k1 = self.nodes_per_axis
         lower = jnp.asarray(grid.lower, dtype=xp.dtype)
         h = jnp.asarray(grid.spacing, dtype=xp.dtype)
-        xi = (xp - lower[:, None]) / h[:, None]  # (D, N), in cells
+        # one split of the positions into their axes' rows: in reverse mode the rows' cotangents are
+        # concatenated once, where an index per axis would pad each into a (D, N) array and add them up
+        # in one loop that evaluated every axis's kernel derivative at every element
+        positions = rows(xp)
         k = jnp.arange(k1, dtype=jnp.int32)[:, None]
         nodes_per_axis, ws, dws, dxs = [], [], [], []
         for a in range(dim):
             # first node, kept on the grid (cells + 1 nodes): every index is valid even for a
             # particle that has left it (its weights are those of the nodes used, and a run reports
             # it as a failure); inside the grid the clip changes nothing
-            first = jnp.clip(self._base(xi[a]), 0, grid.cells[a] + 1 - k1)  # (N,)
+            # the spacing behind a barrier: XLA turns a division by a known scalar into a product with its
+            # reciprocal wherever it sees the constant, and only there (not in a sharded run's branches),
+            # so the same particle got cells one unit in the last place apart in the two programs
+            xi = (positions[a] - lower[a]) / jax.lax.optimization_barrier(h[a])  # (N,), in cells
+            first = jnp.clip(self._base(xi), 0, grid.cells[a] + 1 - k1)  # (N,)
             nodes = first[None, :] + k  # (K1, N)
-            w, dw = self._kernel(xi[a][None, :] - nodes.astype(xp.dtype))  # r = particle minus node, in cells
+            w, dw = self._kernel(xi[None, :] - nodes.astype(xp.dtype))  # r = particle minus node, in cells
             if a == 0 and grid.axisymmetric:
-                w, dw, t_r = _radial_factors(self, xi[a][None, :] - nodes.astype(xp.dtype), w, dw, xp[0], h[a])
+                w, dw, t_r = _radial_factors(self, xi[None, :] - nodes.astype(xp.dtype), w, dw, positions[0], h[a])
             nodes_per_axis.append(nodes * jnp.int32(grid.strides[a]))
             ws.append(w)
             dws.append(dw / h[a])
-            dxs.append(nodes.astype(xp.dtype) * h[a] + lower[a] - xp[a][None, :])  # x_i - X_p
+            dxs.append(nodes.astype(xp.dtype) * h[a] + lower[a] - positions[a][None, :])  # x_i - X_p
         index = _tensor(nodes_per_axis, jnp.add)
         if grid.axisymmetric:
             return AxisymmetricStencil(index, jnp.stack(ws), jnp.stack(dws), jnp.stack(dxs), t_r)

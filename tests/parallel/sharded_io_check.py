@@ -57,13 +57,19 @@ def rel_err(a, b, scale=None) -> float:
 
 def scales(data) -> dict:
     """The physical scale of the quantities that are zero but for round-off in the colliding disks
-    (their total momentum, FLIP's dissipated energy): the largest energy, the total mass times the
-    largest speed (times the largest distance from the origin for the angular momentum)."""
+    (their total momentum, FLIP's dissipated energy; and, in the CLI's run below, which ends at t = 0.06
+    before they meet, the stress and strain energy of F = I + round-off, about 5e-15 and 1e-33): the
+    largest energy, that energy over the bodies' volume for the stress (or its largest value if larger),
+    the total mass times the largest speed (times the largest distance from the origin for the angular
+    momentum)."""
     mass, speed = float(np.sum(data["particles/mass"])), float(np.max(np.abs(data["particles/v"])))
     energy = float(np.max(data["energy/kinetic"] + data["energy/strain"]))
     reach = float(np.max(np.abs(data["particles/x"])))
-    return {"energy/dissipated": energy, "momentum/linear": mass * speed, "momentum/angular": mass * speed * reach,
-            "state/dissipated": energy}
+    volume0 = np.asarray(data["particles/volume0"])  # (N,): written once, the reference volumes
+    volume = float(np.sum(volume0 if volume0.ndim == 1 else volume0[0]))
+    stress = max(energy / volume, float(np.max(np.abs(data["particles/stress"]))))
+    return {"energy/dissipated": energy, "energy/strain": energy, "particles/stress": stress,
+            "momentum/linear": mass * speed, "momentum/angular": mass * speed * reach, "state/dissipated": energy}
 
 
 def file_err(path, reference) -> dict:

@@ -115,7 +115,7 @@ def apic_affine_part(stencil, mass, B):
     if stencil.nodes_per_axis == 2:
         return Divergence(mass[:, None, None] * B)
     C = materialise(_planar_matmul(to_planar(B), _planar_inverse(_inertia_planar(stencil))))  # B_p D_p^-1, once
-    return Affine(mass[:, None, None] * from_planar(C))
+    return Affine(from_planar(mass[None, None, :] * C))  # M_p B_p D_p^-1, formed planar
 
 
 def affine_angular_momentum(mass, B):

@@ -1,10 +1,11 @@
 """Derivative rules that change only how a gradient is computed (jaxmpm.transfer.backend, the structured
-adjoint): each gives the plain function's values and derivatives, forward and reverse, and the helpers
+adjoint): each gives the values and derivatives, forward and reverse, of the same code differentiated
+by JAX itself (``adjoint="autodiff"``), and the helpers
 written for a cheaper transpose give the values of the expressions they replace (bit for bit; the fluid's
 square root to one unit in the last place).
 
-* ``scatter_planar``: its tangent is one scalar scatter per component behind a stage boundary, so that in
-  reverse mode each component of the nodal cotangent is gathered planar (K, N);
+* ``scatter_planar`` of (C, K, N) columns: its tangent is one scalar scatter per component behind a stage
+  boundary, so that in reverse mode each component of the nodal cotangent is gathered planar (K, N);
 * ``to_particle_major``: its tangent is held planar, so that the cotangent of a G2P result is evaluated once
   before the per-slot products read it;
 * ``isotropic`` (s I stacked) and the fluid's square root (J ** (1/2)).
@@ -21,7 +22,7 @@ from jaxmpm.core.linalg import det
 from jaxmpm.materials.base import isotropic
 from jaxmpm.materials.fluid import volumetric_part
 from jaxmpm.transfer.backend import use_adjoint
-from jaxmpm.transfer.kernels.xla import _scatter_planar, _to_particle_major, scatter_planar, to_particle_major
+from jaxmpm.transfer.kernels.xla import scatter_planar, to_particle_major
 
 K, N, NODES = 9, 40, 25
 
@@ -34,13 +35,15 @@ def derivatives(fn, x, tangent, cotangent):
     return jax.jit(both)(x, tangent, cotangent)
 
 
-def assert_same(rule, plain, x, out_shape, seed):
+def assert_same(fn, x, out_shape, seed):
+    """``fn``'s value, JVP and VJP under the structured rules equal those of JAX's own autodiff of it."""
     keys = jax.random.split(jax.random.PRNGKey(seed), 2)
     tangent = jax.random.normal(keys[0], x.shape, x.dtype)
     cotangent = jax.random.normal(keys[1], out_shape, x.dtype)
     with use_adjoint("structured"):
-        ruled = derivatives(rule, x, tangent, cotangent)
-    expected = derivatives(plain, x, tangent, cotangent)
+        ruled = derivatives(fn, x, tangent, cotangent)
+    with use_adjoint("autodiff"):
+        expected = derivatives(fn, x, tangent, cotangent)
     for got, want in zip(ruled, expected):
         np.testing.assert_allclose(got, want, rtol=1e-14, atol=1e-14)
 
@@ -51,15 +54,14 @@ def test_the_planar_scatter_rule_has_the_plain_derivatives(components):
     shape = (K, N) if components is None else (components, K, N)
     c = jax.random.normal(jax.random.PRNGKey(1), shape, jnp.float64)
     out_shape = (NODES,) if components is None else (NODES, components)
-    assert_same(lambda c: scatter_planar(index, c, NODES), lambda c: _scatter_planar(index, c, NODES), c,
-                out_shape, seed=2)
+    assert_same(lambda c: scatter_planar(index, c, NODES), c, out_shape, seed=2)
 
 
 @pytest.mark.parametrize("shape", [(2, N), (2, 2, N)])
 def test_the_particle_major_rule_has_the_plain_derivatives(shape):
     planar = jax.random.normal(jax.random.PRNGKey(3), shape, jnp.float64)
     out_shape = (shape[-1],) + shape[:-1]
-    assert_same(to_particle_major, _to_particle_major, planar, out_shape, seed=4)
+    assert_same(to_particle_major, planar, out_shape, seed=4)
 
 
 @pytest.mark.parametrize("d", [1, 2, 3])

@@ -209,7 +209,6 @@ def test_a_stencil_forms_its_products_once_per_trace():
     def apart(x):  # each product from a stencil of its own: nothing shared
         return tuple(getattr(jm.QuadraticBSpline().stencil(grid, x), name) for name in ("weight", "gradient", "offset"))
 
-
     def outer(x):
         stencil = jm.QuadraticBSpline().stencil(grid, x)
         inner = jax.jit(lambda: stencil.weight * 2.0)()  # formed in the nested trace: not kept

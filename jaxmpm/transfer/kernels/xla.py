@@ -132,41 +132,47 @@ def _scatter_rows_jvp(num_nodes, primals, tangents):
     # used (the planar JVP of the rows layout, XLAKernel.p2g), the primal scatter is then left out
     (index, r), (_, r_dot) = primals, tangents
     out = _scatter_rows_ruled(index, r, num_nodes)
-    witness = index.reshape(-1)[:1].astype(r.dtype) if index.size else out
-    return out, hold_tangent(_scatter_rows(index, r_dot, num_nodes), witness)
+    return out, hold_tangent(_scatter_rows(index, r_dot, num_nodes), _node_witness(index, out))
+
+
+def _node_witness(index, out):
+    """The predicate operand of a scatter tangent's boundary: one node number (as the sums' dtype), or the
+    sums themselves when there are no stencil slots."""
+    return index.reshape(-1)[:1].astype(out.dtype) if index.size else out
 
 
 scatter_rows = derivative_rule(_scatter_rows, _scatter_rows_ruled)
 
 
-def _scatter_planar(index, contributions, num_nodes: int):
+def scatter_planar(index, contributions, num_nodes: int):
     """sum_p sum_k c[..., k, p] into node ``index[k, p]``: planar ``contributions`` (K, N) -> (n,)
     or (C, K, N) -> (n, C), as (node, components) rows (:func:`scatter_rows`)."""
     if contributions.ndim == 2:
         return scatter_rows(index, contributions.reshape(-1), num_nodes)
+    return scatter_columns(index, contributions, num_nodes)
+
+
+def _scatter_columns(index, contributions, num_nodes: int):
+    """Planar ``contributions`` (C, K, N) summed into (n, C), as (node, components) rows."""
     return scatter_rows(index, contributions.reshape(contributions.shape[0], -1).T, num_nodes)
 
 
-_scatter_planar_ruled = jax.custom_jvp(_scatter_planar, nondiff_argnums=(2,))
+_scatter_columns_ruled = jax.custom_jvp(_scatter_columns, nondiff_argnums=(2,))
 
 
-@_scatter_planar_ruled.defjvp
-def _scatter_planar_jvp(num_nodes, primals, tangents):
+@_scatter_columns_ruled.defjvp
+def _scatter_columns_jvp(num_nodes, primals, tangents):
     # the tangent as one scalar scatter per component, behind a stage boundary: in reverse mode the
     # nodal cotangent (n, C) is evaluated once and each component gathered on its own, planar (K, N), as
     # the contributions' cotangent.  The rows' scatter transposes to a gather of (K N, C) rows, which every
     # consumer of the planar contributions then reads transposed, element by element
     (index, c), (_, c_dot) = primals, tangents
-    out = _scatter_planar_ruled(index, c, num_nodes)
-    if c.ndim == 2:
-        tangent = _scatter_rows(index, c_dot.reshape(-1), num_nodes)
-    else:
-        tangent = jnp.stack([_scatter_rows(index, row.reshape(-1), num_nodes) for row in rows(c_dot)], axis=1)
-    witness = index.reshape(-1)[:1].astype(c.dtype) if index.size else out
-    return out, hold_tangent(tangent, witness)
+    out = _scatter_columns_ruled(index, c, num_nodes)
+    tangent = jnp.stack([_scatter_rows(index, row.reshape(-1), num_nodes) for row in rows(c_dot)], axis=1)
+    return out, hold_tangent(tangent, _node_witness(index, out))
 
 
-scatter_planar = derivative_rule(_scatter_planar, _scatter_planar_ruled)
+scatter_columns = derivative_rule(_scatter_columns, _scatter_columns_ruled)
 
 
 def nodal_values(stencil, u, hold: bool = True):

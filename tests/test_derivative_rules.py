@@ -8,7 +8,10 @@ square root to one unit in the last place).
   boundary, so that in reverse mode each component of the nodal cotangent is gathered planar (K, N);
 * ``to_particle_major``: its tangent is held planar, so that the cotangent of a G2P result is evaluated once
   before the per-slot products read it;
-* ``isotropic`` (s I stacked) and the fluid's square root (J ** (1/2)).
+* ``isotropic`` (s I stacked) and the fluid's square root (J ** (1/2));
+* G2P's shared reads (``jaxmpm.transfer.kernels.shared_reads``): inside a G2P each nodal field is read at
+  the slots once and the grid's v, a and v~ together, so the operators' cotangents go back onto the nodes
+  in one scatter; the values are those of separate reads, bit for bit.
 
 Timings are in benchmarks/README.md ("Cotangents evaluated once where they are read").
 """
@@ -18,11 +21,14 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import jaxmpm as jm
 from jaxmpm.core.linalg import det
 from jaxmpm.materials.base import isotropic
 from jaxmpm.materials.fluid import volumetric_part
 from jaxmpm.transfer.backend import use_adjoint
+from jaxmpm.transfer.kernels import shared_reads
 from jaxmpm.transfer.kernels.xla import scatter_planar, to_particle_major
+from jaxmpm.transfer.operators import Transfer
 
 K, N, NODES = 9, 40, 25
 
@@ -88,3 +94,72 @@ def test_the_fluids_square_root_is_the_power_it_replaced():
     got, expected = jax.jit(volumetric_part)(F), jax.jit(with_power)(F)
     assert bool(jnp.any(det(F) <= 0)) and bool(jnp.any(det(F) > 0))
     np.testing.assert_allclose(got, expected, rtol=2.3e-16, atol=0)
+
+
+def _count(fn, name, *args):
+    """How many ``name`` equations the jaxpr of ``fn(*args)`` holds, nested jaxprs included."""
+    found = 0
+
+    def walk(jaxpr):
+        nonlocal found
+        for eqn in jaxpr.eqns:
+            found += eqn.primitive.name == name
+            for sub in jax.extend.core.jaxprs_in_params(eqn.params):
+                walk(sub)
+
+    walk(jax.make_jaxpr(fn)(*args).jaxpr)
+    return found
+
+
+def _g2p_reads(shared: bool):
+    """Five G2P operators on the grid's v, a and v~ of 60 particles on a 2D quadratic B-spline grid (the
+    reads of FLIP's update, APIC's update and affine moment and a strain update), with the kernel's
+    reads shared or not; returns (fn of the three fields, the fields)."""
+    grid = jm.Grid((0.0, 0.0), (1.0, 1.0), (8, 8))
+    x = 0.1 + 0.8 * jax.random.uniform(jax.random.PRNGKey(20), (60, 2), jnp.float64)
+    stencil = jm.QuadraticBSpline().stencil(grid, x)
+    transfer = Transfer.build(stencil, jnp.ones(60), grid.num_nodes)
+    fields = [jax.random.normal(jax.random.PRNGKey(21 + j), (grid.num_nodes, 2), jnp.float64) for j in range(3)]
+
+    def reads(v, a, v_tilde):
+        def all_five():
+            return (transfer.gather(v), transfer.gather(a), transfer.gather(v_tilde),
+                    transfer.affine_moment(v_tilde), transfer.velocity_gradient(v_tilde))
+        if not shared:
+            return all_five()
+        with shared_reads(stencil.index, [v, a, v_tilde]):
+            return all_five()
+
+    return reads, fields
+
+
+def test_shared_reads_give_the_same_values_and_one_scatter_in_reverse():
+    separate, fields = _g2p_reads(shared=False)
+    shared, _ = _g2p_reads(shared=True)
+    got, want = jax.jit(shared)(*fields), jax.jit(separate)(*fields)
+    for g, w in zip(got, want):
+        np.testing.assert_array_equal(g, w)
+
+    cotangents = [jax.random.normal(jax.random.PRNGKey(30 + j), w.shape, w.dtype) for j, w in enumerate(want)]
+
+    def pullback(fn):
+        return lambda *fields: jax.vjp(fn, *fields)[1](tuple(cotangents))
+
+    with use_adjoint("structured"):
+        np.testing.assert_allclose(jax.jit(pullback(shared))(*fields), jax.jit(pullback(separate))(*fields),
+                                   rtol=1e-13, atol=1e-14)  # the same sums, per slot first
+        # five reads of three fields: one scatter of the cotangents shared, five (one per operator) otherwise
+        assert _count(pullback(shared), "scatter-add", *fields) == 1
+        assert _count(pullback(separate), "scatter-add", *fields) == 5
+    with use_adjoint("autodiff"):  # the reference adjoint reads once too, its values the same
+        np.testing.assert_allclose(jax.jit(pullback(shared))(*fields), jax.jit(pullback(separate))(*fields),
+                                   rtol=1e-13, atol=1e-14)
+
+
+def test_shared_reads_are_forgotten_when_the_block_ends():
+    """A field read inside the block is read again after it (no value outlives its block, so no tracer of
+    one trace reaches another)."""
+    reads, fields = _g2p_reads(shared=True)
+    inside = _count(lambda *f: reads(*f)[2:], "gather", *fields)
+    twice = _count(lambda *f: reads(*f)[2:] + reads(*f)[2:], "gather", *fields)
+    assert twice == 2 * inside > 0

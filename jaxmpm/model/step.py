@@ -43,6 +43,7 @@ from ..materials.base import Increment
 from ..physics.term import overrides
 from ..schemes.base import combine_damping
 from ..transfer.contractions import Weighted, as_terms
+from ..transfer.kernels import shared_reads
 from ..transfer.operators import Transfer, gather, safe_divide
 from ..transfer.operators import p2g as scatter_quantities
 
@@ -408,7 +409,8 @@ def g2p(sim, state, transfer: Transfer, constraint, grid: GridSolution, dt, fiel
     """Particle update by the scheme (with the terms' damping), the USL-/MUSL strain update, the
     terms' particle actions, then the material's state update with the step's increment.
     ``fields`` (the step's P2G fields) is needed by MUSL/USAVG+ when velocity fields exchange
-    momentum (the exchange of the re-extrapolated momenta).
+    momentum (the exchange of the re-extrapolated momenta).  Each nodal field is read at the
+    particles' slots once, however many operators use it (:func:`jaxmpm.transfer.kernels.shared_reads`).
 
     Args:
         sim: the :class:`jaxmpm.Simulation`.
@@ -422,6 +424,12 @@ def g2p(sim, state, transfer: Transfer, constraint, grid: GridSolution, dt, fiel
     Returns:
         The :class:`jaxmpm.State` at the step's end.
     """
+    read_together = [f for f in (grid.v, grid.a, grid.v_tilde) if f is not None]
+    with shared_reads(transfer.stencil.index, read_together):
+        return _g2p(sim, state, transfer, constraint, grid, dt, fields)
+
+
+def _g2p(sim, state, transfer: Transfer, constraint, grid: GridSolution, dt, fields: GridFields | None = None):
     damping = combine_damping(term.particle_damping(sim, state, transfer, grid) for term in sim.terms)
     V = state.v
     if "condition_dv" in grid:  # the conditions' impulse on the particles (jm.Prescribed(impulse=True))

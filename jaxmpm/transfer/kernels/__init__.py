@@ -19,6 +19,9 @@ subclass and one :func:`register_kernel` call.
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
+
 import equinox as eqx
 import jax
 
@@ -53,6 +56,55 @@ class Kernel(eqx.Module):
 
 
 _KERNELS: dict = {}
+
+# while a G2P reads the grid (shared_reads): the stencil's node numbers, the grid's fields read together, and
+# {key: (node numbers, nodal field, its slot values)}
+_SHARED_READS: contextvars.ContextVar = contextvars.ContextVar("jaxmpm_shared_reads", default=None)
+
+
+@contextlib.contextmanager
+def shared_reads(index, fields=()):
+    """Within the block, a kernel reads each nodal field at the slots of the node numbers ``index`` once,
+    however many G2P operators use it (APIC's S v~, its affine moment and the strain update's grad v~ all
+    read v~), and the ``fields`` (the grid's v, a and v~) together, as one field of all their components,
+    on the first read of any of them.  The values are the same; in reverse mode the operators' cotangents
+    are summed per slot and go back onto the nodes in one scatter instead of one per operator and field.
+    What was read is forgotten when the block ends.
+
+    Args:
+        index: the node numbers of the particles' stencil (``stencil.index``).
+        fields: nodal arrays (n, C) read together (default: none).
+    """
+    token = _SHARED_READS.set({"index": index, "fields": tuple(fields), "read": {}})
+    try:
+        yield
+    finally:
+        _SHARED_READS.reset(token)
+
+
+def shared_read(key, index, field, read, read_together):
+    """The slot values of nodal ``field`` at node numbers ``index``: ``read()`` outside :func:`shared_reads`;
+    inside, the values read earlier for the same (identical) ``index``, ``field`` and ``key``, else
+    ``read_together(fields)`` (a list of values, one per field) for the block's fields when ``field`` is
+    one of them, else ``read()``."""
+    memory = _SHARED_READS.get()
+    if memory is None:
+        return read()
+    known = memory["read"]
+
+    def keep(f, values):
+        known[key, id(index), id(f)] = (index, f, values)
+
+    found = known.get((key, id(index), id(field)))
+    if found is not None and found[0] is index and found[1] is field:
+        return found[2]
+    together = memory["fields"]
+    if memory["index"] is index and any(f is field for f in together):
+        for f, values in zip(together, read_together(together)):
+            keep(f, values)
+        return known[key, id(index), id(field)][2]
+    keep(field, read())
+    return known[key, id(index), id(field)][2]
 
 
 def register_kernel(policy: str, kernel: Kernel) -> Kernel:
@@ -106,4 +158,4 @@ def _stock_kernel(name: str, options: tuple, policy: str) -> Kernel:
 from .windowed import in_window  # noqa: E402
 from .xla import XLAKernel  # noqa: E402  (registers itself for both policies)
 
-__all__ = ["Kernel", "XLAKernel", "kernel", "register_kernel"]
+__all__ = ["Kernel", "XLAKernel", "kernel", "register_kernel", "shared_reads"]

@@ -38,7 +38,7 @@ from ..backend import (
 )
 from ..contractions import Affine, Divergence, Gradient, Hoop, PerSlot, Weighted, as_terms
 from ..shapes import rows
-from . import Kernel, register_kernel
+from . import Kernel, register_kernel, shared_read
 
 
 def _sum_over_stencil(a):
@@ -185,31 +185,47 @@ def nodal_values(stencil, u, hold: bool = True):
     index = stencil.index  # on the grid (shape functions clip it), so no bounds handling
     if u.ndim == 1:
         return materialise(u).at[index].get(mode="promise_in_bounds")
-    values = gather_components(index, u)
-    return materialise(values) if hold else values
+
+    def held(values):
+        return materialise(values) if hold else values
+
+    def read_together(fields):  # one gather of all the fields' components, split per field
+        values = gather_rows(index, [f.T for f in fields])
+        starts = [sum(f.shape[1] for f in fields[:j]) for j in range(len(fields) + 1)]
+        return [held(values[starts[j]:starts[j + 1]]) for j in range(len(fields))]
+
+    return shared_read(hold, index, u, lambda: held(gather_components(index, u)), read_together)
 
 
 def _gather_components(index, u):
     """[u[:, c] at every slot]: one gather of scalars per component, from the transposed (C, n) nodal
-    array.  The nodal field is evaluated once first: XLA would otherwise fuse its whole computation
-    (v = p/m, boundary conditions) into the gather and repeat it for every slot."""
-    return [uc.at[index].get(mode="promise_in_bounds") for uc in rows(materialise(u.T))]
+    array (:func:`gather_rows`)."""
+    return _gather_rows(index, [u.T])
 
 
-_gather_components_ruled = jax.custom_jvp(_gather_components)
+def _gather_rows(index, planar):
+    """[p[c] at every slot, for each planar nodal array p (C_f, n) of the list ``planar``]: one gather
+    of scalars per row.  Each array is evaluated once first: XLA would otherwise fuse its whole
+    computation (v = p/m, boundary conditions) into the gather and repeat it for every slot."""
+    return [uc.at[index].get(mode="promise_in_bounds") for p in planar for uc in rows(materialise(p))]
 
 
-@_gather_components_ruled.defjvp
-def _gather_components_jvp(primals, tangents):
-    # the tangent as one gather of (n, C) rows: its transpose is one scatter-add of rows, where the
-    # components' own gathers transpose to C scalar scatters (and their updates' copies)
-    index, u = primals
-    _, u_dot = tangents
-    gathered = u_dot.at[index].get(mode="promise_in_bounds")  # (K, N, C)
-    return _gather_components_ruled(index, u), [gathered[..., c] for c in range(u.shape[1])]
+_gather_rows_ruled = jax.custom_jvp(_gather_rows)
 
 
-gather_components = derivative_rule(_gather_components, _gather_components_ruled)
+@_gather_rows_ruled.defjvp
+def _gather_rows_jvp(primals, tangents):
+    # the tangent as one gather of (n, C) rows, all the arrays' components side by side: its transpose
+    # is one scatter-add of rows, where the components' own gathers transpose to C scalar scatters
+    index, planar = primals
+    _, planar_dot = tangents
+    nodal_dot = jnp.concatenate([p.T for p in planar_dot], axis=1)  # (n, C)
+    gathered = nodal_dot.at[index].get(mode="promise_in_bounds")  # (K, N, C)
+    return _gather_rows_ruled(index, planar), [gathered[..., c] for c in range(nodal_dot.shape[1])]
+
+
+gather_rows = derivative_rule(_gather_rows, _gather_rows_ruled)
+gather_components = derivative_rule(_gather_components, lambda index, u: gather_rows(index, [u.T]))
 
 
 def gather_planar(stencil, u, hold: bool = True):

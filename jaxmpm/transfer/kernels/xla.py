@@ -221,7 +221,9 @@ def _gather_rows_jvp(primals, tangents):
     _, planar_dot = tangents
     nodal_dot = jnp.concatenate([p.T for p in planar_dot], axis=1)  # (n, C)
     gathered = nodal_dot.at[index].get(mode="promise_in_bounds")  # (K, N, C)
-    return _gather_rows_ruled(index, planar), [gathered[..., c] for c in range(nodal_dot.shape[1])]
+    # the components as one split, whose transpose is one concatenation (indexing each would transpose to
+    # C zero-padded (K, N, C) arrays added up)
+    return _gather_rows_ruled(index, planar), list(jnp.unstack(gathered, axis=-1))
 
 
 gather_rows = derivative_rule(_gather_rows, _gather_rows_ruled)

@@ -424,7 +424,7 @@ def g2p(sim, state, transfer: Transfer, constraint, grid: GridSolution, dt, fiel
     Returns:
         The :class:`jaxmpm.State` at the step's end.
     """
-    read_together = [f for f in (grid.v, grid.a, grid.v_tilde) if f is not None]
+    read_together = [f for f in (grid.v, grid.a, grid.v_tilde) if f is not None and f.ndim == 2]  # (n, D) each
     with shared_reads(transfer.stencil.index, read_together):
         return _g2p(sim, state, transfer, constraint, grid, dt, fields)
 

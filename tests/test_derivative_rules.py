@@ -163,3 +163,21 @@ def test_shared_reads_are_forgotten_when_the_block_ends():
     inside = _count(lambda *f: reads(*f)[2:], "gather", *fields)
     twice = _count(lambda *f: reads(*f)[2:] + reads(*f)[2:], "gather", *fields)
     assert twice == 2 * inside > 0
+
+
+def test_a_read_inside_a_nested_trace_is_not_kept_for_the_outer_one():
+    """A group field read first inside a loop body (its values that trace's) is read again outside it,
+    not taken from the body's trace (which would leak its tracers); the values are the same."""
+    grid = jm.Grid((0.0, 0.0), (1.0, 1.0), (8, 8))
+    x = 0.1 + 0.8 * jax.random.uniform(jax.random.PRNGKey(40), (30, 2), jnp.float64)
+    stencil = jm.QuadraticBSpline().stencil(grid, x)
+    transfer = Transfer.build(stencil, jnp.ones(30), grid.num_nodes)
+    v = jax.random.normal(jax.random.PRNGKey(41), (grid.num_nodes, 2), jnp.float64)
+
+    def reads(v):
+        with shared_reads(stencil.index, [v]):
+            inside = jax.lax.fori_loop(0, 2, lambda i, total: total + transfer.gather(v), jnp.zeros((30, 2)))
+            return inside, transfer.gather(v)
+
+    inside, outside = jax.jit(reads)(v)
+    np.testing.assert_array_equal(inside, 2 * outside)

@@ -92,19 +92,21 @@ def shared_read(key, index, field, read, read_together):
         return read()
     known = memory["read"]
 
-    def keep(f, values):
-        known[key, id(index), id(f)] = (index, f, values)
+    def keep(f, values):  # only values of the field's own trace: a read inside a nested trace (a loop body, a
+        # stage boundary's branch) is used there and not kept, so none of its tracers escapes it
+        home = _trace_of(f)
+        if all(_trace_of(leaf) is home for leaf in jax.tree_util.tree_leaves(values)):
+            known[key, id(index), id(f)] = (index, f, values)
+        return values
 
     found = known.get((key, id(index), id(field)))
     if found is not None and found[0] is index and found[1] is field:
         return found[2]
     together = memory["fields"]
     if memory["index"] is index and any(f is field for f in together):
-        for f, values in zip(together, read_together(together)):
-            keep(f, values)
-        return known[key, id(index), id(field)][2]
-    keep(field, read())
-    return known[key, id(index), id(field)][2]
+        values = [keep(f, v) for f, v in zip(together, read_together(together))]
+        return next(v for f, v in zip(together, values) if f is field)
+    return keep(field, read())
 
 
 def register_kernel(policy: str, kernel: Kernel) -> Kernel:
@@ -155,6 +157,7 @@ def _stock_kernel(name: str, options: tuple, policy: str) -> Kernel:
     return _STOCK[key]
 
 
+from ..shapes import _trace_of  # noqa: E402
 from .windowed import in_window  # noqa: E402
 from .xla import XLAKernel  # noqa: E402  (registers itself for both policies)
 

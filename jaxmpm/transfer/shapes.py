@@ -48,13 +48,13 @@ def _kept(owner, key, compute):
     if key in cache:
         return cache[key]
     value = compute()
-    home = _trace_of(jax.tree_util.tree_leaves(owner)[0])
-    if all(_trace_of(leaf) is home for leaf in jax.tree_util.tree_leaves(value)):
+    home = trace_of(jax.tree_util.tree_leaves(owner)[0])
+    if all(trace_of(leaf) is home for leaf in jax.tree_util.tree_leaves(value)):
         cache[key] = value
     return value
 
 
-def _trace_of(a):
+def trace_of(a):
     """The trace a tracer belongs to; None for a concrete array; for a tracer that does not say (another
     JAX), a new object, so that nothing is kept."""
     if not isinstance(a, jax.core.Tracer):

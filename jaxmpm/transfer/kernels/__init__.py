@@ -94,8 +94,8 @@ def shared_read(key, index, field, read, read_together):
 
     def keep(f, values):  # only values of the field's own trace: a read inside a nested trace (a loop body, a
         # stage boundary's branch) is used there and not kept, so none of its tracers escapes it
-        home = _trace_of(f)
-        if all(_trace_of(leaf) is home for leaf in jax.tree_util.tree_leaves(values)):
+        home = trace_of(f)
+        if all(trace_of(leaf) is home for leaf in jax.tree_util.tree_leaves(values)):
             known[key, id(index), id(f)] = (index, f, values)
         return values
 
@@ -157,7 +157,7 @@ def _stock_kernel(name: str, options: tuple, policy: str) -> Kernel:
     return _STOCK[key]
 
 
-from ..shapes import _trace_of  # noqa: E402
+from ..shapes import trace_of  # noqa: E402
 from .windowed import in_window  # noqa: E402
 from .xla import XLAKernel  # noqa: E402  (registers itself for both policies)
 

@@ -69,7 +69,8 @@ def shared_reads(index, fields=()):
     read v~), and the ``fields`` (the grid's v, a and v~) together, as one field of all their components,
     on the first read of any of them.  The values are the same; in reverse mode the operators' cotangents
     are summed per slot and go back onto the nodes in one scatter instead of one per operator and field.
-    What was read is forgotten when the block ends.
+    What was read is forgotten when the block ends; what is read inside a nested trace (a loop body, a
+    stage boundary's branch) is used there and not kept.
 
     Args:
         index: the node numbers of the particles' stencil (``stencil.index``).

@@ -181,7 +181,9 @@ def nodal_values(stencil, u, hold: bool = True):
     gathering (K N, C) rows and transposing them, and consumers read each component directly.
     ``hold``: a vector field's gathered components are evaluated once, into their own buffers, before
     their consumers (a stage boundary); otherwise XLA may fuse each gather into every consumer
-    (backend tuning: :class:`XLAKernel`'s ``hold_gathers``)."""
+    (backend tuning: :class:`XLAKernel`'s ``hold_gathers``).  Inside a G2P's
+    :func:`jaxmpm.transfer.kernels.shared_reads` a vector field is read once, the grid's v, a and v~
+    together."""
     index = stencil.index  # on the grid (shape functions clip it), so no bounds handling
     if u.ndim == 1:
         return materialise(u).at[index].get(mode="promise_in_bounds")

@@ -48,13 +48,19 @@ def _kept(owner, key, compute):
     if key in cache:
         return cache[key]
     value = compute()
-    home = trace_of(jax.tree_util.tree_leaves(owner)[0])
-    if all(trace_of(leaf) is home for leaf in jax.tree_util.tree_leaves(value)):
+    if of_trace(value, jax.tree_util.tree_leaves(owner)[0]):
         cache[key] = value
     return value
 
 
-def trace_of(a):
+def of_trace(value, anchor) -> bool:
+    """Whether every array of ``value`` (a pytree) belongs to the trace of the array ``anchor``: a value
+    computed inside a nested trace does not, and keeping it for the outer one would leak its tracers."""
+    home = _trace_of(anchor)
+    return all(_trace_of(leaf) is home for leaf in jax.tree_util.tree_leaves(value))
+
+
+def _trace_of(a):
     """The trace a tracer belongs to; None for a concrete array; for a tracer that does not say (another
     JAX), a new object, so that nothing is kept."""
     if not isinstance(a, jax.core.Tracer):

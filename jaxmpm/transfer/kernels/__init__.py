@@ -27,6 +27,7 @@ import jax
 
 from ...core.errors import check
 from ..backend import POLICIES, active, kernel_in_force
+from ..shapes import of_trace
 
 
 class Kernel(eqx.Module):
@@ -95,8 +96,7 @@ def shared_read(key, index, field, read, read_together):
 
     def keep(f, values):  # only values of the field's own trace: a read inside a nested trace (a loop body, a
         # stage boundary's branch) is used there and not kept, so none of its tracers escapes it
-        home = trace_of(f)
-        if all(trace_of(leaf) is home for leaf in jax.tree_util.tree_leaves(values)):
+        if of_trace(values, f):
             known[key, id(index), id(f)] = (index, f, values)
         return values
 
@@ -158,7 +158,6 @@ def _stock_kernel(name: str, options: tuple, policy: str) -> Kernel:
     return _STOCK[key]
 
 
-from ..shapes import trace_of  # noqa: E402
 from .windowed import in_window  # noqa: E402
 from .xla import XLAKernel  # noqa: E402  (registers itself for both policies)
 

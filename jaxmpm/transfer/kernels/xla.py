@@ -192,17 +192,10 @@ def nodal_values(stencil, u, hold: bool = True):
         return materialise(values) if hold else values
 
     def read_together(fields):  # one gather of all the fields' components, split per field
-        values = gather_rows(index, [f.T for f in fields])
-        starts = [sum(f.shape[1] for f in fields[:j]) for j in range(len(fields) + 1)]
-        return [held(values[starts[j]:starts[j + 1]]) for j in range(len(fields))]
+        values = iter(gather_rows(index, [f.T for f in fields]))
+        return [held([next(values) for _ in range(f.shape[1])]) for f in fields]
 
     return shared_read(hold, index, u, lambda: held(gather_components(index, u)), read_together)
-
-
-def _gather_components(index, u):
-    """[u[:, c] at every slot]: one gather of scalars per component, from the transposed (C, n) nodal
-    array (:func:`gather_rows`)."""
-    return _gather_rows(index, [u.T])
 
 
 def _gather_rows(index, planar):
@@ -229,7 +222,12 @@ def _gather_rows_jvp(primals, tangents):
 
 
 gather_rows = derivative_rule(_gather_rows, _gather_rows_ruled)
-gather_components = derivative_rule(_gather_components, lambda index, u: gather_rows(index, [u.T]))
+
+
+def gather_components(index, u):
+    """[u[:, c] at every slot]: one gather of scalars per component, from the transposed (C, n) nodal
+    array (:func:`gather_rows`)."""
+    return gather_rows(index, [u.T])
 
 
 def gather_planar(stencil, u, hold: bool = True):

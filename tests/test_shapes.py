@@ -224,3 +224,52 @@ def test_a_stencil_forms_its_products_once_per_trace():
     np.testing.assert_array_equal(gradient, plain[1])
     np.testing.assert_array_equal(offset, plain[2])
     np.testing.assert_array_equal(inner, 2.0 * plain[0])
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+@pytest.mark.parametrize("shape", [jm.QuadraticBSpline(), jm.CubicBSpline()], ids=["quadratic", "cubic"])
+def test_kernel_rows_are_the_kernels_bits(shape, dtype):
+    """The B-splines evaluate each stencil row on its own piece of the kernel (``_kernel_rows``, the stencil's
+    form since 2026-11-28: the float64 mpm88 step 13-20% faster).  That is the kernel itself: at random
+    positions, on the nodes, at the cell centres and one unit in the last place on either side of them, where
+    the pieces meet, and past the grid's edges (clamped).  With XLA's optimisations on, the bits are the same
+    (so were the final states of eleven scenes, benchmarks/README.md); with most of them off (this suite's
+    setting) LLVM fuses a product and a difference into one FMA in one form and not the other, and up to 8%
+    of the values differ by one unit in the last place.  A particle that
+    has left the grid is weighted as if at the nearest position whose stencil lies on the grid:
+    non-negative weights summing to one."""
+    import jax
+
+    rng = np.random.default_rng(7)
+    grid = jm.Grid((0.0,), (64.0,), (64,))  # unit cells
+    nodes = np.arange(0.0, 65.0)
+    xi = np.concatenate([rng.uniform(-3.0, 67.0, 4096), nodes, nodes + 0.5, nodes + 0.25,
+                         np.nextafter(nodes + 0.5, -9.0), np.nextafter(nodes + 0.5, 99.0),
+                         np.nextafter(nodes, -9.0), np.nextafter(nodes, 99.0)]).astype(dtype)
+    cells, first = jax.jit(lambda xp: shape._cells(grid, xp))(jnp.asarray(xi[None, :]))  # clamped past the edges
+    r = cells - (first + jnp.arange(shape.nodes_per_axis, dtype=jnp.int32)[:, None]).astype(dtype)
+    ulp = np.finfo(dtype).eps
+
+    def both():  # the kernel and its rows, each compiled on its own
+        pairs = zip(jax.jit(shape._kernel)(r), jax.jit(shape._kernel_rows)(r))
+        return [(np.asarray(a), np.asarray(b)) for a, b in pairs]
+
+    for (whole, by_rows), largest in zip(both(), (1.0, 2.0)):  # this suite's flags; |N| <= 1, |dN/dr| <= 2
+        assert by_rows.dtype == dtype
+        np.testing.assert_allclose(by_rows, whole, rtol=0, atol=largest * ulp)
+    suite = jax.config.values["jax_disable_most_optimizations"]
+    jax.config.update("jax_disable_most_optimizations", False)  # XLA's defaults (the loop emitters stay)
+    try:
+        for whole, by_rows in both():
+            np.testing.assert_array_equal(by_rows, whole)
+    finally:
+        jax.config.update("jax_disable_most_optimizations", suite)
+
+    grid = jm.Grid((0.0,), (8.0,), (8,))
+    outside = jnp.asarray([[-0.7], [-0.2], [8.3], [9.6]], dtype=dtype)  # clipped stencils
+    edges = jnp.asarray([[shape.margin], [shape.margin], [8.0 - shape.margin], [8.0 - shape.margin]], dtype=dtype)
+    stencil, at_edges = (jax.jit(lambda x: shape.stencil(grid, x))(x) for x in (outside, edges))
+    np.testing.assert_array_equal(np.asarray(stencil.weight), np.asarray(at_edges.weight))
+    np.testing.assert_array_equal(np.asarray(stencil.index), np.asarray(at_edges.index))
+    assert np.all(np.asarray(stencil.weight) >= 0)
+    np.testing.assert_allclose(np.asarray(jnp.sum(stencil.weight, axis=0)), 1.0, rtol=0, atol=4 * ulp)

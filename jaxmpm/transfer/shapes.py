@@ -320,10 +320,11 @@ class ShapeFunction(eqx.Module):
         k = jnp.arange(k1, dtype=jnp.int32)[:, None]
         # the positions in cells and each axis's first node, evaluated once (a stage boundary on the CPU):
         # fused into the factors, they were evaluated again for each of the K1 rows of each factor and for
-        # each of the K node numbers (mpm88, float64: the stencil 17.7 -> 10 ns a particle)
-        cells, firsts = evaluate_once(lambda xp: self._cells(grid, xp), xp)
+        # each of the K node numbers (mpm88, float64, chunks of 16k particles: the stencil 17.7 -> 6.7 ns a
+        # particle with the B-splines' rows on their pieces, benchmarks/README.md "The stencil in two stages")
+        in_cells, firsts = evaluate_once(lambda xp: self._cells(grid, xp), xp)
         nodes_per_axis, ws, dws, dxs = [], [], [], []
-        for a, (xi, first) in enumerate(zip(rows(cells), rows(firsts))):
+        for a, (xi, first) in enumerate(zip(rows(in_cells), rows(firsts))):
             nodes = first[None, :] + k  # (K1, N)
             r = xi[None, :] - nodes.astype(xp.dtype)  # particle minus node, in cells
             w, dw = self._kernel_rows(r)
@@ -344,20 +345,19 @@ class ShapeFunction(eqx.Module):
         weighted as if at the nearest position whose stencil lies on the grid: xi clamped to
         [margin, cells - margin], and its first node kept on the grid.  Its weights are then a valid
         stencil's (non-negative, summing to one) on nodes that exist, and the run reports it as a failure;
-        inside the grid neither clamp changes anything.
-        """
+        inside the grid neither clamp changes anything."""
         lower = jnp.asarray(grid.lower, dtype=xp.dtype)
         h = jnp.asarray(grid.spacing, dtype=xp.dtype)
-        cells, firsts = [], []
+        in_cells, firsts = [], []
         for a, position in enumerate(rows(xp)):
             # the spacing behind a barrier: XLA turns a division by a known scalar into a product with its
             # reciprocal wherever it sees the constant, and only there (not in a sharded run's branches),
             # so the same particle got cells one unit in the last place apart in the two programs
             xi = (position - lower[a]) / jax.lax.optimization_barrier(h[a])  # (N,)
             xi = jnp.clip(xi, self.margin, grid.cells[a] - self.margin)
-            cells.append(xi)
+            in_cells.append(xi)
             firsts.append(jnp.clip(self._base(xi), 0, grid.cells[a] + 1 - self.nodes_per_axis))
-        return jnp.stack(cells), jnp.stack(firsts)
+        return jnp.stack(in_cells), jnp.stack(firsts)
 
     def inside(self, grid, x):
         """True where the particle's whole stencil lies on the grid.  A numpy ``x`` is checked in
@@ -572,10 +572,10 @@ class CubicBSpline(ShapeFunction):
         return w, d
 
     def _kernel_rows(self, r):
-        # first node floor(xi) - 1, so r = (r0, r0 - 1, r0 - 2, r0 - 3) with r0 in [1, 2): rows 0 and 3 on the
-        # outer piece, rows 1 and 2 on the inner one, except where |r| = 1 exactly (row 2 for a particle on a
-        # node, row 1 at the clamped edge, :meth:`ShapeFunction._cells`): there the kernel takes the outer
-        # piece's value, 1/6, where the inner one's rounds to 2/3 - 1/2
+        # first node floor(xi) - 1, so r = (r0, r0 - 1, r0 - 2, r0 - 3) with r0 in [1, 2] (2 at the clamped
+        # edge, :meth:`ShapeFunction._cells`): rows 0 and 3 on the outer piece, rows 1 and 2 on the inner one,
+        # except where |r| = 1 exactly (row 2 for a particle on a node, row 1 at the clamped edge): there the
+        # kernel takes the outer piece's value, 1/6, where the inner one's rounds to 2/3 - 1/2
         def inner(r, a):
             return 0.5 * a**3 - a * a + 2.0 / 3.0, 1.5 * a * r - 2.0 * r
 

@@ -1,7 +1,8 @@
 """The persistent compilation cache (jaxmpm/run/cache.py): on by default in a new process, in
 ``$JAXMPM_CACHE_DIR``; off with ``JAXMPM_CACHE=0`` or ``jm.compilation_cache(False)``; a folder set
 through JAX is left alone; two processes can fill one folder at once; a corrupt entry is compiled
-again, not fatal; the folder stays under its size bound; clear errors for bad arguments.
+again, not fatal; the folder stays under its size bound; a program compiled for another number of CPUs is not read back;
+clear errors for bad arguments.
 
 The default is decided at import, so it is tested in subprocesses (this process's cache is
 tests/conftest.py's); they are few and run two at a time."""
@@ -185,28 +186,72 @@ def entry(n: int) -> bytes:
 
 def test_folder_cache_atomic_corrupt_and_bounded(tmp_path):
     store = cache.FolderCache(tmp_path, max_bytes=10_000)
+    name = store._file  # an entry's file: <key>-cpus<N>-cache
     assert store.get("a") is None
     value = entry(3000)
     store.put("a", value)
-    assert store.get("a") == value and (tmp_path / "a-cache").exists()
+    assert store.get("a") == value and (name("a")).exists()
     store.put("a", entry(3000))  # an entry is never replaced (another process's equal program)
     assert store.get("a") == value
     assert not list(tmp_path.glob("*.tmp"))  # written to a temporary file, renamed into place
-    os.truncate(tmp_path / "a-cache", 1000)  # truncated: a miss, and gone so that it is written again
-    assert store.get("a") is None and not (tmp_path / "a-cache").exists()
+    os.truncate(name("a"), 1000)  # truncated: a miss, and gone so that it is written again
+    assert store.get("a") is None and not (name("a")).exists()
     store.put("a", value)
     assert store.get("a") == value
-    (tmp_path / "b-cache").write_bytes(b"not compressed")
-    assert store.get("b") is None and not (tmp_path / "b-cache").exists()
+    (name("b")).write_bytes(b"not compressed")
+    assert store.get("b") is None and not (name("b")).exists()
     killed = tmp_path / "c-cache.123-abcd.tmp"  # a writer killed mid-write, long ago
     killed.write_bytes(b"half")
     old = time.time() - 2 * 3600
     os.utime(killed, (old, old))
-    os.utime(tmp_path / "a-cache", (old, old))  # "a" used longest ago: the first to go
+    os.utime(name("a"), (old, old))  # "a" used longest ago: the first to go
     for key in "def":
         store.put(key, entry(3000))
-    assert not (tmp_path / "a-cache").exists() and not killed.exists()
+    assert not (name("a")).exists() and not killed.exists()
     kept = [p.name for p in tmp_path.glob("*-cache")]
-    assert sum((tmp_path / p).stat().st_size for p in kept) <= 10_000 and "f-cache" in kept
+    assert sum((tmp_path / p).stat().st_size for p in kept) <= 10_000 and name("f").name in kept
     store.put("huge", entry(20_000))  # larger than the bound: not kept
-    assert not (tmp_path / "huge-cache").exists()
+    assert not (name("huge")).exists()
+
+
+PINNED = textwrap.dedent("""
+    import os, sys
+    if sys.argv[1:]:  # pinned to one CPU before JAX starts
+        os.sched_setaffinity(0, {int(sys.argv[1])})
+    import jax, jax.numpy as jnp, jax.monitoring
+    import jaxmpm
+    events = []
+    jax.monitoring.register_event_listener(lambda e, **kw: events.append(e))
+    compiled = jax.jit(lambda x: jnp.sin(x) * 2.0 + 1.0).lower(jnp.zeros(1 << 22, jnp.float32)).compile()
+    print(len(os.sched_getaffinity(0)), "outer_dimension_partitions" in compiled.as_text(),
+          events.count("/jax/compilation_cache/cache_hits"))
+""")
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not hasattr(os, "sched_getaffinity") or len(os.sched_getaffinity(0)) < 2,
+                    reason="needs a process that may run on two CPUs or more")
+def test_a_program_compiled_on_one_cpu_is_not_read_back_on_more(tmp_path):
+    """XLA:CPU splits a large kernel into as many parallel tasks as the compiling process has CPUs, and JAX's
+    cache key does not hold that count: a program compiled under ``taskset -c 0`` read back by an unpinned
+    process ran on one thread (mpm88 at 131k particles 1.5-1.6x slower).  Entries are kept per CPU count."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("JAXMPM_CACHE", "JAX_COMPILATION_CACHE",
+                                                                      "JAX_PERSISTENT_CACHE"))}
+    env.update(JAXMPM_CACHE_DIR=str(tmp_path / "xla"), JAX_PLATFORMS="cpu")
+
+    def run(cpu):
+        pin = [] if cpu is None else [str(cpu)]
+        out = subprocess.run([sys.executable, "-c", PINNED, *pin], env=env, capture_output=True, text=True,
+                             timeout=300)
+        assert out.returncode == 0, out.stderr
+        count, split, hits = out.stdout.split()
+        return int(count), split == "True", int(hits)
+
+    one = min(os.sched_getaffinity(0))
+    assert run(one) == (1, False, 0)  # compiled on one CPU: one task, kept
+    every, split, hits = run(None)
+    assert every >= 2 and split and hits == 0  # compiled again for all the CPUs, in parallel tasks
+    for cpus, count, parallel in ((None, every, True), (one, 1, False)):  # each read back where it belongs
+        again = run(cpus)
+        assert again[:2] == (count, parallel) and again[2] > 0, again
+    assert {p.name.split("-cpus")[1] for p in (tmp_path / "xla").glob("*-cache")} == {"1-cache", f"{every}-cache"}

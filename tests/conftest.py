@@ -115,3 +115,29 @@ def _release_compiled_programs():
     Modules share few programs, so the recompilation this costs is small."""
     yield
     jax.clear_caches()
+
+
+BENCHMARKS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks")
+
+
+@pytest.fixture(scope="module")
+def benchmark_script():
+    """A loader of the scripts in benchmarks/: ``benchmark_script("gpu.py")`` is that script as a module.
+    The scripts import their helpers (``_results``, ``gpu``...) by name, so benchmarks/ is on the path while
+    the test module runs."""
+    import importlib.util
+    import sys
+
+    sys.path.insert(0, BENCHMARKS)
+
+    def load(name: str):
+        spec = importlib.util.spec_from_file_location(f"benchmark_{name.removesuffix('.py')}",
+                                                      os.path.join(BENCHMARKS, name))
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        return module
+
+    try:
+        yield load
+    finally:
+        sys.path.remove(BENCHMARKS)

@@ -2,25 +2,13 @@
 table and CSV; every jaxmpm run it times ends stable, and Taichi, where importable, ends where jaxmpm does."""
 
 import csv
-import importlib.util
-import sys
-from pathlib import Path
 
 import pytest
 
-BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
-
 
 @pytest.fixture(scope="module")
-def gpu():
-    sys.path.insert(0, str(BENCHMARKS))  # the scripts import their helpers (_results, ...) by name
-    try:
-        spec = importlib.util.spec_from_file_location("gpu_benchmark", BENCHMARKS / "gpu.py")
-        module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
-        yield module
-    finally:
-        sys.path.remove(str(BENCHMARKS))
+def gpu(benchmark_script):
+    return benchmark_script("gpu.py")
 
 
 @pytest.mark.slow

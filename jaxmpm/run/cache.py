@@ -79,13 +79,12 @@ def compilation_cache(path=None, *, enabled: bool = True, min_compile_seconds: f
 
     A folder set through JAX itself (``JAX_COMPILATION_CACHE_DIR``, or
     ``jax.config.update("jax_compilation_cache_dir", ...)`` before the first compilation) is
-    JAX's: jaxmpm neither replaces nor switches it off, and ``compilation_cache()`` returns it (JAX's
-    own entries are not kept per number of CPUs: see below).
-    Entries are keyed by the program, the JAX and XLA versions, the compiler options, the
-    device and the number of CPUs the process may run on (a program compiled under ``taskset -c 0``
-    runs on one thread, so it is not read back by a process with more); they are safe to delete at
-    any time, and several processes may use one folder at
-    once.  An entry that cannot be read (a truncated or corrupt file) is deleted and compiled
+    JAX's: jaxmpm neither replaces nor switches it off, and ``compilation_cache()`` returns it (its
+    entries are not kept per number of CPUs, as jaxmpm's are).  jaxmpm's entries are keyed by the
+    program, the JAX and XLA versions, the compiler options, the device and the number of CPUs the
+    process may run on (a program compiled under ``taskset -c 0`` runs on one thread, so it is not read
+    back by a process with more); they are safe to delete at any time, and several processes may use
+    one folder at once.  An entry that cannot be read (a truncated or corrupt file) is deleted and compiled
     again.  Keep one folder per machine: the folder is trusted, so do not share it with users you
     do not trust.
 
@@ -259,11 +258,11 @@ class FolderCache(_CacheBase):
     """JAX's persistent compilation cache in one folder, safe for several processes at once.
 
     One file per entry, named ``<key>-cpus<N>-cache``: JAX's key, and the CPUs the process may run
-    on (:func:`schedulable_cpus`), which JAX's key does not hold though XLA:CPU compiles for them.  It is
-    written to a temporary file and renamed into place (a reader sees a whole entry or none).  ``get`` checks
-    that the entry decompresses; one that does not (truncated, corrupt) is deleted, so that the
-    program is compiled and written again.  Reading an entry marks it used (its modification
-    time); when the folder grows past ``max_bytes`` the entries used longest ago are deleted,
+    on (:func:`schedulable_cpus`), which JAX's key does not hold though XLA:CPU compiles for them.
+    It is written to a temporary file and renamed into place (a reader sees a whole entry or none).
+    ``get`` checks that the entry decompresses; one that does not (truncated, corrupt) is deleted,
+    so that the program is compiled and written again.  Reading an entry marks it used (its
+    modification time); when the folder grows past ``max_bytes`` the entries used longest ago are deleted,
     down to 3/4 of it, with the temporary files of writers killed mid-write.
 
     Args:

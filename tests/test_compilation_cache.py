@@ -1,8 +1,8 @@
 """The persistent compilation cache (jaxmpm/run/cache.py): on by default in a new process, in
 ``$JAXMPM_CACHE_DIR``; off with ``JAXMPM_CACHE=0`` or ``jm.compilation_cache(False)``; a folder set
 through JAX is left alone; two processes can fill one folder at once; a corrupt entry is compiled
-again, not fatal; the folder stays under its size bound; a program compiled for another number of CPUs is not read back;
-clear errors for bad arguments.
+again, not fatal; the folder stays under its size bound; a program compiled for another number of
+CPUs is not read back; clear errors for bad arguments.
 
 The default is decided at import, so it is tested in subprocesses (this process's cache is
 tests/conftest.py's); they are few and run two at a time."""
@@ -190,16 +190,16 @@ def test_folder_cache_atomic_corrupt_and_bounded(tmp_path):
     assert store.get("a") is None
     value = entry(3000)
     store.put("a", value)
-    assert store.get("a") == value and (name("a")).exists()
+    assert store.get("a") == value and name("a").exists()
     store.put("a", entry(3000))  # an entry is never replaced (another process's equal program)
     assert store.get("a") == value
     assert not list(tmp_path.glob("*.tmp"))  # written to a temporary file, renamed into place
     os.truncate(name("a"), 1000)  # truncated: a miss, and gone so that it is written again
-    assert store.get("a") is None and not (name("a")).exists()
+    assert store.get("a") is None and not name("a").exists()
     store.put("a", value)
     assert store.get("a") == value
-    (name("b")).write_bytes(b"not compressed")
-    assert store.get("b") is None and not (name("b")).exists()
+    name("b").write_bytes(b"not compressed")
+    assert store.get("b") is None and not name("b").exists()
     killed = tmp_path / "c-cache.123-abcd.tmp"  # a writer killed mid-write, long ago
     killed.write_bytes(b"half")
     old = time.time() - 2 * 3600
@@ -207,11 +207,11 @@ def test_folder_cache_atomic_corrupt_and_bounded(tmp_path):
     os.utime(name("a"), (old, old))  # "a" used longest ago: the first to go
     for key in "def":
         store.put(key, entry(3000))
-    assert not (name("a")).exists() and not killed.exists()
+    assert not name("a").exists() and not killed.exists()
     kept = [p.name for p in tmp_path.glob("*-cache")]
     assert sum((tmp_path / p).stat().st_size for p in kept) <= 10_000 and name("f").name in kept
     store.put("huge", entry(20_000))  # larger than the bound: not kept
-    assert not (name("huge")).exists()
+    assert not name("huge").exists()
 
 
 PINNED = textwrap.dedent("""

@@ -6,10 +6,10 @@ with its source line, and how much faster it runs with more threads.
     python benchmarks/cpu_profile.py --top 60 --markdown profile.md
 
 Each setting runs in its own process (XLA sizes its thread pool, and the compiler its parallel partitions, from
-the CPUs a process may use): first pinned to one CPU, then on all of them.  Each compiles ``--steps`` steps of
-``sim.step`` in one ``fori_loop`` (mpm88 as ``jm.scene`` builds it, the backend table's chunks included), runs
-it once, then traces three calls with ``jax.profiler`` and sums the kernels' durations by name.  A kernel is one
-XLA fusion (or a scatter, a copy, a dot); its row gives:
+the CPUs a process may use): first pinned to one CPU through its affinity mask (Linux), then on all of them.
+Each compiles ``--steps`` steps of ``sim.step`` in one ``fori_loop`` (mpm88 as ``jm.scene`` builds it, the
+backend table's chunks included), runs it once, then traces three calls with ``jax.profiler`` and sums the
+kernels' durations by name.  A kernel is one XLA fusion (or a scatter, a copy, a dot); its row gives:
 
 * its time per step on one core and on all, and the ratio (1.9 on two cores: it parallelises; about 1: it runs
   on one thread, or its parallel tasks cost what they save);
@@ -33,6 +33,7 @@ import gzip
 import json
 import os
 import re
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -142,6 +143,7 @@ def worker(args) -> None:
         for _ in range(calls):
             jax.block_until_ready(compiled(state))
     trace = json.load(gzip.open(glob.glob(os.path.join(folder, "**", "*.trace.json.gz"), recursive=True)[0]))
+    shutil.rmtree(folder, ignore_errors=True)
     events = trace["traceEvents"] if isinstance(trace, dict) else trace
     total, count = collections.Counter(), collections.Counter()
     for e in events:
@@ -202,9 +204,15 @@ def main(argv=None) -> int:
     if args.worker:
         worker(args)
         return 0
+    if not hasattr(os, "sched_getaffinity"):
+        print("cpu_profile.py pins a process to one CPU through its affinity mask: Linux only", file=sys.stderr)
+        return 2
     folder = Path(tempfile.mkdtemp(prefix="jaxmpm-cpu-profile-"))
-    one = run_worker("one", args, folder)
-    every = run_worker("all", args, folder)
+    try:
+        one = run_worker("one", args, folder)
+        every = run_worker("all", args, folder)
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
     rows, summary = table(one, every, args.top)
     head = f"mpm88, {args.particles} particles, {args.dtype}, {args.steps} steps per call"
     print(head)

@@ -2,7 +2,6 @@
 documents; its numbers are the benchmark's business, not the test's."""
 
 import csv
-import importlib.util
 import subprocess
 import sys
 from pathlib import Path
@@ -12,15 +11,8 @@ import pytest
 SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "compile_time.py"
 
 
-def _fields():
-    spec = importlib.util.spec_from_file_location("compile_time", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)  # imports no JAX at module level
-    return module.FIELDS
-
-
 @pytest.mark.slow
-def test_compile_time_quick_writes_its_columns(tmp_path):
+def test_compile_time_quick_writes_its_columns(tmp_path, benchmark_script):
     path = tmp_path / "compile_time.csv"
     out = subprocess.run([sys.executable, str(SCRIPT), "--quick", "--scenes", "heat1d", "--programs", "rollout",
                           "--steps", "10", "--no-recompiles", "--csv", str(path)],
@@ -29,7 +21,7 @@ def test_compile_time_quick_writes_its_columns(tmp_path):
     with open(path) as f:
         reader = csv.DictReader(f)
         rows = list(reader)
-    assert reader.fieldnames == _fields()
+    assert reader.fieldnames == benchmark_script("compile_time.py").FIELDS  # it imports no JAX at module level
     assert [(r["scene"], r["program"], r["steps"]) for r in rows] == [("heat1d", "rollout", "10")]
     row = rows[0]
     for name in ("trace_s", "lower_s", "compile_s", "run_s", "warm_s", "flops"):

@@ -24,6 +24,11 @@ Taichi is not a dependency of jaxmpm; install it to run this file::
     python benchmarks/vs_taichi.py --quick               # 8k only, fewer steps
     python benchmarks/vs_taichi.py --dtype f32 f64       # both precisions, each side by side
     python benchmarks/vs_taichi.py --quick --t-end 1     # also the full t = 1 run, f32 and f64
+    python benchmarks/vs_taichi.py --cpu-devices 2       # jaxmpm with 2 CPU devices sharing the particles
+
+``--cpu-devices D`` starts JAX with D CPU devices (``jax_num_cpu_devices``), among which jaxmpm's steps
+share their particles where its table says (:mod:`jaxmpm.model.devices`); the "devices" column says how
+many a run used.
 
 ``--t-end T`` also runs the 8192-particle scene to time T in Taichi (f32) and jaxmpm (f32 and
 f64, ``sim.run`` with its instability check) and prints bulk diagnostics of the final state.
@@ -34,7 +39,6 @@ Writes ``benchmarks/results/vs_taichi.csv`` (or ``--csv``).
 from __future__ import annotations
 
 import argparse
-import csv
 import os
 import platform
 import sys
@@ -42,6 +46,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from _results import write_csv
 from _taichi_mpm import BOUND, DT, GRAVITY, E, timed
 
 DEFAULT_CSV = Path(__file__).resolve().parent / "results" / "vs_taichi.csv"
@@ -60,6 +65,9 @@ def parse_args(argv=None):
     p.add_argument("--dtype", nargs="+", choices=["f32", "f64"], default=["f32"],
                    help="precisions to run, each in both engines (default f32)")
     p.add_argument("--csv", default=str(DEFAULT_CSV))
+    p.add_argument("--cpu-devices", type=int, default=0,
+                   help="start JAX with this many CPU devices, which jaxmpm's steps share their particles among "
+                        "where its table says (default: JAX's own count, one)")
     p.add_argument("--t-end", type=float, default=0.0,
                    help="also run 8192 particles to this time in Taichi and jaxmpm (f32, f64); 0 = skip")
     args = p.parse_args(argv)
@@ -222,24 +230,29 @@ def main(argv=None) -> int:
     ti = import_taichi()
     import jax
 
+    if args.cpu_devices:
+        jax.config.update("jax_num_cpu_devices", args.cpu_devices)  # before JAX's first computation
+
     if args.t_end > 0 or "f64" in args.dtype:
         jax.config.update("jax_enable_x64", True)  # for the f64 runs; the f32 runs are cast to f32
 
     import jaxmpm as jm
 
     print(f"jax {jax.__version__} ({jax.devices()[0].platform}), taichi {'.'.join(map(str, ti.__version__))}, "
-          f"{os.cpu_count()} CPUs, {platform.processor() or platform.machine()}, load {os.getloadavg()[0]:.2f}")
+          f"{os.cpu_count()} CPUs, {platform.processor() or platform.machine()}, load {os.getloadavg()[0]:.2f}, "
+          f"{len(jax.devices())} JAX device(s)")
     print(f"mpm88: {N_GRID}^2 grid, dt = {DT}; {args.steps} timed steps (best of {args.repeats}) "
           f"after {args.warmup} warm-up steps\n")
     rows = []
     header = f"{'dtype':>5} | {'particles':>9} | {'Taichi p-steps/s':>16} | {'jaxmpm p-steps/s':>16} | " \
              f"{'jaxmpm/Taichi':>13} | {'y_cm Taichi':>11} | {'y_cm jaxmpm':>11} | {'KE/m Taichi':>11} | " \
-             f"{'KE/m jaxmpm':>11}"
+             f"{'KE/m jaxmpm':>11} | {'devices':>7}"
     print(header)
     print("-" * len(header))
     for dtype, n in [(dtype, n) for dtype in args.dtype for n in args.particles]:
         setup = jm.scene("mpm88", n_particles=n, dtype=dtype)
         x0, v0 = np.asarray(setup.state.x), np.asarray(setup.state.v)
+        devices = jm.backend_info(setup.sim, setup.state)["particle_devices"]
         # each engine on a quiet machine: Taichi's CPU worker threads keep both cores busy for a
         # while after its last kernel (measured: jaxmpm timed right after Taichi ran at 0.4-0.6x
         # its own speed), so jaxmpm goes first, Taichi's runtime is shut down after its run, and
@@ -251,20 +264,15 @@ def main(argv=None) -> int:
         rate_ti, rate_jm = n * args.steps / t_ti, n * args.steps / t_jm
         (c_ti, k_ti), (c_jm, k_jm) = summary(x_ti, v_ti), summary(x_jm, v_jm)
         print(f"{dtype:>5} | {n:>9} | {rate_ti:>16.4g} | {rate_jm:>16.4g} | {rate_jm / rate_ti:>13.3f} | "
-              f"{c_ti[1]:>11.5f} | {c_jm[1]:>11.5f} | {k_ti:>11.5f} | {k_jm:>11.5f}", flush=True)
+              f"{c_ti[1]:>11.5f} | {c_jm[1]:>11.5f} | {k_ti:>11.5f} | {k_jm:>11.5f} | {devices:>7}", flush=True)
         rows.append(dict(dtype=dtype, particles=n, grid=f"{N_GRID}x{N_GRID}", steps=args.steps, repeats=args.repeats,
                          taichi_s=t_ti, jaxmpm_s=t_jm, taichi_particle_steps_per_s=rate_ti,
                          jaxmpm_particle_steps_per_s=rate_jm, ratio_jaxmpm_over_taichi=rate_jm / rate_ti,
                          y_cm_taichi=float(c_ti[1]), y_cm_jaxmpm=float(c_jm[1]), ke_taichi=k_ti, ke_jaxmpm=k_jm,
-                         jax=jax.__version__, taichi=".".join(map(str, ti.__version__)), cpus=os.cpu_count(),
+                         particle_devices=devices, jax=jax.__version__, taichi=".".join(map(str, ti.__version__)),
+                         cpus=os.cpu_count(),
                          load=os.getloadavg()[0]))
-    path = Path(args.csv)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
-    print(f"\nwrote {path}")
+    print(f"\nwrote {write_csv(args.csv, list(rows[0]), rows)}")
     if args.t_end > 0:
         full_run(ti, args.t_end)
     return 0

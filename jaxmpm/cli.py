@@ -32,7 +32,10 @@ NO_CACHE_HELP = ("do not keep compiled programs on disk.  By default they are ke
 CACHE_HELP = "the default (the cache is on unless --no-cache); accepted for older command lines"
 
 #: the options of ``jaxmpm run`` that are not scene options (kept out of the stored command)
-RUN_ONLY = ("out", "force", "no_progress", "command", "cache", "no_cache", "devices", "rebalance_every")
+RUN_ONLY = ("out", "force", "no_progress", "command", "cache", "no_cache", "devices", "rebalance_every", "cpu_devices")
+CPU_DEVICES_HELP = ("start JAX with N CPU devices: each step shares its particles among them where the backend "
+                    "table says (2D from 60k particles; README, \"Particles shared among the CPU's devices\"), and "
+                    "--devices may use them (default: JAX's one CPU device)")
 
 
 class _OneLineErrors(argparse.ArgumentParser):
@@ -251,13 +254,14 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--devices", type=int, default=None, metavar="N",
                      help="run on the first N local devices, the grid cut into N slabs along x "
                           "(jaxmpm.parallel.ShardedSimulation; docs/scaling.md); the same file as one device. On a "
-                          "CPU, N devices need XLA_FLAGS=--xla_force_host_platform_device_count=N. `jaxmpm resume` "
-                          "continues such a file on one device, or on several with --devices (default: one device, "
-                          "no sharding)")
+                          "CPU, N devices need --cpu-devices N (or "
+                          "XLA_FLAGS=--xla_force_host_platform_device_count=N). `jaxmpm resume` continues such a "
+                          "file on one device, or on several with --devices (default: one device, no sharding)")
     run.add_argument("--rebalance-every", type=int, default=None, metavar="K",
                      help="with --devices: move the slab boundaries with the particles every K steps (and before a "
                           "step that would overflow a device's buffer; docs/scaling.md, load balance); default: "
                           "fixed equal slabs")
+    run.add_argument("--cpu-devices", type=int, default=None, metavar="N", help=CPU_DEVICES_HELP)
     run.add_argument("--out", required=True, metavar="FILE.h5",
                      help="HDF5 output file (an XDMF sidecar goes beside it)")
     run.add_argument("--force", action="store_true", help="overwrite --out and its XDMF sidecar if they exist")
@@ -277,6 +281,7 @@ def build_parser() -> argparse.ArgumentParser:
     resume.add_argument("--rebalance-every", type=int, default=None, metavar="K",
                         help="with --devices: move the slab boundaries with the particles every K steps, as "
                              "`jaxmpm run --rebalance-every K` (default: fixed equal slabs)")
+    resume.add_argument("--cpu-devices", type=int, default=None, metavar="N", help=CPU_DEVICES_HELP)
     resume.add_argument("--no-progress", action="store_true", help="no progress bar")
     resume.add_argument("--no-cache", action="store_true", help=NO_CACHE_HELP)
     resume.add_argument("--cache", action="store_true", help=CACHE_HELP)
@@ -301,6 +306,8 @@ def main(argv=None) -> int:
         from .run.cache import compilation_cache
 
         compilation_cache(False)
+    if getattr(args, "cpu_devices", None) is not None:  # before JAX's first computation
+        start_cpu_devices(args.cpu_devices)
     if args.command == "scenes":
         return list_scenes()
     if args.command == "resume":
@@ -308,6 +315,20 @@ def main(argv=None) -> int:
     if args.command in PLOT_COMMANDS:
         return run_plot_command(args)
     return run_scene(args)
+
+
+def start_cpu_devices(count) -> None:
+    """``--cpu-devices N``: JAX's CPU backend started with ``count`` devices (``jax_num_cpu_devices``); exits
+    with the reason where ``count`` is not a positive integer or JAX has already computed in this process."""
+    import jax
+
+    if isinstance(count, bool) or not isinstance(count, int) or count < 1:
+        fail(f"--cpu-devices = {count!r} must be a positive integer (the CPU devices JAX starts with)")
+    try:
+        jax.config.update("jax_num_cpu_devices", count)
+    except RuntimeError:
+        fail(f"--cpu-devices {count}: JAX has already computed in this process, so its device count is fixed "
+             f"({len(jax.devices())}); give the option to a new `jaxmpm` process")
 
 
 def _negative_values_joined(argv: list) -> list:
@@ -673,6 +694,7 @@ def run_setup(setup, args, options: dict, resume: bool = False) -> int:
         raise SystemExit(130) from None
     files = [args.out] + [p for p in xdmf_paths(args.out) if os.path.exists(p)]
     p1 = np.asarray(sim.diagnostics(final)["momentum"], dtype=float)
+    shared = jm.backend_info(sim, state)["particle_devices"] if sharded is None else 1
     scheme = sim.scheme
     name = type(scheme).__name__
     order = getattr(scheme, "order", None)
@@ -686,6 +708,8 @@ def run_setup(setup, args, options: dict, resume: bool = False) -> int:
         ("shape / update", f"{type(sim.shape).__name__} / {sim.update}"),
         ("dtype", str(state.x.dtype)),
         ("particles", f"{n}"),
+        *([] if sharded is not None or shared < 2 else
+          [("particle devices", f"{shared} CPU devices, each holding the whole grid")]),
         *([] if sharded is None else [("devices", f"{sharded.devices} (slabs along x), {sharded.stats['migrated']} "
                                                   "particle moves between them"
                                                   + (f", {sharded.stats.get('rebalances', 0)} rebalance(s)"

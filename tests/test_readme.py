@@ -55,6 +55,7 @@ BLOCKS = {
     "Interrupt and resume": Block([('jm.scene("bar", t_end=4.0, frames=20)', 'jm.scene("bar", t_end=0.5, frames=2)',
                                     1)]),
     "Transfer kernels: XLA or fused Pallas": Block(),  # one model, no run
+    "Particles shared among the CPU's devices": Block(),  # one model, no run (2 CPU devices in its own process)
     "One simulation on several devices": Block([("setup.dt, 200)", "setup.dt, 20)", 1)]),
     "Colliders, tractions, transport and symmetry planes": Block([("setup.dt, 200)", "setup.dt, 20)", 1)]),
     "Load balance: slabs that move with the particles": Block([('jm.scene("column_collapse")',

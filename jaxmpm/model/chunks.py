@@ -107,9 +107,11 @@ def step_in_chunks(sim, state, dt, per_chunk: int):
     return stepped(arrays, state, dt)
 
 
-def chunked_step(sim, state, dt, per_chunk: int):
+def chunked_step(sim, state, dt, per_chunk: int, axis_name=None):
     """One USL step of ``sim`` from ``state`` over chunks of about ``per_chunk`` particles (module
-    docstring); ``chunk_obstacle`` must be None.  Equal to ``jaxmpm.model.step.step`` to round-off."""
+    docstring); ``chunk_obstacle`` must be None.  Equal to ``jaxmpm.model.step.step`` to round-off.
+    ``axis_name``: ``state`` is one device's share of the particles inside a ``shard_map`` over that
+    axis (:mod:`jaxmpm.model.devices`): the nodal sums and the dissipated energy are added across it."""
     dt = jnp.asarray(dt, state.x.dtype)
     constraint = sim.constraint(state.x.dtype)
     count = num_chunks(state.x.shape[0], per_chunk)
@@ -125,6 +127,8 @@ def chunked_step(sim, state, dt, per_chunk: int):
     first = _with_particle_part(state, jax.tree_util.tree_map(lambda a: a[0], split))
     zeros = jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), jax.eval_shape(nodal_sums, first))
     nodal, _ = jax.lax.scan(add_chunk, zeros, split)
+    if axis_name is not None:  # the devices' shares of P2G's sums, added: every device holds the whole grid's
+        nodal = jax.lax.psum(nodal, axis_name)
     mass = nodal.pop("mass")
     # 2. the grid solve: no local term reads the stencil there
     fields = GridFields(Transfer(None, None, mass, sim.field_nodes), nodal)
@@ -136,10 +140,13 @@ def chunked_step(sim, state, dt, per_chunk: int):
         new = g2p(sim, chunk, transfer, constraint, solution, dt, fields)
         return _particle_part(new), new.dissipated - state.dissipated
 
+    def total(dissipated):  # this chunk's or device's share of the dissipated energy, or every device's
+        return dissipated if axis_name is None else jax.lax.psum(dissipated, axis_name)
+
     if chunk_output(state.x.dtype) == "stacked":  # backend tuning: how the new rows are written
         _, (parts, dissipated) = jax.lax.scan(lambda _, part: (None, updated(part)), None, split)
         part = jax.tree_util.tree_map(lambda a: a.reshape((-1,) + a.shape[2:]), parts)
-        return _finished(state, part, dt, jnp.sum(dissipated))
+        return _finished(state, part, dt, total(jnp.sum(dissipated)))
     size = state.x.shape[0] // count
 
     def in_place(i, carry):  # each chunk's new rows written over its old ones
@@ -149,7 +156,7 @@ def chunked_step(sim, state, dt, per_chunk: int):
         return part, dissipated + lost
 
     part, dissipated = jax.lax.fori_loop(0, count, in_place, (_particle_part(state), jnp.zeros_like(state.dissipated)))
-    return _finished(state, part, dt, dissipated)
+    return _finished(state, part, dt, total(dissipated))
 
 
 def _finished(state, part, dt, dissipated):

@@ -38,6 +38,7 @@ from ..transfer.backend import (
     KERNEL_CHOICES,
     POLICIES,
     choose_chunking,
+    choose_devices,
     choose_kernel,
     choose_sorting,
     resolve,
@@ -50,6 +51,7 @@ from ..transfer.kernels.windowed import active_window, on_window
 from ..transfer.shapes import UGIMP, ShapeFunction, field_stencil
 from . import frame_fields
 from .chunks import chunk_obstacle, num_chunks, step_in_chunks
+from .devices import device_obstacle, local_devices, step_on_devices
 from .step import folds_force
 from .step import step as _step
 
@@ -166,6 +168,11 @@ class Simulation(eqx.Module):
             (``jaxmpm.model.chunks``: USL with a local scheme and local terms), 0 never; "auto"
             (default): as the backend table says (``jm.backend_info``).  Speed only: a step in
             chunks equals the whole step to round-off.
+        particle_devices: a step shares its particles among this many of the process's devices,
+            each holding the whole grid (``jaxmpm.model.devices``: the conditions of a step in chunks),
+            1 never; "auto" (default): as the backend table says, among every local device where the
+            process has several (on a CPU: ``jax.config.update("jax_num_cpu_devices", n)`` before JAX's
+            first computation).  Speed only: the shared step equals one device's to round-off.
     """
 
     grid: Grid
@@ -183,6 +190,7 @@ class Simulation(eqx.Module):
     kernel: str = eqx.field(static=True, default="auto")
     sort_every: object = eqx.field(static=True, default="auto")
     chunk_particles: object = eqx.field(static=True, default="auto")
+    particle_devices: object = eqx.field(static=True, default="auto")
 
     def __init__(
         self,
@@ -204,6 +212,7 @@ class Simulation(eqx.Module):
         kernel: str = "auto",
         sort_every="auto",
         chunk_particles="auto",
+        particle_devices="auto",
     ):
         check(isinstance(grid, Grid), f"Simulation: grid must be a jm.Grid, got {type(grid).__name__}")
         # a step holds a few nodal fields of 1 + D (mass, momentum) up to D^2 columns per node
@@ -278,6 +287,7 @@ class Simulation(eqx.Module):
         self.kernel = kernel
         self.sort_every = _checked_sort_every(sort_every)
         self.chunk_particles = _checked_chunk_particles(chunk_particles)
+        self.particle_devices = _checked_particle_devices(particle_devices)
         self._check_terms()
 
     def _check_terms(self):
@@ -353,6 +363,41 @@ class Simulation(eqx.Module):
         """A copy whose steps run over the particles in chunks of about ``particles`` (0: never;
         "auto": the backend table's choice; ``chunk_particles`` in the class docstring)."""
         return self._with_static(chunk_particles=_checked_chunk_particles(particles))
+
+    def with_particle_devices(self, devices):
+        """A copy whose steps share their particles among ``devices`` of the process's devices (1: one
+        device; "auto": the backend table's choice; ``particle_devices`` in the class docstring)."""
+        return self._with_static(particle_devices=_checked_particle_devices(devices))
+
+    def _device_row(self, state: State, kernel: str | None = None) -> tuple:
+        """(devices, particles per chunk on each, 0 for its share at once; why) for a step of ``state``
+        whose transfers run on ``kernel`` (None: looked up, :meth:`_kernel_row`).  A forced count the
+        process does not have is an error naming the fix."""
+        n, dtype = state.x.shape[0], state.x.dtype
+        available = len(local_devices())
+        if self.particle_devices == "auto":
+            devices, per, why = choose_devices(self.backend, self.grid.dim, n, dtype, available)
+        else:
+            devices, why = self.particle_devices, f"particle_devices={self.particle_devices} given"
+            check(devices <= available,
+                  f"Simulation: particle_devices = {devices}, but the process has {available} "
+                  f"{jax.default_backend().upper()} device(s); on a CPU call "
+                  f"jax.config.update(\"jax_num_cpu_devices\", {devices}) before JAX's first computation, or give "
+                  "particle_devices=1")
+            row = choose_devices(self.backend, self.grid.dim, n, dtype, devices)
+            per = row[1] if row[0] > 1 else choose_chunking(self.backend, self.grid.dim, n // devices, dtype)[0]
+        if self.chunk_particles != "auto":
+            per = self.chunk_particles
+        if devices < 2:
+            return 1, 0, why
+        kernel = kernel or self._kernel_row(n, dtype)[0] or "xla"
+        obstacle = device_obstacle(self, state, devices, kernel)
+        if obstacle is not None:
+            return 1, 0, f"one device: {obstacle} ({why})"
+        share = n // devices
+        if per and per < share and num_chunks(share, per):
+            return devices, per, f"{why}: {share} particles a device, in chunks of {share // num_chunks(share, per)}"
+        return devices, 0, f"{why}: {share} particles a device, at once"
 
     def _chunk_row(self, state: State, kernel: str | None = None) -> tuple:
         """(particles per chunk, 0 for the whole step; why) for a step of ``state`` whose transfers run
@@ -550,6 +595,9 @@ class Simulation(eqx.Module):
         float32 state) are cast to the state's dtype on entry."""
         name, options, _ = self._kernel_row(state.x.shape[0], state.x.dtype)
         with use_policy(self.backend), use_adjoint(self.adjoint), use_kernel(name, options):
+            devices, per_device, _ = self._device_row(state, name or "xla")
+            if devices > 1:  # backend tuning: the same step on every device of the process at once
+                return step_on_devices(self.in_precision(state.x.dtype), state, dt, devices, per_device)
             per_chunk, _ = self._chunk_row(state, name or "xla")
             if per_chunk:  # backend tuning: the same step with a working set that fits the cache
                 return step_in_chunks(self.in_precision(state.x.dtype), state, dt, per_chunk)
@@ -736,7 +784,9 @@ def backend_info(sim: Simulation, state: State) -> dict:
         "dimension", "particles_per_cell", "dtype", "reason": the table row's reason,
         "sort_every": the steps between the runs' sorts of the particles by cell (0: never),
         "sort_reason": why, "chunk_particles": the particles per chunk of a step (0: the whole step at
-        once, ``jaxmpm.model.chunks``), "chunk_reason": why, and for the XLA kernel "xla_layout":
+        once, ``jaxmpm.model.chunks``; with several devices: on each), "chunk_reason": why,
+        "particle_devices": the devices a step shares its particles among (1: one device,
+        ``jaxmpm.model.devices``), "devices_reason": why, and for the XLA kernel "xla_layout":
         {"p2g": "planar" or "rows", "p2g_derivatives": "planar" or "rows", "hold_gathers": bool}, its
         "auto" options for this policy and dtype (``jaxmpm.transfer.backend.XLA_LAYOUT``)}.
     """
@@ -747,16 +797,26 @@ def backend_info(sim: Simulation, state: State) -> dict:
     every, sort_why = sim._sort_row(n, dtype)
     member = state if state.x.ndim == 2 else jax.tree_util.tree_map(lambda a: a[0], state)  # an ensemble's
     with use_policy(sim.backend):
-        per_chunk, chunk_why = sim._chunk_row(member, name or "xla")
+        devices, per_device, devices_why = sim._device_row(member, name or "xla")
+        per_chunk, chunk_why = (per_device, devices_why) if devices > 1 else sim._chunk_row(member, name or "xla")
     info = {"kernel": name or "xla", "options": dict(options), "policy": resolve(sim.backend),
             "dimension": sim.grid.dim, "particles_per_cell": n / max(1, int(np.prod(sim.grid.cells))),
             "dtype": jnp.dtype(dtype).name, "reason": why, "sort_every": every, "sort_reason": sort_why,
-            "chunk_particles": per_chunk, "chunk_reason": chunk_why}
+            "chunk_particles": per_chunk, "chunk_reason": chunk_why, "particle_devices": devices,
+            "devices_reason": devices_why}
     if info["kernel"] == "xla":
         with use_policy(sim.backend):
             p2g, derivatives, hold = xla_layout(dtype)
         info["xla_layout"] = {"p2g": p2g, "p2g_derivatives": derivatives, "hold_gathers": hold}
     return info
+
+
+def _checked_particle_devices(devices):
+    check(devices == "auto" or (isinstance(devices, (int, np.integer)) and not isinstance(devices, bool)
+                                and devices >= 1),
+          f"Simulation: particle_devices = {devices!r}; give how many of the process's devices a step shares its "
+          "particles among (an integer >= 1, 1 = one device) or 'auto' (the backend table's choice)")
+    return devices if devices == "auto" else int(devices)
 
 
 def _checked_chunk_particles(particles):

@@ -603,6 +603,42 @@ def chunk_output(dtype) -> str:
     return CHUNK_OUTPUT.get((active(), jnp.dtype(dtype).itemsize), "stacked")
 
 
+# When a step shares its particles among the process's devices, each holding the whole grid
+# (jaxmpm.model.devices), and in chunks of how many particles each device steps its share:
+# (policy, dimension, bytes per float, fewest particles) -> (particles per chunk on a device, why).  A
+# matching row shares them among every local device, where the process has more than one (on a CPU:
+# jax.config.update("jax_num_cpu_devices", n) before JAX starts); none: one device.  mpm88, 2 forced CPU
+# devices on 2 cores against one device with its two threads, each with its own best chunks, ms a step,
+# best of 5, each in its own process, two alternated rounds (2026-11-28, benchmarks/cpu_devices.py): float64
+# 32k 2.20-2.26 against 2.18-2.55, 65k 4.76-4.91 against 4.47-4.61, 131k 9.53-9.67 against 8.25-8.94, 524k
+# 37.7-40.0 against 32.8-35.6; float32 32k 1.29-2.41 against 1.40-1.46, 65k 3.02-5.36 against 2.75-2.90, 131k
+# 7.32-7.34 against 5.43-5.54, 524k 28.8-29.6 against 22.0-22.2.  A device's share in chunks of 16k: 131k
+# float32 on two devices 5.2-5.4 (16k), 5.9 (32k), 6.6-7.8 (whole shares).  3D (mpm3d, forced onto 2
+# devices): 0.95-1.17x, mixed; GPUs: not measured.  So one device there.
+DEVICE_TABLE = (
+    (("cpu", 2, 8, 60_000), (16384, "CPU, 2D float64, from 60k particles: shared among the process's CPU devices, "
+                                    "each stepping its share in chunks of 16k (mpm88, 2 devices on 2 cores: 65k "
+                                    "1.06x, 131k 1.16x, 524k 1.15x one device's step; 32k 1.01x)")),
+    (("cpu", 2, 4, 60_000), (16384, "CPU, 2D float32, from 60k particles: shared among the process's CPU devices, "
+                                    "each stepping its share in chunks of 16k (mpm88, 2 devices on 2 cores: 65k "
+                                    "1.10x, 131k 1.35x, 524k 1.31x one device's step; 32k 0.92x)")),
+)
+
+
+def choose_devices(policy: str, dim: int, num_particles: int, dtype, available: int) -> tuple:
+    """(devices, particles per chunk on each, 0 for its share at once; why): the first row of
+    :data:`DEVICE_TABLE` that matches a ``dim``-dimensional step of ``num_particles`` particles computing in
+    ``dtype`` traced under ``policy``, shared among the ``available`` local devices; one device where no
+    row matches or only one is available."""
+    row = _first_row(DEVICE_TABLE, (resolve(policy), dim, jnp.dtype(dtype).itemsize), num_particles, None)
+    if row is None:
+        return 1, 0, "no row of DEVICE_TABLE matches: one device"
+    per_chunk, why = row
+    if available < 2:
+        return 1, 0, f"one device: the process has one ({why}, where it has several)"
+    return available, per_chunk, f"{why}: {available} devices"
+
+
 def choose_chunking(policy: str, dim: int, num_particles: int, dtype) -> tuple:
     """(particles per chunk, 0 for the whole step at once; why): the first row of
     :data:`CHUNK_TABLE` -- (policy, dimension, bytes per float, fewest particles) -> row -- that

@@ -125,7 +125,8 @@ def chunked_step(sim, state, dt, per_chunk: int, axis_name=None):
         return jax.tree_util.tree_map(jnp.add, sums, nodal_sums(_with_particle_part(state, part))), None
 
     first = _with_particle_part(state, jax.tree_util.tree_map(lambda a: a[0], split))
-    zeros = jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), jax.eval_shape(nodal_sums, first))
+    zeros = jax.tree_util.tree_map(lambda s: _varying(jnp.zeros(s.shape, s.dtype), axis_name),
+                                   jax.eval_shape(nodal_sums, first))
     nodal, _ = jax.lax.scan(add_chunk, zeros, split)
     if axis_name is not None:  # the devices' shares of P2G's sums, added: every device holds the whole grid's
         nodal = jax.lax.psum(nodal, axis_name)
@@ -155,8 +156,15 @@ def chunked_step(sim, state, dt, per_chunk: int, axis_name=None):
         part = jax.tree_util.tree_map(lambda a, b: jax.lax.dynamic_update_slice_in_dim(a, b, i * size, 0), part, rows)
         return part, dissipated + lost
 
-    part, dissipated = jax.lax.fori_loop(0, count, in_place, (_particle_part(state), jnp.zeros_like(state.dissipated)))
+    part, dissipated = jax.lax.fori_loop(0, count, in_place, (_particle_part(state),
+                                                              _varying(jnp.zeros_like(state.dissipated), axis_name)))
     return _finished(state, part, dt, total(dissipated))
+
+
+def _varying(zeros, axis_name):
+    """A loop's initial sums, typed as differing between the devices of ``axis_name`` (inside a ``shard_map``
+    that checks what varies, as the loop's body makes them); unchanged without an axis."""
+    return zeros if axis_name is None else jax.lax.pcast(zeros, (axis_name,), to="varying")
 
 
 def _finished(state, part, dt, dissipated):

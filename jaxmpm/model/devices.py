@@ -82,7 +82,7 @@ def step_on_devices(sim, state, dt, devices: int, per_chunk: int):
             return _particle_part(new), _clock(new)
 
         mapped = jax.shard_map(shared, mesh=mesh, in_specs=(P(), part_specs, P(), P()),
-                               out_specs=(part_specs, P()), check_vma=False)
+                               out_specs=(part_specs, P()))
         part, clock = mapped(arrays, _particle_part(state), _clock(state), dt)
         return _with_clock(_with_particle_part(state, part), clock)
 

@@ -19,7 +19,8 @@ large to copy on every device are :class:`jaxmpm.parallel.ShardedSimulation`'s (
 
 The added sums are those of one device to round-off, not bit for bit (as for chunks); the dissipated
 energy is the sum of the devices' shares.  Derivatives differentiate the whole step on one device
-(:func:`step_on_devices`), as a step in chunks does.
+(:func:`step_on_devices`), as a step in chunks does: differentiated through the devices, a rollout's
+gradient was the same to 5e-15 and 4-15% slower (mpm88, 2 CPU devices, 8k and 131k particles).
 
 Which steps: those that may step in chunks (:func:`jaxmpm.model.chunks.chunk_obstacle`), with a
 particle count that the device count divides; :func:`device_obstacle` names what keeps a model on one

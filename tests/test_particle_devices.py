@@ -115,3 +115,21 @@ def test_cli_cpu_devices_is_checked(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "--cpu-devices 2: JAX has already computed in this process" in err and "new `jaxmpm` process" in err
     assert not os.path.exists(out)
+
+
+def test_device_table_rows(monkeypatch):
+    """DEVICE_TABLE: 2D on the CPU from 60k particles, chunks of 16k on each device; one device below it, in 3D, with
+    one device in the process, and for the CPU policy forced onto a GPU's devices (the rows were measured on CPUs)."""
+    from jaxmpm.transfer.backend import choose_devices
+
+    f64, f32 = jnp.dtype("float64"), jnp.dtype("float32")
+    assert choose_devices("cpu", 2, 65536, f64, 2)[:2] == (2, 16384)
+    assert choose_devices("cpu", 2, 131072, f32, 4)[:2] == (4, 16384)
+    assert choose_devices("cpu", 2, 32768, f64, 2)[:2] == (1, 0)
+    assert choose_devices("cpu", 3, 131072, f32, 2)[:2] == (1, 0)
+    devices, _, why = choose_devices("cpu", 2, 131072, f64, 1)
+    assert devices == 1 and why.startswith("one device: the process has one")
+    assert choose_devices("gpu", 2, 131072, f32, 2)[:2] == (1, 0)
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    devices, _, why = choose_devices("cpu", 2, 131072, f64, 2)
+    assert devices == 1 and why == "one device: the CPU policy's row, on GPU devices"

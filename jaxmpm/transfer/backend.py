@@ -629,10 +629,14 @@ def choose_devices(policy: str, dim: int, num_particles: int, dtype, available: 
     """(devices, particles per chunk on each, 0 for its share at once; why): the first row of
     :data:`DEVICE_TABLE` that matches a ``dim``-dimensional step of ``num_particles`` particles computing in
     ``dtype`` traced under ``policy``, shared among the ``available`` local devices; one device where no
-    row matches or only one is available."""
+    row matches, only one is available, or the devices are not the policy's (the CPU policy forced on a
+    GPU's devices: the rows were measured on CPU devices)."""
+    platform = "cpu" if jax.default_backend() == "cpu" else "gpu"
     row = _first_row(DEVICE_TABLE, (resolve(policy), dim, jnp.dtype(dtype).itemsize), num_particles, None)
     if row is None:
         return 1, 0, "no row of DEVICE_TABLE matches: one device"
+    if platform != resolve(policy):
+        return 1, 0, f"one device: the {resolve(policy).upper()} policy's row, on {platform.upper()} devices"
     per_chunk, why = row
     if available < 2:
         return 1, 0, f"one device: the process has one ({why}, where it has several)"

@@ -54,6 +54,8 @@ def device_obstacle(sim, state, devices: int, kernel: str) -> str | None:
     if devices > have:
         return (f"the process has {have} {jax.default_backend().upper()} device(s), not {devices} (on a CPU: "
                 f'jax.config.update("jax_num_cpu_devices", {devices}) before JAX\'s first computation)')
+    if jax.process_count() > 1:  # neither measured nor tested across processes (jaxmpm.parallel's slabs are)
+        return f"the run spans {jax.process_count()} processes (jax.distributed): the step stays on one device"
     manual = jax.sharding.get_abstract_mesh().manual_axes
     if manual:  # jm.ensemble's members or ShardedSimulation's slabs, already one device's share
         return f"the step is traced inside a shard_map over {', '.join(map(str, manual))}: each device steps its own"

@@ -322,7 +322,7 @@ def start_cpu_devices(count) -> None:
     with the reason where ``count`` is not a positive integer or JAX has already computed in this process."""
     import jax
 
-    if isinstance(count, bool) or not isinstance(count, int) or count < 1:
+    if count < 1:  # argparse has made it an int
         fail(f"--cpu-devices = {count!r} must be a positive integer (the CPU devices JAX starts with)")
     try:
         jax.config.update("jax_num_cpu_devices", count)

@@ -93,12 +93,18 @@ def step_in_chunks(sim, state, dt, per_chunk: int):
     :func:`jaxmpm.model.step.step`, whose gradient ran 1.25x faster than the chunked one's (mpm88,
     131k particles, float64, a 20-step rollout: 131 against 163 ms a step).  Both give the same
     values to round-off."""
+    return with_whole_step_derivatives(lambda sim, state, dt: chunked_step(sim, state, dt, per_chunk), sim, state, dt)
+
+
+def with_whole_step_derivatives(forward, sim, state, dt):
+    """``forward(sim, state, dt)``, a step computed another way than :func:`jaxmpm.model.step.step` (in
+    chunks, on several devices), whose JVPs and gradients are the whole step's on one device."""
     dt = jnp.asarray(dt, state.x.dtype)
     arrays, static = eqx.partition(sim, eqx.is_array)
 
     @jax.custom_jvp
     def stepped(arrays, state, dt):
-        return chunked_step(eqx.combine(arrays, static), state, dt, per_chunk)
+        return forward(eqx.combine(arrays, static), state, dt)
 
     @stepped.defjvp
     def _(primals, tangents):

@@ -36,8 +36,7 @@ import numpy as np
 from jax.sharding import Mesh
 from jax.sharding import PartitionSpec as P
 
-from .chunks import _particle_part, _with_particle_part, chunk_obstacle, chunked_step
-from .step import step as whole_step
+from .chunks import _particle_part, _with_particle_part, chunk_obstacle, chunked_step, with_whole_step_derivatives
 
 AXIS = "particles"
 
@@ -48,12 +47,9 @@ def local_devices() -> list:
 
 
 def device_obstacle(sim, state, devices: int, kernel: str) -> str | None:
-    """Why ``sim`` cannot share ``state``'s particles among ``devices`` devices on ``kernel``, or None."""
+    """Why ``sim`` cannot share ``state``'s particles among ``devices`` devices on ``kernel``, or None (the
+    process has them: :meth:`jaxmpm.Simulation._device_row` checks the count)."""
     n = state.x.shape[0]
-    have = len(local_devices())
-    if devices > have:
-        return (f"the process has {have} {jax.default_backend().upper()} device(s), not {devices} (on a CPU: "
-                f'jax.config.update("jax_num_cpu_devices", {devices}) before JAX\'s first computation)')
     if jax.process_count() > 1:  # neither measured nor tested across processes (jaxmpm.parallel's slabs are)
         return f"the run spans {jax.process_count()} processes (jax.distributed): the step stays on one device"
     manual = jax.sharding.get_abstract_mesh().manual_axes
@@ -70,15 +66,13 @@ def step_on_devices(sim, state, dt, devices: int, per_chunk: int):
     devices, each stepping its share in chunks of about ``per_chunk`` particles (0: its share at once);
     JVPs and gradients differentiate the whole step on one device (as
     :func:`jaxmpm.model.chunks.step_in_chunks`).  ``device_obstacle`` must be None."""
-    dt = jax.numpy.asarray(dt, state.x.dtype)
-    arrays, static = eqx.partition(sim, eqx.is_array)
     mesh = Mesh(np.asarray(local_devices()[:devices]), (AXIS,))
     share = state.x.shape[0] // devices
-
     part_specs = jax.tree_util.tree_map(lambda _: P(AXIS), _particle_part(state))
 
-    @jax.custom_jvp
-    def stepped(arrays, state, dt):
+    def forward(sim, state, dt):
+        arrays, static = eqx.partition(sim, eqx.is_array)
+
         def shared(arrays, part, clock, dt):  # one device: its share of the particles, the whole grid
             local = _with_clock(_with_particle_part(state, part), clock)
             new = chunked_step(eqx.combine(arrays, static), local, dt, per_chunk or share, axis_name=AXIS)
@@ -89,11 +83,7 @@ def step_on_devices(sim, state, dt, devices: int, per_chunk: int):
         part, clock = mapped(arrays, _particle_part(state), _clock(state), dt)
         return _with_clock(_with_particle_part(state, part), clock)
 
-    @stepped.defjvp
-    def _(primals, tangents):
-        return jax.jvp(lambda a, s, d: whole_step(eqx.combine(a, static), s, d), primals, tangents)
-
-    return stepped(arrays, state, dt)
+    return with_whole_step_derivatives(forward, sim, state, dt)
 
 
 def _clock(state):

@@ -12,7 +12,13 @@ Programs, per scene (float64):
 * ``ensemble``: ``jm.ensemble`` of 4 members with different values of that parameter (its default
   strategy: on the CPU the members of large scenes run one after another in the program);
 * ``calibrate``: one ``jm.calibrate`` update with its default optimiser (Adam; the update's code
-  is repeated here so that it can be staged, with the parameter log-transformed as calibrate does).
+  is repeated here so that it can be staged, with the parameter log-transformed as calibrate does);
+* ``step`` and ``transpose`` (only when named in ``--programs``): one step of the scene, every float of
+  the state, the simulation's arrays and dt in and out, and that step's pullback alone, fed the residuals
+  a forward pass hands it (as ``step_adjoint.py``'s "transpose alone").  A rollout's gradient program
+  holds the rollout (the forward pass), the step once more (recomputed in the backward pass) and its
+  transpose, so with both named the summary prints 1 + (step + transpose) / rollout in XLA compile CPU
+  seconds next to the gradient's ratio: what its pieces cost to compile on their own.
 
 Each (scene, program) runs in a fresh process (no tracing or compilation shared between programs),
 with JAX's persistent compilation cache in a new temporary folder, and then once more in a second
@@ -44,6 +50,7 @@ run and the XLA compilations it triggers are counted (``jax.monitoring``).
     python benchmarks/compile_time.py --scenes bar --programs rollout gradient --steps 10
     python benchmarks/compile_time.py --scenes bar --programs gradient --checkpoint False --adjoint autodiff
     python benchmarks/compile_time.py --programs rollout gradient --fast-compile --no-warm --no-recompiles
+    python benchmarks/compile_time.py --programs rollout gradient step transpose --no-warm --no-recompiles
 
 ``--checkpoint`` (default ``auto``, what ``sim.run`` picks: one level, ``"states"``, on the CPU for these
 scenes; the tables before 2026-11-28 used ``True``) and ``--adjoint`` set ``sim.run``'s checkpoint and the
@@ -88,7 +95,8 @@ SCENES = {
 }
 QUICK_LEFT_OUT = ("bar_xpic8",)
 # sim.run's checkpoint options
-PROGRAMS = ("rollout", "gradient", "ensemble", "calibrate")
+PROGRAMS = ("rollout", "gradient", "ensemble", "calibrate", "step", "transpose")
+DEFAULT_PROGRAMS = PROGRAMS[:4]
 ENSEMBLE_MEMBERS = 4
 FRAMES = 10  # saved frames per run (plus the initial one)
 FIELDS = ["scene", "program", "particles", "steps", "checkpoint", "adjoint", "options", "trace_s", "lower_s",
@@ -165,6 +173,20 @@ def _program(name: str, program: str, steps: int, checkpoint="auto", adjoint=Non
 
     if program == "rollout":
         return run, (sim_dyn, state, dt), steps, n
+    if program in ("step", "transpose"):  # the pieces a gradient program holds besides the rollout
+        floats, rest = eqx.partition(state, eqx.is_inexact_array)
+
+        def step(d, sim_dyn, dt):  # one step, every float of the state, the simulation's arrays and dt in and out
+            model = eqx.combine(sim_dyn, sim_static)
+            model = model if adjoint is None else model.with_adjoint(adjoint)
+            return eqx.partition(model.step(eqx.combine(d, rest), dt), eqx.is_inexact_array)[0]
+
+        if program == "step":
+            return step, (floats, sim_dyn, dt), 1, n
+        # the step's pullback alone: fed the residuals a forward pass hands it, no forward work in it
+        pullback = jax.jit(lambda *a: jax.vjp(step, *a)[1])(floats, sim_dyn, dt)
+        ones = jax.tree_util.tree_map(jnp.ones_like, floats)
+        return (lambda pullback, cotangent: pullback(cotangent)), (pullback, ones), 1, n
     if program == "gradient":
         return jax.grad(loss), (value, sim_dyn, state, dt), steps, n
     if program == "ensemble":
@@ -391,7 +413,7 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="20 steps, 1 repeat, the XPIC(8) bar left out")
     parser.add_argument("--scenes", nargs="+", choices=list(SCENES), default=None)
-    parser.add_argument("--programs", nargs="+", choices=PROGRAMS, default=list(PROGRAMS))
+    parser.add_argument("--programs", nargs="+", choices=PROGRAMS, default=list(DEFAULT_PROGRAMS))
     parser.add_argument("--steps", type=int, default=None, help="steps of every run (default: the scene's)")
     parser.add_argument("--repeat", type=int, default=None, help="timed calls of each program (default 3)")
     parser.add_argument("--checkpoint", choices=list(CHECKPOINTS), default="auto",
@@ -446,16 +468,21 @@ def main(argv=None) -> int:
             _print_row(r)
     print(f"wrote {_write(args.csv, FIELDS, rows)}")
 
+    pieces = {"step", "transpose"} <= set(args.programs)
     print("\n| scene | gradient / rollout: XLA compile CPU s | XLA compile wall s | trace + lower + compile CPU s | "
-          "flops per step |")
-    print("|---|---|---|---|---|")
+          "flops per step |" + (" floor: 1 + (step + transpose) / rollout, XLA compile CPU s |" if pieces else ""))
+    print("|---" * (6 if pieces else 5) + "|")
     for scene in scenes:
         by = {r["program"]: r for r in rows if r["scene"] == scene}
         if "rollout" in by and "gradient" in by:
             f, g = by["rollout"], by["gradient"]
+            floor = ""
+            if pieces:
+                held = by["step"]["compile_cpu_s"] + by["transpose"]["compile_cpu_s"]
+                floor = f" {1 + held / f['compile_cpu_s']:.2f} |"
             print(f"| {scene} | {g['compile_cpu_s'] / f['compile_cpu_s']:.2f} | "
                   f"{g['compile_s'] / f['compile_s']:.2f} | {g['first_call_cpu_s'] / f['first_call_cpu_s']:.2f} | "
-                  f"{g['flops'] / f['flops']:.2f} |")
+                  f"{g['flops'] / f['flops']:.2f} |" + floor)
 
     if not args.no_recompiles:
         steps = args.steps or (20 if args.quick else 200)

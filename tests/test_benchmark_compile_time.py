@@ -28,3 +28,24 @@ def test_compile_time_quick_writes_its_columns(tmp_path, benchmark_script):
         assert float(row[name]) > 0, (name, row[name])
     assert int(row["hlo_instructions"]) > 0 and int(row["jaxpr_eqns"]) > 0
     assert row["warm_hits"] == "1"  # the second process read the program from the persistent cache
+
+
+def test_compile_time_pieces_are_the_step_and_its_pullback(benchmark_script):
+    """The ``step`` and ``transpose`` programs (the pieces whose compile times the summary adds up) are one
+    step of the scene and that step's pullback: the pullback fed ones equals jax.vjp of the step."""
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    compile_time = benchmark_script("compile_time.py")
+    step, step_args, steps, particles = compile_time._program("heat1d", "step", 10)
+    transpose, (pullback, ones), _, _ = compile_time._program("heat1d", "transpose", 10)
+    assert steps == 1 and particles > 0
+    floats = step_args[0]
+    assert jax.tree_util.tree_structure(step(*step_args)) == jax.tree_util.tree_structure(floats)
+    expected = jax.vjp(step, *step_args)[1](jax.tree_util.tree_map(jnp.ones_like, floats))
+    got = jax.jit(transpose)(pullback, ones)
+    for a, b in zip(jax.tree_util.tree_leaves(eqx.filter(got, eqx.is_array)),
+                    jax.tree_util.tree_leaves(eqx.filter(expected, eqx.is_array))):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12, atol=1e-300)

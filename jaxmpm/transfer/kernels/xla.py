@@ -79,9 +79,12 @@ _per_slot_ruled = jax.custom_jvp(_per_slot)
 
 @partial(_per_slot_ruled.defjvp, symbolic_zeros=True)
 def _per_slot_jvp(primals, tangents):
-    # the same product, row by row: the transposes of the broadcasts are reductions over the short
-    # slot and component axes, which XLA's CPU backend runs slowly; those of row products are
-    # multiplies and adds (the forward keeps the broadcast, which fuses better)
+    # Transposes without reductions over the short slot and component axes, which XLA's CPU backend
+    # runs slowly.  q's tangent row by row (w_k q_dot_c): the cotangent of q_c is K - 1 adds of row
+    # products.  w's tangent whole, times each component (w_dot q_c): the cotangent of w is C - 1 adds
+    # of (K, N) products, one fusion.  (Until the eighth session of 2026-11-28 it went row by row too: its
+    # cotangent was K C products of (N,) rows, each its own kernel, stacked: 36 kernels a step in mpm88
+    # APIC's gradient, and the 2D scenes' gradients compiled 1.1-1.25x as long, benchmarks/README.md.)
     (w, q), (w_dot, q_dot) = primals, tangents
 
     def slots(a):  # (K, N) -> K rows; a per-slot (K, N) array stays whole (no broadcast needed)
@@ -90,9 +93,12 @@ def _per_slot_jvp(primals, tangents):
     def spread(row_terms):  # K row products -> (K, N)
         return row_terms[0] if q.ndim == 3 else jnp.stack(row_terms)
 
+    def per_particle(qc):  # a component (N,) spread over the slots, or a per-slot one (K, N) as it is
+        return qc if q.ndim == 3 else qc[None]
+
     terms = []
     if not isinstance(w_dot, SymbolicZero):
-        terms.append([spread([wd * qc for wd in slots(w_dot)]) for qc in rows(q)])
+        terms.append([w_dot * per_particle(qc) for qc in rows(q)])
     if not isinstance(q_dot, SymbolicZero):
         terms.append([spread([wk * qd for wk in slots(w)]) for qd in rows(q_dot)])
     out = _per_slot_ruled(w, q)

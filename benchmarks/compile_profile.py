@@ -20,7 +20,8 @@ than kernels emitted.  Each kernel is mapped to its instruction in the compiled 
   ``in a branch`` -- a kernel of the taken branch, or ``step`` for the rest;
 * the Python line that produced it (``cpu_profile.source_lines``: jaxmpm's innermost frames).
 
-The tables list the kernels by emission time, then the sums by role and by kind (the kernel's name without its
+The program is compiled for the CPU (``JAX_PLATFORMS=cpu`` unless set): the events read are XLA:CPU's.  The tables
+list the kernels by emission time, then the sums by role and by kind (the kernel's name without its
 number).  Kernel emission runs on XLA's compile threads, so its sum may exceed the wall time of the compilation.
 """
 
@@ -186,6 +187,7 @@ def report(r: dict, top: int) -> str:
 def main(argv=None) -> int:
     args = parse_args(argv)
     os.environ.setdefault("JAXMPM_CACHE", "0")  # before jaxmpm is imported: nothing read back from disk
+    os.environ.setdefault("JAX_PLATFORMS", "cpu")  # the events read are XLA:CPU's
     r = profile(args.scene, args.program, args.steps)
     text = report(r, args.top)
     print(text)

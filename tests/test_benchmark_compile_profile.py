@@ -42,6 +42,7 @@ def test_a_rollout_profiled(tmp_path):
     """The bar's rollout at XLA's defaults (the suite's flags turn the fusion emitters off, and with them the
     emission events): every kernel emitted has a time, a size and a role; the boundaries' predicates among them."""
     env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAX_DISABLE_MOST_OPTIMIZATIONS")}
+    env["JAX_PLATFORMS"] = "cpu"  # XLA:CPU's events, on a machine with an accelerator too
     out = tmp_path / "profile.json"
     run = subprocess.run([sys.executable, SCRIPT, "--scene", "bar", "--program", "rollout", "--steps", "20",
                           "--top", "5", "--json", str(out)], capture_output=True, text=True, env=env, timeout=300)

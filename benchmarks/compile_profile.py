@@ -29,8 +29,6 @@ from __future__ import annotations
 
 import argparse
 import collections
-import glob
-import gzip
 import json
 import os
 import re
@@ -92,17 +90,6 @@ def roles(hlo_text: str) -> dict:
     return out
 
 
-# ------------------------------------------------------------------------------------------------ the trace
-def read_trace(folder: str) -> list:
-    """The complete ("X") events of the one trace ``jax.profiler`` wrote under ``folder``."""
-    found = glob.glob(os.path.join(folder, "**", "*.trace.json.gz"), recursive=True)
-    if not found:
-        raise RuntimeError(f"jax.profiler wrote no trace under {folder}")
-    trace = json.load(gzip.open(found[0]))
-    events = trace["traceEvents"] if isinstance(trace, dict) else trace
-    return [e for e in events if e.get("ph") == "X" and "dur" in e]
-
-
 def profile(scene: str, program: str, steps: int | None = None) -> dict:
     """Compile ``program`` of ``scene`` (``compile_time._program``) under the profiler; the numbers of the
     module docstring, times in ms."""
@@ -110,7 +97,7 @@ def profile(scene: str, program: str, steps: int | None = None) -> dict:
 
     jax.config.update("jax_enable_x64", True)
     import compile_time as ct
-    from cpu_profile import source_lines
+    from cpu_profile import source_lines, trace_events
 
     steps = steps or ct.SCENES[scene][2]
     fn, args, steps, particles = ct._program(scene, program, steps)
@@ -123,7 +110,10 @@ def profile(scene: str, program: str, steps: int | None = None) -> dict:
         with jax.profiler.trace(folder):
             compiled = lowered.compile()
         wall, cpu = time.perf_counter() - tic, time.process_time() - cpu
-        events = read_trace(folder)
+        events = trace_events(folder)
+        if events is None:
+            raise RuntimeError(f"jax.profiler wrote no trace under {folder}")
+        events = [e for e in events if e.get("ph") == "X" and "dur" in e]  # the complete events, with their time
     finally:
         jax.config.update("jax_enable_compilation_cache", cached)
         shutil.rmtree(folder, ignore_errors=True)

@@ -70,6 +70,15 @@ def _section(lines: list, name: str) -> list:
     return rows
 
 
+def trace_events(folder) -> list | None:
+    """Every event of the trace ``jax.profiler.trace(folder)`` wrote (None: it wrote none)."""
+    found = glob.glob(os.path.join(folder, "**", "*.trace.json.gz"), recursive=True)
+    if not found:
+        return None
+    trace = json.load(gzip.open(found[0]))
+    return trace["traceEvents"] if isinstance(trace, dict) else trace
+
+
 def source_lines(hlo_text: str) -> dict:
     """{instruction name: "file:line (function) < caller ..."}: each instruction's stack frame in a compiled
     module's text (``compiled.as_text()``), jaxmpm's own frames only, innermost first."""
@@ -142,9 +151,10 @@ def worker(args) -> None:
     with jax.profiler.trace(folder):
         for _ in range(calls):
             jax.block_until_ready(compiled(state))
-    trace = json.load(gzip.open(glob.glob(os.path.join(folder, "**", "*.trace.json.gz"), recursive=True)[0]))
+    events = trace_events(folder)
     shutil.rmtree(folder, ignore_errors=True)
-    events = trace["traceEvents"] if isinstance(trace, dict) else trace
+    if events is None:
+        raise RuntimeError("jax.profiler wrote no trace")
     total, count = collections.Counter(), collections.Counter()
     for e in events:
         if e.get("ph") == "X" and "dur" in e and not any(c in e["name"] for c in CONTROL):

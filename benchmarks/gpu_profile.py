@@ -14,15 +14,12 @@ from __future__ import annotations
 
 import argparse
 import collections
-import glob
-import gzip
-import json
-import os
 import tempfile
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
+from cpu_profile import trace_events
 from gpu import compile_rollout, mpm3d, mpm88
 
 import jaxmpm as jm
@@ -34,12 +31,10 @@ def kernels(call, steps: int, tag: str, top: int = 12) -> None:
     folder = tempfile.mkdtemp(prefix=f"jaxmpm-trace-{tag}-")
     with jax.profiler.trace(folder, create_perfetto_trace=True):
         jax.block_until_ready(call())
-    files = glob.glob(os.path.join(folder, "**", "*.trace.json.gz"), recursive=True)
-    if not files:
+    events = trace_events(folder)
+    if events is None:
         print(f"== {tag}: no trace file written")
         return
-    trace = json.load(gzip.open(files[0]))
-    events = trace["traceEvents"] if isinstance(trace, dict) else trace
     processes = {e["pid"]: e["args"]["name"] for e in events if e.get("ph") == "M" and e.get("name") == "process_name"}
     time, count = collections.Counter(), collections.Counter()
     for e in events:

@@ -159,3 +159,53 @@ def test_chunk_count_and_the_backend_table():
     assert info["chunk_particles"] == 0 and "no divisor" in info["chunk_reason"]
     with pytest.raises(jm.InputError, match="chunk_particles"):
         sim.with_chunks(-1)
+
+
+def test_a_step_too_large_for_the_memory_goes_in_chunks():
+    """chunks_to_fit (issue 32 item 7): the whole step when its temporaries (STEP_FLOATS_PER_SLOT floats per
+    slot and particle) take at most a quarter of the free memory; else chunks, a power of two of at least
+    SMALLEST_CHUNK particles, whose temporaries take at most that quarter, and a reason naming the sizes."""
+    per_particle = backend.STEP_FLOATS_PER_SLOT[2] * 9 * 4  # 2D quadratic, float32: 684 bytes
+    assert backend.chunks_to_fit(2, 10**6, 9, jnp.float32, 4 * per_particle * 10**6) == (0, "")
+    per, why = backend.chunks_to_fit(2, 10**8, 9, jnp.float32, 80 * 2**30)  # 10^8 particles, 80 GiB free
+    assert per & (per - 1) == 0 and per * per_particle <= 0.25 * 80 * 2**30 < 2 * per * per_particle
+    assert "63.7 GiB" in why and "80 GiB" in why and f"chunks of at most {per} particles" in why
+    assert backend.chunks_to_fit(3, 10**6, 27, jnp.float64, 2**20)[0] == backend.SMALLEST_CHUNK
+
+
+def test_the_library_chunks_a_step_that_would_not_fit(monkeypatch):
+    """Under "auto", a step whose temporaries would not fit (here: a device of 1 MiB, JAXMPM_MEMORY_BYTES)
+    runs in chunks (backend_info says why) and equals the step with those chunks forced bit for bit; with
+    the machine's memory it stays whole.  A forced choice stays as given."""
+    sim, state, dt = _scene()  # 512 particles
+    assert jm.backend_info(sim, state)["chunk_particles"] == 0
+    monkeypatch.setattr(backend, "SMALLEST_CHUNK", 128)
+    monkeypatch.setenv("JAXMPM_MEMORY_BYTES", str(2**20))
+    info = jm.backend_info(sim, state)
+    assert info["chunk_particles"] == 128 and "would take more than 25%" in info["chunk_reason"], info
+    assert jm.backend_info(sim.with_chunks(0), state)["chunk_particles"] == 0
+    step = jax.jit(lambda m, s: m.step(s, dt))
+    _assert_same(step(sim.with_chunks(128), state), step(sim, state), tol=0.0)
+
+
+@pytest.mark.parametrize("dim", [1, 2, 3])
+@pytest.mark.parametrize("scheme", ["APIC", "FLIP"])
+def test_the_memory_table_bounds_the_whole_steps_temporaries(dim, scheme):
+    """STEP_FLOATS_PER_SLOT holds: XLA's temporary buffers of a compiled 3-step loop of the whole step, per
+    particle and stencil slot, stay within the table (quadratic B-splines, the grid's arrays included)."""
+    cells, ppc = {1: (64, 64), 2: (32, 8), 3: (12, 4)}[dim]
+    grid = jm.Grid((0.0,) * dim, (1.0,) * dim, (cells,) * dim)
+    material = jm.LinearElastic(E=1e3, density=1.0) if dim == 1 else jm.LinearElastic(E=1e3, nu=0.3, density=1.0)
+    sim = jm.Simulation(grid=grid, shape=jm.QuadraticBSpline(), material=material, scheme=getattr(jm, scheme)(),
+                        damping=False).with_chunks(0)
+    state = sim.init(jm.fill(grid, jm.Box((0.2,) * dim, (0.8,) * dim), ppc=ppc))
+    arrays, static = eqx.partition((sim, state), eqx.is_array)
+
+    def loop(arrays):
+        sim, state = eqx.combine(arrays, static)
+        return jax.lax.fori_loop(0, 3, lambda _, s: sim.step(s, 1e-5), state)
+
+    temporaries = jax.jit(loop).lower(arrays).compile().memory_analysis().temp_size_in_bytes
+    n, slots, itemsize = state.x.shape[0], 3 ** dim, state.x.dtype.itemsize
+    floats = temporaries / (n * slots * itemsize)
+    assert 0.3 * backend.STEP_FLOATS_PER_SLOT[dim] < floats <= backend.STEP_FLOATS_PER_SLOT[dim], floats

@@ -31,6 +31,7 @@ from ..physics.damping import Damping
 from ..physics.stress import StressDivergence
 from ..physics.term import Term, overrides
 from ..run.driver import History, StableTimeStepWarning, rollout, run  # noqa: F401  (re-exported)
+from ..run.memory import free_memory
 from ..run.sorting import Sorting
 from ..schemes.base import Scheme
 from ..transfer.backend import (
@@ -41,6 +42,7 @@ from ..transfer.backend import (
     choose_devices,
     choose_kernel,
     choose_sorting,
+    chunks_to_fit,
     resolve,
     use_adjoint,
     use_kernel,
@@ -407,6 +409,10 @@ class Simulation(eqx.Module):
             per, why = self.chunk_particles, f"chunk_particles={self.chunk_particles} given"
         else:
             per, why = choose_chunking(self.backend, self.grid.dim, n, dtype)
+            if not per:  # the whole step, unless its temporaries would not fit the device's memory
+                fit, fit_why = chunks_to_fit(self.grid.dim, n, self.shape.nodes_per_axis ** self.grid.dim, dtype,
+                                             free_memory())
+                per, why = (fit, fit_why) if fit else (per, why)
         if not per or per >= n:
             return 0, why if not per else f"{why}; {n} particles fit one chunk: the whole step"
         kernel = kernel or self._kernel_row(n, dtype)[0] or "xla"

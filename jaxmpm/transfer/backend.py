@@ -48,6 +48,7 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
+import math
 from functools import cache, partial, wraps
 
 import jax
@@ -641,6 +642,41 @@ def choose_devices(policy: str, dim: int, num_particles: int, dtype, available: 
     if available < 2:
         return 1, 0, f"one device: the process has one ({why}, where it has several)"
     return available, per_chunk, f"{why}: {available} devices"
+
+
+# A step too large for the device's memory also goes in chunks (issue 32 item 7).  The whole step's temporary
+# buffers per particle, in floats per stencil slot: XLA's temp buffers of a compiled 5-step rollout without chunks
+# (``compiled.memory_analysis()``, CPU, jax 0.10.2, 2026-11-29; Linear, quadratic and cubic B-splines x APIC and
+# FLIP x float32 and float64, one material; 1D 4.9k particles on 4096 cells, 2D 23.7k on 128^2, 3D 54.9k on 32^3):
+# 1D 6.7-13.2, 2D 9.1-18.9, 3D 13.5-24.0.  The table takes the largest, rounded up.  On an H100 the whole 2D and 3D
+# programs took less (benchmarks/README.md, "Measured on an H100").  A step whose temporaries would take more than
+# STEP_MEMORY_SHARE of the device's free memory runs over chunks whose temporaries take at most that share.
+STEP_FLOATS_PER_SLOT = {1: 14, 2: 19, 3: 24}
+STEP_MEMORY_SHARE = 0.25
+SMALLEST_CHUNK = 1024  # particles: fewer would not save memory worth a chunk's second stencil evaluation
+
+
+def _bytes(nbytes: float) -> str:
+    for unit, scale in (("GiB", 2**30), ("MiB", 2**20), ("KiB", 2**10)):
+        if nbytes >= scale:
+            return f"{nbytes / scale:.3g} {unit}"
+    return f"{int(nbytes)} B"
+
+
+def chunks_to_fit(dim: int, num_particles: int, slots: int, dtype, free_bytes: int) -> tuple:
+    """(particles per chunk, 0 when the whole step fits; why) for a ``dim``-dimensional step of ``num_particles``
+    particles with ``slots`` stencil slots each, computing in ``dtype``, on a device with ``free_bytes`` free:
+    chunks (a power of two, at least :data:`SMALLEST_CHUNK`) whose temporaries take at most
+    :data:`STEP_MEMORY_SHARE` of the free memory when the whole step's would take more
+    (:data:`STEP_FLOATS_PER_SLOT`)."""
+    per_particle = STEP_FLOATS_PER_SLOT[dim] * slots * jnp.dtype(dtype).itemsize
+    need, budget = per_particle * num_particles, STEP_MEMORY_SHARE * free_bytes
+    if need <= budget:
+        return 0, ""
+    per = max(SMALLEST_CHUNK, 2 ** int(math.floor(math.log2(max(1.0, budget / per_particle)))))
+    return per, (f"the whole step's temporaries (about {_bytes(need)}) would take more than "
+                 f"{STEP_MEMORY_SHARE:.0%} of the device's free memory ({_bytes(free_bytes)}): chunks of at most "
+                 f"{per} particles")
 
 
 def choose_chunking(policy: str, dim: int, num_particles: int, dtype) -> tuple:

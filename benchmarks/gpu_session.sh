@@ -44,6 +44,11 @@ log=$out/log.txt
   # the step over its particles in chunks (the CPU's default in 2D from 60k-100k particles, in 3D from 16k-32k;
   # CHUNK_TABLE's GPU row is unmeasured): time and program bytes per particle against the whole step's rows of the "auto" stage
   stage chunks 60 --parts mpm88 --sizes 524288 2097152 --chunk-particles 262144 --no-taichi
+  # program bytes per particle against the state's (issue 32 item 7), compiled only: the library's step, the whole
+  # step, and chunks of 65536 particles
+  echo "=== memory (limit 90 s): benchmarks/memory_per_particle.py --chunks 65536"
+  timeout 90 python3 benchmarks/memory_per_particle.py --chunks 65536 --csv "$out/memory_per_particle.csv" \
+    ${GPU_SESSION_EXTRA:-} 2>&1
 } 2>&1 | tee "$log"
 # one table and one CSV for the stages that finished
 cat "$out"/*/gpu.md > "$out/gpu.md" 2>/dev/null

@@ -567,15 +567,16 @@ def totals(sim, state) -> dict:
     return {name: float(value) for name, value in sim.totals(state).items()}
 
 
-def energy_rows(sim, initial, final) -> list:
+def energy_rows(sim, d0, final) -> list:
     """The summary's energy lines: the total K + U + V_g at the start and the end (with their ratio),
     then each part.  V_g, the potential energy of the particles in the model's gravity g
     (``sim.diagnostics``' ``gravitational``, -sum_p M_p g . X_p), is counted from the start,
     V_g = -sum_p M_p g . (X_p - X_p(0)), so that it starts at 0 whatever the origin.  A body force
-    b(x, t) has no potential: its work is in no part."""
+    b(x, t) has no potential: its work is in no part.  ``d0``: ``sim.diagnostics`` of the initial state
+    (taken before the run, which may reuse the state's memory)."""
     import numpy as np
 
-    d0, d1 = sim.diagnostics(initial), sim.diagnostics(final)
+    d1 = sim.diagnostics(final)
     parts = {"kinetic K": (float(d0["kinetic"]), float(d1["kinetic"])),
              "strain U": (float(d0["strain"]), float(d1["strain"])),
              "gravitational V_g": (0.0, float(d1["gravitational"] - d0["gravitational"]))}
@@ -638,7 +639,11 @@ def run_setup(setup, args, options: dict, resume: bool = False) -> int:
 
     sim, state = setup.sim, setup.state
     n = int(state.x.shape[0])
-    p0 = np.asarray(sim.diagnostics(state)["momentum"], dtype=float)
+    # what the summary says of the initial state, read before the run computes its states in place of it
+    d0, totals0 = sim.diagnostics(state), totals(sim, state)
+    p0 = np.asarray(d0["momentum"], dtype=float)
+    shared = jm.backend_info(sim, state)["particle_devices"]
+    dtype = str(state.x.dtype)
     first_step = int(state.step)
     if resume:
         import h5py
@@ -659,7 +664,7 @@ def run_setup(setup, args, options: dict, resume: bool = False) -> int:
                              overwrite=args.force) as writer:
                 if sharded is None:
                     final, _ = setup.run(progress=not args.no_progress, writer=writer,  # `command`: for resume
-                                         timings=timings)
+                                         timings=timings, donate=True)  # the scene's state is the CLI's own
                 else:
                     final, _ = sharded.run(state, setup.dt, setup.steps, setup.save_every, writer=writer,
                                            progress=not args.no_progress, timings=timings)
@@ -694,7 +699,7 @@ def run_setup(setup, args, options: dict, resume: bool = False) -> int:
         raise SystemExit(130) from None
     files = [args.out] + [p for p in xdmf_paths(args.out) if os.path.exists(p)]
     p1 = np.asarray(sim.diagnostics(final)["momentum"], dtype=float)
-    shared = jm.backend_info(sim, state)["particle_devices"] if sharded is None else 1
+    shared = shared if sharded is None else 1
     scheme = sim.scheme
     name = type(scheme).__name__
     order = getattr(scheme, "order", None)
@@ -706,7 +711,7 @@ def run_setup(setup, args, options: dict, resume: bool = False) -> int:
         ("scene", setup.name),
         ("scheme", label),
         ("shape / update", f"{type(sim.shape).__name__} / {sim.update}"),
-        ("dtype", str(state.x.dtype)),
+        ("dtype", dtype),
         ("particles", f"{n}"),
         *([] if sharded is not None or shared < 2 else
           [("particle devices", f"{shared} CPU devices, each holding the whole grid")]),
@@ -717,9 +722,9 @@ def run_setup(setup, args, options: dict, resume: bool = False) -> int:
         ("steps", f"{setup.steps} (t_end = {setup.t_end:.6g})"),
         ("dt", f"{setup.dt:.6g}"),
         *time_rows(timings, n, int(final.step) - first_step, resume),
-        *energy_rows(sim, state, final),
+        *energy_rows(sim, d0, final),
         *[(name.replace("_", " "), f"initial {value:.6g}, final {totals(sim, final)[name]:.6g}")
-          for name, value in totals(sim, state).items()],
+          for name, value in totals0.items()],
         ("dissipated", f"n/a (not tracked by {name})" if math.isnan(dissipated) else f"{dissipated:.6g}"),
         ("|p - p0|", f"{float(np.linalg.norm(p1 - p0)):.3e} (change of linear momentum)"),
         ("output", ", ".join(files)),

@@ -120,7 +120,7 @@ def resume(path, model=None, state=None, *, progress: bool = False, check_stabil
         writer.truncate(expected)  # frames saved after the state: computed again
         if sharded is None:
             final, _ = sim.run(loaded, dt, steps, save_every, writer=writer, start_step=start, progress=progress,
-                               check_stability=check_stability, timings=timings)
+                               check_stability=check_stability, timings=timings, donate=True)  # resume's own state
         else:
             final, _ = sharded.run(loaded, dt, steps, save_every, writer=writer, start_step=start,
                                    progress=progress, timings=timings)

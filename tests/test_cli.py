@@ -348,7 +348,7 @@ def test_energy_parts_count_gravity_from_the_start():
     mass = np.asarray(state.mass)
     assert float(sim.diagnostics(state)["gravitational"]) == pytest.approx(np.sum(mass * 2.0 * state.x[:, 1]))
     lifted = eqx.tree_at(lambda s: s.x, state, state.x + jnp.array([[0.25, 0.5]]))
-    rows = dict(energy_rows(sim, state, lifted))
+    rows = dict(energy_rows(sim, sim.diagnostics(state), lifted))
     kinetic = 0.5 * np.sum(mass) * 0.25
     assert rows["  gravitational V_g"] == (f"initial 0, final {np.sum(mass) * 2.0 * 0.5:.6g} "
                                            "(-sum m g.(x - x0): from the start)")
@@ -356,7 +356,7 @@ def test_energy_parts_count_gravity_from_the_start():
     assert rows["energy K+U+V_g"] == (f"initial {kinetic:.6g}, final {kinetic + np.sum(mass):.6g}, "
                                       f"ratio {(kinetic + np.sum(mass)) / kinetic:.6f}")
     plain = jm.Simulation(grid, "linear", material, "flip")
-    assert dict(energy_rows(plain, state, lifted))["  gravitational V_g"] == "0 (no gravity)"
+    assert dict(energy_rows(plain, plain.diagnostics(state), lifted))["  gravitational V_g"] == "0 (no gravity)"
     pushed = jm.Simulation(grid, "linear", material, "flip", body_force=lambda x, t: jnp.ones_like(x))
-    assert dict(energy_rows(pushed, state, lifted))["  gravitational V_g"] == (
+    assert dict(energy_rows(pushed, pushed.diagnostics(state), lifted))["  gravitational V_g"] == (
         "0 (no gravity); the body force b(x, t) has no potential and is not counted")

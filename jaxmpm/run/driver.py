@@ -6,8 +6,10 @@ progress bar.  ``Simulation.run`` and ``Simulation.rollout`` call these."""
 from __future__ import annotations
 
 import contextlib
+import functools
 import math
 import os
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -203,6 +205,7 @@ def run(
     start_step: int | None = None,
     fields: tuple | None = None,
     timings: dict | None = None,
+    donate: bool = False,
 ):
     """Run ``steps`` steps, saving a frame every ``save_every`` steps (plus the initial frame).
 
@@ -231,6 +234,13 @@ def run(
     ``fields``: the per-particle fields each frame holds besides x, v and the terms' fields,
     by name (``("stress", "pressure", "J", "F")``, :mod:`jaxmpm.model.frame_fields`; only
     these are computed); with a writer, the writer's (``jm.H5Writer(..., fields=...)``).
+
+    ``donate=True`` hands ``state``'s device memory to the run (JAX's buffer donation): the final state
+    is computed in place of the initial one, so a run holds one state fewer (the measure of
+    ``benchmarks/gpu.py``'s program bytes), and ``state``'s arrays are deleted (using them again raises
+    JAX's "Array has been deleted").  Under ``jit``/``grad``/``vmap`` it does nothing: the enclosing
+    program owns the buffers.  A chunked run (a writer or progress) computes each chunk in place of the
+    state before it in any case, after copying ``state`` once unless it is donated.
     """
     check(isinstance(steps, (int, np.integer)) and steps >= 0, f"run: steps = {steps!r} must be a non-negative integer")
     check(isinstance(save_every, (int, np.integer)) and save_every >= 1,
@@ -240,6 +250,9 @@ def run(
           f"use steps = {math.ceil(steps / save_every) * save_every}")
     check(isinstance(history_gradients, bool),
           f"run: history_gradients = {history_gradients!r} must be True (frames carry gradients) or False")
+    check(isinstance(donate, bool),
+          f"run: donate = {donate!r} must be True (the run may reuse the state's memory; the state is deleted) "
+          "or False")
     frames = steps // save_every
     parse_memory(memory)  # checked before anything runs
     check_state(state)
@@ -275,14 +288,22 @@ def run(
         first = int(state.step) if start_step is None else int(start_step)
         require_steps(first + steps, "shorten t_end, use a larger dt, or split the run")
         _require_frame_memory(sim, state, frames, save_particles, writer is None, fields)
+    if donate and not traced:
+        state = _unshared(state)  # a buffer two leaves hold can be donated once only
     if traced or (writer is None and not progress):
-        final, history, failure = _jit_rollout(sim, state, dt, frames, save_every, save_particles,
-                                               checkpoint, history_gradients, fields, memory)
+        if traced or not donate:
+            final, history, failure = _jit_rollout(sim, state, dt, frames, save_every, save_particles,
+                                                   checkpoint, history_gradients, fields, memory)
+        else:
+            start = _start_of(state)  # read before the run deletes the state
+            final, history, failure = _jit_rollout_in_place(
+                (sim, dt, frames, save_every, save_particles, checkpoint, history_gradients, fields, memory), state)
+            state = start
         if not traced and check_stability:
             _raise_if_failed(failure, dt, state, None, sim.grid)
         return final, history
     return _run_chunked(sim, state, dt, frames, save_every, save_particles, check_stability,
-                        progress, writer, frames_per_chunk, checkpoint, start_step, fields, timings)
+                        progress, writer, frames_per_chunk, checkpoint, start_step, fields, timings, donate)
 
 
 def _chosen_fields(sim, state, fields, save_particles) -> tuple:
@@ -497,7 +518,7 @@ class _Clock:
 
 
 def _run_chunked(sim, state, dt, frames, save_every, save_particles, check_stability, progress, writer,
-                 frames_per_chunk, checkpoint=True, start_step=None, fields=(), timings=None):
+                 frames_per_chunk, checkpoint=True, start_step=None, fields=(), timings=None, donate=False):
     """Run in chunks sized by wall time (about :data:`CHUNK_SECONDS` each), each chunk one call of
     the same compiled loop (``_advance``) whose frame and step counts are runtime values: no
     chunk recompiles, and the arithmetic is that of an uninterrupted run whatever the chunking.
@@ -510,7 +531,8 @@ def _run_chunked(sim, state, dt, frames, save_every, save_particles, check_stabi
     (:func:`jaxmpm.resume`) from its last chunk whatever stops the run.  On SIGINT/SIGTERM the loop
     stops at the next chunk boundary and :class:`RunInterrupted` is raised.  The loop is compiled
     (by a call that runs no frame) before the first step; ``timings`` and the progress bar are
-    :class:`_Clock`'s."""
+    :class:`_Clock`'s.  Each chunk is computed in place of the state before it (buffer donation,
+    ``_advance_in_place``): the run holds one working state, a copy of ``state`` unless ``donate``."""
     import time
 
     if not is_schedule(checkpoint, "auto"):
@@ -532,16 +554,20 @@ def _run_chunked(sim, state, dt, frames, save_every, save_particles, check_stabi
     none = Failure(*(jax.device_put(np.int32(i)) for i in (-1, 0, -1)))  # device_put: nothing compiled
 
     def advance(s, n_frames, per_frame):
-        """``n_frames`` frames of ``per_frame`` steps from ``s``: one call of the compiled loop."""
-        return _advance(sim, s, none, dt, jax.device_put(np.int32(n_frames)), jax.device_put(np.int32(per_frame)),
-                        buffer_frames, save_particles, check_stability, fields)
+        """``n_frames`` frames of ``per_frame`` steps from ``s``: one call of the compiled loop, which
+        computes the new state in place of ``s`` (``s`` is deleted)."""
+        counts = jax.device_put(np.int32(n_frames)), jax.device_put(np.int32(per_frame))
+        return _advance_in_place((sim, none, dt, *counts, buffer_frames, save_particles, check_stability, fields), s)
+
+    if not donate:
+        state = _copied(state)  # the run's working state; the caller's stays as it is
 
     try:
         with _StopOnSignal() as stop:
             first = None
             with clock.compiling():  # no frames: compiles the loop (and the initial frame), runs no step
-                if done_steps < total:
-                    jax.block_until_ready(advance(state, 0, 1))
+                if done_steps < total:  # the state handed back as it came
+                    state = jax.block_until_ready(advance(state, 0, 1))[0]
                 if done_steps == 0 and (writer is None or writer.frames == 0):
                     first = jax.block_until_ready(_jit_first_frame(sim, state, save_particles, fields))
             if first is not None:
@@ -554,6 +580,7 @@ def _run_chunked(sim, state, dt, frames, save_every, save_particles, check_stabi
                 n_frames, per_frame = _chunk(done_steps, total, save_every, rate, buffer_frames, frames_per_chunk,
                                              seconds)
                 tic = time.perf_counter()
+                before = _start_of(state)  # read before the chunk deletes the state
                 new_state, failure, buffer = advance(state, n_frames, per_frame)
                 failure, buffer = jax.device_get((failure, buffer))
                 elapsed = time.perf_counter() - tic
@@ -562,7 +589,7 @@ def _run_chunked(sim, state, dt, frames, save_every, save_particles, check_stabi
                 bad_step = int(failure.step)
                 failed = bad_step >= 0 and check_stability
                 if failed:  # the frames strictly before the failing step
-                    kept = min(kept, max(0, (bad_step - int(state.step) - 1) // per_frame))
+                    kept = min(kept, max(0, (bad_step - before.step - 1) // per_frame))
                 # device_put: jnp.asarray of a NumPy array compiles a small program per new shape (jaxlib 0.10)
                 frames_kept = jax.tree_util.tree_map(lambda a: jax.device_put(a[:kept]), buffer) if kept else None
                 if writer is None:
@@ -573,7 +600,7 @@ def _run_chunked(sim, state, dt, frames, save_every, save_particles, check_stabi
                                       due=stop.requested is not None or done_steps + steps_run == total)
                 clock.chunk(steps_run)
                 if check_stability:
-                    _raise_if_failed(failure, dt, state, new_state, sim.grid)
+                    _raise_if_failed(failure, dt, before, new_state, sim.grid)
                 state = new_state
                 done_steps += steps_run
                 rate = _measured_rate(rate, steps_run, elapsed)
@@ -647,7 +674,6 @@ def _measured_rate(rate, steps, elapsed):
     return latest if rate == 0.0 else 0.5 * (rate + latest)
 
 
-@eqx.filter_jit
 def _advance(sim, state, failure, dt, n_frames, steps_per_frame, buffer_frames: int, save_particles: bool,
              stop_at_failure: bool = True, fields: tuple = ()):
     """``n_frames`` (<= ``buffer_frames``) frames of ``steps_per_frame`` steps, both runtime
@@ -723,6 +749,55 @@ def _jit_first_frame(sim, state, save_particles, fields=()):
 def _jit_rollout(sim, state, dt, frames, save_every, save_particles, checkpoint="auto", history_gradients=True,
                  fields=(), memory=None):
     return sim.rollout(state, dt, frames, save_every, save_particles, checkpoint, history_gradients, fields, memory)
+
+
+@functools.partial(eqx.filter_jit, donate="all-except-first")
+def _jit_rollout_in_place(options, state):
+    """:func:`_jit_rollout` of ``state`` with ``options`` (sim, dt, frames, ...), its final state computed in
+    place of ``state`` (donated: every array but the first argument's)."""
+    sim, dt, *rest = options
+    return sim.rollout(state, dt, *rest)
+
+
+@functools.partial(eqx.filter_jit, donate="all-except-first")
+def _advance_in_place(options, state):
+    """:func:`_advance` of ``state`` with ``options`` (sim, failure, dt, ...), the new state computed in place of
+    ``state`` (donated)."""
+    sim, *rest = options
+    return _advance(sim, state, *rest)
+
+
+class _Start(NamedTuple):
+    """The step and time of a run's state, read to the host before the run deletes it (donation):
+    what :func:`_raise_if_failed` reads of the state it starts from."""
+
+    step: int
+    time: float
+
+
+def _start_of(state) -> _Start:
+    return _Start(int(state.step), float(state.time))
+
+
+def _unshared(state):
+    """``state`` with every array that an earlier leaf already holds copied (``eqx.tree_at(lambda s: s.v, state,
+    state.x)`` makes one): XLA refuses to donate one buffer twice."""
+    seen = set()
+
+    def once(a):
+        if not isinstance(a, jax.Array) or id(a) not in seen:
+            seen.add(id(a))
+            return a
+        return jax.device_put(a, may_alias=False)
+
+    return jax.tree_util.tree_map(once, state)
+
+
+def _copied(state):
+    """``state`` with every array copied on its device (nothing compiled): a working state that a run
+    may donate while the caller keeps ``state``."""
+    return jax.tree_util.tree_map(lambda a: jax.device_put(a, may_alias=False) if isinstance(a, jax.Array) else a,
+                                  state)
 
 
 def _raise_if_failed(failure: Failure, dt, state0, reached=None, grid=None):

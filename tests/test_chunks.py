@@ -209,3 +209,27 @@ def test_the_memory_table_bounds_the_whole_steps_temporaries(dim, scheme):
     n, slots, itemsize = state.x.shape[0], 3 ** dim, state.x.dtype.itemsize
     floats = temporaries / (n * slots * itemsize)
     assert 0.3 * backend.STEP_FLOATS_PER_SLOT[dim] < floats <= backend.STEP_FLOATS_PER_SLOT[dim], floats
+
+
+@pytest.mark.parametrize("scheme", ["APIC", "FLIP"])
+def test_a_frames_sums_over_the_steps_chunks_equal_the_whole_sums(scheme):
+    """Where the step goes in chunks, a frame's energies and momenta are summed chunk by chunk (sums_in_chunks:
+    their per-particle terms take one chunk's memory): equal to the whole sums to round-off, the dissipated
+    energy the state's own, and their derivatives the whole sums' (a custom JVP)."""
+    sim, state, dt = _scene(scheme=getattr(jm, scheme)())
+    state = _advance(sim, state, dt)  # moving and strained: no sum is zero
+    chunked, whole = sim.with_chunks(128), sim.with_chunks(0)
+    assert jm.backend_info(chunked, state)["chunk_particles"] == 128
+    frame = eqx.filter_jit(lambda model, s: model._frame_diagnostics(s))
+    got, want = frame(chunked, state), frame(whole, state)
+    assert sorted(got) == sorted(want) == ["angular", "dissipated", "kinetic", "momentum", "strain"]
+    for key in want:
+        np.testing.assert_allclose(got[key], want[key], rtol=1e-13, atol=1e-15 * float(jnp.max(jnp.abs(want[key]))),
+                                   err_msg=key)
+
+    def energy(model, v):
+        frame = model._frame_diagnostics(eqx.tree_at(lambda s: s.v, state, v))
+        return frame["kinetic"] + frame["strain"] + jnp.sum(frame["angular"])
+
+    np.testing.assert_array_equal(jax.grad(lambda v: energy(chunked, v))(state.v),
+                                  jax.grad(lambda v: energy(whole, v))(state.v))

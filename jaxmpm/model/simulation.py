@@ -52,7 +52,7 @@ from ..transfer.backend import (
 from ..transfer.kernels.windowed import active_window, on_window
 from ..transfer.shapes import UGIMP, ShapeFunction, field_stencil
 from . import frame_fields
-from .chunks import chunk_obstacle, num_chunks, step_in_chunks
+from .chunks import chunk_obstacle, num_chunks, step_in_chunks, sums_in_chunks
 from .devices import device_obstacle, local_devices, step_on_devices
 from .step import folds_force
 from .step import step as _step
@@ -716,14 +716,22 @@ class Simulation(eqx.Module):
         # concrete: one compiled program, kept per model, instead of some thirty small ones op by op
         return _diagnostics(self, state)
 
-    def _frame_diagnostics(self, state: State) -> dict:
+    def _frame_sums(self, state: State) -> dict:
+        """The frame's sums over the particles: kinetic and strain energy, linear and angular momentum."""
         return dict(
             kinetic=diag.kinetic_energy(state),
             strain=diag.strain_energy(state, self.material, self.elastic_deformation(state)),
-            dissipated=state.dissipated,
             momentum=diag.linear_momentum(state),
             angular=self.scheme.angular_momentum(state),
         )
+
+    def _frame_diagnostics(self, state: State) -> dict:
+        """The frame's sums, over the step's chunks of particles where it steps in chunks (their per-particle
+        terms then exist for one chunk at a time: :func:`jaxmpm.model.chunks.sums_in_chunks`), and the
+        dissipated energy."""
+        per_chunk, _ = self._chunk_row(state)
+        sums = sums_in_chunks(self, state, per_chunk) if per_chunk else self._frame_sums(state)
+        return dict(sums, dissipated=state.dissipated)
 
     def diagnostics_frame(self, state: State, save_particles: bool, fields: tuple = ()) -> History:
         """One saved frame of a run: time, diagnostics and (``save_particles``) the particle

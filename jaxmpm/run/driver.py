@@ -144,6 +144,18 @@ def rollout(sim, state: State, dt, frames: int, save_every: int = 1, save_partic
     a loss of the final state alone then carries no pullback of the diagnostics, and no frame
     holds residuals.  The instability record is never differentiated (its outputs are integers).
     """
+    final, later, failure, frame = _later_frames(sim, state, dt, frames, save_every, save_particles, checkpoint,
+                                                 history_gradients, fields, memory)
+    history = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a[None], b]), frame(state), later)
+    return final, history, failure
+
+
+def _later_frames(sim, state: State, dt, frames: int, save_every: int, save_particles: bool, checkpoint,
+                  history_gradients: bool, fields: tuple, memory):
+    """:func:`rollout` without its initial frame: (final state, the ``frames`` frames after the initial one,
+    failure record, the frame of a state).  A run that computes its states in place of the initial one
+    (:func:`_jit_rollout_in_place`) takes the initial frame in a program of its own: read in the same program,
+    the initial state would have to outlive the loop, and XLA would copy it."""
     sim = sim.in_precision(state.x.dtype)  # the model computes in its state's precision
     fields = _chosen_fields(sim, state, fields, save_particles)
     dt = jnp.asarray(dt, state.x.dtype)
@@ -180,10 +192,7 @@ def rollout(sim, state: State, dt, frames: int, save_every: int = 1, save_partic
 
     start = (state, none, None if sorting is None else sorting.start(state))
     carry, frames_hist = jax.lax.scan(one_frame, start, None, length=frames)
-    final, failure = _in_user_order(sorting, carry), carry[1]
-    first = frame(state)
-    history = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a[None], b]), first, frames_hist)
-    return final, history, failure
+    return _in_user_order(sorting, carry), frames_hist, carry[1], frame
 
 
 @with_fewer_collections
@@ -294,11 +303,11 @@ def run(
         if traced or not donate:
             final, history, failure = _jit_rollout(sim, state, dt, frames, save_every, save_particles,
                                                    checkpoint, history_gradients, fields, memory)
-        else:
-            start = _start_of(state)  # read before the run deletes the state
-            final, history, failure = _jit_rollout_in_place(
+        else:  # the initial frame first, in a program of its own (_later_frames)
+            start, first = _start_of(state), _jit_first_frame(sim, state, save_particles, fields)
+            final, later, failure = _jit_rollout_in_place(
                 (sim, dt, frames, save_every, save_particles, checkpoint, history_gradients, fields, memory), state)
-            state = start
+            history, state = _jit_joined(first, later), start
         if not traced and check_stability:
             _raise_if_failed(failure, dt, state, None, sim.grid)
         return final, history
@@ -753,10 +762,18 @@ def _jit_rollout(sim, state, dt, frames, save_every, save_particles, checkpoint=
 
 @functools.partial(eqx.filter_jit, donate="all-except-first")
 def _jit_rollout_in_place(options, state):
-    """:func:`_jit_rollout` of ``state`` with ``options`` (sim, dt, frames, ...), its final state computed in
-    place of ``state`` (donated: every array but the first argument's)."""
+    """:func:`_jit_rollout` of ``state`` with ``options`` (sim, dt, frames, ...) without the initial frame
+    (:func:`_later_frames`), its final state computed in place of ``state`` (donated: every array but the
+    first argument's): (final state, the later frames, failure record)."""
     sim, dt, *rest = options
-    return sim.rollout(state, dt, *rest)
+    final, later, failure, _ = _later_frames(sim, state, dt, *rest)
+    return final, later, failure
+
+
+@eqx.filter_jit
+def _jit_joined(first, later):
+    """The initial frame (with its leading axis) and the later ones, as one history."""
+    return jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b]), first, later)
 
 
 @functools.partial(eqx.filter_jit, donate="all-except-first")

@@ -36,6 +36,14 @@ def gib(nbytes: float) -> str:
     return f"{nbytes / 2**30:.3g} GiB"
 
 
+def size_text(nbytes: float) -> str:
+    """Bytes for a reader, in the largest unit that is at least 1: '312.5 KiB', '1.4 GiB'."""
+    for unit, scale in (("GiB", 2**30), ("MiB", 2**20), ("KiB", 2**10)):
+        if nbytes >= scale:
+            return f"{nbytes / scale:.1f} {unit}"
+    return f"{int(nbytes)} B"
+
+
 def require_memory(what: str, nbytes: float, fix: str) -> None:
     """Raise :class:`InputError` when ``nbytes`` exceed the memory available."""
     have = available_bytes()

@@ -35,7 +35,7 @@ import jax
 import numpy as np
 
 from ..core.errors import check
-from ..core.limits import available_bytes
+from ..core.limits import available_bytes, size_text
 from ..transfer.backend import KEEP_STATES_UP_TO, STORE_RESIDUALS_UP_TO, resolve
 
 _UNITS = {"": 1, "b": 1, "kb": 10**3, "mb": 10**6, "gb": 10**9, "tb": 10**12,
@@ -114,31 +114,23 @@ def _schedule(sim, state, dt, frames: int, save_every: int, budget: int, residua
     if limit > 0:
         stored = steps * (residual_bytes(sim.step, state, dt) if residual is None else residual)
         if stored <= min(limit, budget):
-            return False, f"every step's residuals stored ({_size(stored)})", stored
+            return False, f"every step's residuals stored ({size_text(stored)})", stored
     one_level = steps * state_bytes
     keep = KEEP_STATES_UP_TO[resolve(sim.backend)].get(state.x.shape[-1])
     if one_level <= budget and (keep is None or one_level <= keep):
-        return "states", f"one level, every step's state kept ({_size(one_level)} of states)", one_level
+        return "states", f"one level, every step's state kept ({size_text(one_level)} of states)", one_level
     segment = _segment_length(save_every, True, frames)
     two_levels = (steps // segment + segment) * state_bytes
     if two_levels <= budget:
-        return True, f"two levels, segments of {segment} steps ({_size(two_levels)} of states)", two_levels
+        return True, f"two levels, segments of {segment} steps ({size_text(two_levels)} of states)", two_levels
     segment = _segment_length(save_every, "low_memory", frames)
     three_levels = (frames + save_every // segment + segment) * state_bytes
-    return "low_memory", (f"three levels ({_size(three_levels)} of states; two levels would keep "
-                          f"{_size(two_levels)}, over the budget of {_size(budget)})"), three_levels
+    return "low_memory", (f"three levels ({size_text(three_levels)} of states; two levels would keep "
+                          f"{size_text(two_levels)}, over the budget of {size_text(budget)})"), three_levels
 
 
 #: forward passes the backward pass runs again under each schedule (on top of the one that yields the loss)
 RECOMPUTATIONS = {False: 0, "states": 1, True: 2, "low_memory": 3}
-
-
-def _size(nbytes) -> str:
-    """Bytes for a reader: '312.5 KiB', '1.4 GiB'."""
-    for unit, scale in (("GiB", 2**30), ("MiB", 2**20), ("KiB", 2**10)):
-        if nbytes >= scale:
-            return f"{nbytes / scale:.1f} {unit}"
-    return f"{int(nbytes)} B"
 
 
 def gradient_schedule(sim, state, dt, steps: int, save_every: int = 1, memory=None) -> dict:

@@ -57,6 +57,7 @@ from jax.custom_batching import custom_vmap
 from jax.extend.core import jaxpr_as_fun
 
 from ..core.errors import check
+from ..core.limits import size_text
 
 try:  # whether no trace is active: code runs op by op (see _eager)
     from jax._src.core import trace_state_clean as _trace_state_clean
@@ -656,13 +657,6 @@ STEP_MEMORY_SHARE = 0.25
 SMALLEST_CHUNK = 1024  # particles: fewer would not save memory worth a chunk's second stencil evaluation
 
 
-def _bytes(nbytes: float) -> str:
-    for unit, scale in (("GiB", 2**30), ("MiB", 2**20), ("KiB", 2**10)):
-        if nbytes >= scale:
-            return f"{nbytes / scale:.3g} {unit}"
-    return f"{int(nbytes)} B"
-
-
 def chunks_to_fit(dim: int, num_particles: int, slots: int, dtype, free_bytes: int) -> tuple:
     """(particles per chunk, 0 when the whole step fits; why) for a ``dim``-dimensional step of ``num_particles``
     particles with ``slots`` stencil slots each, computing in ``dtype``, on a device with ``free_bytes`` free:
@@ -674,8 +668,8 @@ def chunks_to_fit(dim: int, num_particles: int, slots: int, dtype, free_bytes: i
     if need <= budget:
         return 0, ""
     per = max(SMALLEST_CHUNK, 2 ** int(math.floor(math.log2(max(1.0, budget / per_particle)))))
-    return per, (f"the whole step's temporaries (about {_bytes(need)}) would take more than "
-                 f"{STEP_MEMORY_SHARE:.0%} of the device's free memory ({_bytes(free_bytes)}): chunks of at most "
+    return per, (f"the whole step's temporaries (about {size_text(need)}) would take more than "
+                 f"{STEP_MEMORY_SHARE:.0%} of the device's free memory ({size_text(free_bytes)}): chunks of at most "
                  f"{per} particles")
 
 

@@ -10,9 +10,8 @@ and read ("before"), the run goes, and the peak is read again (``VmHWM``).  ``pe
 added: on the CPU, XLA's buffers, the frames and the writer's host copies; not the compilation.  The workers run
 with glibc's ``MALLOC_MMAP_THRESHOLD_=131072``: every buffer from 128 KiB is mapped on its own and given back when
 freed (glibc otherwise raises that threshold up to 32 MiB as buffers are freed, and the first run's freed buffers,
-kept in the heap, would be reused unseen).  ``state`` is the
-particle state's size.  The run saves 5 frames without the particles (``save_particles=False``).  Writes
-``benchmarks/results/run_memory.csv`` (or ``--csv``).
+kept in the heap, would be reused unseen).  ``state`` is the particle state's size.  The run saves 5 frames
+without the particles (``save_particles=False``).  Writes ``benchmarks/results/run_memory.csv`` (or ``--csv``).
 """
 
 from __future__ import annotations

@@ -31,7 +31,7 @@ from ..physics.damping import Damping
 from ..physics.stress import StressDivergence
 from ..physics.term import Term, overrides
 from ..run.driver import History, StableTimeStepWarning, rollout, run  # noqa: F401  (re-exported)
-from ..run.memory import free_memory
+from ..run.memory import step_memory
 from ..run.sorting import Sorting
 from ..schemes.base import Scheme
 from ..transfer.backend import (
@@ -392,6 +392,9 @@ class Simulation(eqx.Module):
             per = self.chunk_particles
         if devices < 2:
             return 1, 0, why
+        if not per and self.chunk_particles == "auto":  # each device's share at once, unless it would not fit
+            fit = self._memory_row(n // devices, dtype, devices)
+            per, why = (fit[0], f"{why}; {fit[1]}") if fit else (per, why)
         kernel = kernel or self._kernel_row(n, dtype)[0] or "xla"
         obstacle = device_obstacle(self, state, devices, kernel)
         if obstacle is not None:
@@ -400,6 +403,14 @@ class Simulation(eqx.Module):
         if per and per < share and num_chunks(share, per):
             return devices, per, f"{why}: {share} particles a device, in chunks of {share // num_chunks(share, per)}"
         return devices, 0, f"{why}: {share} particles a device, at once"
+
+    def _memory_row(self, num_particles: int, dtype, devices: int = 1) -> tuple | None:
+        """(particles per chunk, why) where the whole step of ``num_particles`` particles on one of
+        ``devices`` devices would not fit its memory (:func:`chunks_to_fit` within
+        :func:`~jaxmpm.run.memory.step_memory`); None where it fits."""
+        free, shared = step_memory(devices)
+        per, why = chunks_to_fit(self.grid.dim, num_particles, self.shape.nodes_per_axis ** self.grid.dim, dtype, free)
+        return (per, why + shared) if per else None
 
     def _chunk_row(self, state: State, kernel: str | None = None) -> tuple:
         """(particles per chunk, 0 for the whole step; why) for a step of ``state`` whose transfers run
@@ -410,9 +421,7 @@ class Simulation(eqx.Module):
         else:
             per, why = choose_chunking(self.backend, self.grid.dim, n, dtype)
             if not per:  # the whole step, unless its temporaries would not fit the device's memory
-                fit, fit_why = chunks_to_fit(self.grid.dim, n, self.shape.nodes_per_axis ** self.grid.dim, dtype,
-                                             free_memory())
-                per, why = (fit, fit_why) if fit else (per, why)
+                per, why = self._memory_row(n, dtype) or (per, why)
         if not per or per >= n:
             return 0, why if not per else f"{why}; {n} particles fit one chunk: the whole step"
         kernel = kernel or self._kernel_row(n, dtype)[0] or "xla"

@@ -32,7 +32,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from ..core.errors import check
 from ..core.params import _where, _with_owner, check_value, set_params
 from ..core.validate import POSITIVE, batch_members, positive_int
-from .memory import budget_bytes, parse_memory
+from .memory import budget_bytes, members_at_once, parse_memory
 from .progress import shown, shown_call
 
 
@@ -212,11 +212,14 @@ def _batched_rollout(sim, state, dt, frames, save_every, save_particles, strateg
                                                       save_particles, checkpoint="auto", memory=share)
             return final, hist, failure.step
 
+        # the members stepped at once share the device's memory when their steps decide whether they fit
         if strategy == "vmap" and chunk is None:
             in_axes = (0 if params else None, 0 if states is not None else None)
-            return jax.vmap(member, in_axes=in_axes)(params, states)
+            with members_at_once(_batch_size((params, states))):
+                return jax.vmap(member, in_axes=in_axes)(params, states)
         # scanned over the members: one compiled member (or chunk of members), its inputs sliced per iteration
-        return jax.lax.map(lambda ps: member(*ps), (params, states), batch_size=chunk)
+        with members_at_once(chunk or 1):
+            return jax.lax.map(lambda ps: member(*ps), (params, states), batch_size=chunk)
 
     if mesh is None:
         return members(sim, state, dt, params, states)

@@ -28,6 +28,8 @@ round-off).
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import math
 import re
 
@@ -69,6 +71,36 @@ def free_memory(device=None) -> int:
     if stats and "bytes_limit" in stats:
         return int(stats["bytes_limit"] - stats.get("bytes_in_use", 0))
     return available_bytes()
+
+
+_members = contextvars.ContextVar("jaxmpm_members_at_once", default=1)
+
+
+@contextlib.contextmanager
+def members_at_once(count: int):
+    """Trace the enclosed steps as those of ``count`` members stepped at once (a vmapped ensemble,
+    :func:`jaxmpm.ensemble`): each member's step counts on an even share of the device's memory
+    (:func:`step_memory`)."""
+    token = _members.set(max(1, int(count)) * _members.get())
+    try:
+        yield
+    finally:
+        _members.reset(token)
+
+
+def step_memory(devices: int = 1) -> tuple[int, str]:
+    """``(bytes, note)``: the free memory one member's step on one device may count on when it decides
+    whether its temporaries fit (:func:`jaxmpm.transfer.backend.chunks_to_fit`) -- the device's free
+    memory shared evenly among the members stepped at once (:func:`members_at_once`) and, on the CPU,
+    among the ``devices`` its particles are shared among (CPU devices share the host's memory; each GPU
+    has its own).  ``note`` says how it was shared ("" when it was not)."""
+    members = _members.get()
+    shared = members * (devices if jax.default_backend() == "cpu" else 1)
+    if shared == 1:
+        return free_memory(), ""
+    among = [f"{members} members stepped at once"] * (members > 1) + [
+        f"{devices} CPU devices"] * (shared > members)
+    return free_memory() // shared, f"; that is an even share of the free memory among {' and '.join(among)}"
 
 
 def default_budget() -> int:

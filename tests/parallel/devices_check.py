@@ -1,10 +1,12 @@
 """Run by tests/test_particle_devices.py in a process of its own with 2 forced CPU devices: steps whose
 particles are shared among the devices, each holding the whole grid (jaxmpm.model.devices), against the
 same model on one device, float64: whole runs with frames (mpm88 under APIC, the disks under FLIP), the
-gradient of a rollout's loss with respect to E, an ensemble, what ``jm.backend_info`` reports and the
-error for more devices than the process has.  Prints one JSON line."""
+gradient of a rollout's loss with respect to E, an ensemble, what ``jm.backend_info`` reports, a share of the
+particles that would not fit a device's memory, and the error for more devices than the process has.  Prints one
+JSON line."""
 
 import json
+import os
 import time
 
 import jax
@@ -14,6 +16,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import jaxmpm as jm  # noqa: E402
+import jaxmpm.transfer.backend  # noqa: E402
 
 out = {"devices": len(jax.devices())}
 start = time.perf_counter()
@@ -85,6 +88,16 @@ one = prime.sim.with_particle_devices(1)
 out["prime_x"] = rel(shared.step(prime.state, prime.dt).x, one.step(prime.state, prime.dt).x)
 odd = jm.scene("mpm88", n_particles=2047, dtype="f64")
 out["odd_reason"] = jm.backend_info(odd.sim.with_particle_devices(2), odd.state)["devices_reason"]
+# a device's share of the particles goes in chunks where its temporaries would not fit: 2 CPU devices share the
+# host's memory (4 MiB here), so each counts on half of it (issue 32 item 7)
+memory = jm.scene("mpm88", n_particles=2048, dtype="f64")
+shared, one = memory.sim.with_particle_devices(2), memory.sim.with_particle_devices(1).with_chunks(0)
+os.environ["JAXMPM_MEMORY_BYTES"] = str(4 * 2**20)
+jaxmpm.transfer.backend.SMALLEST_CHUNK = 128
+out["memory_reason"] = jm.backend_info(shared, memory.state)["devices_reason"]
+out["memory_x"] = rel(shared.step(memory.state, memory.dt).x, one.step(memory.state, memory.dt).x)
+del os.environ["JAXMPM_MEMORY_BYTES"]
+out["memory_fits_reason"] = jm.backend_info(shared, memory.state)["devices_reason"]
 try:
     sim.with_particle_devices(3).step(state, dt)
     out["too_many"] = None

@@ -1,0 +1,90 @@
+"""The memory a step counts on when it decides whether its temporaries fit (issue 32 item 7;
+jaxmpm.run.memory.step_memory, jaxmpm.transfer.backend.chunks_to_fit): the members of an ensemble
+stepped at once (vmapped) share the device's free memory evenly, so that B members' temporaries --
+B times one member's -- fit where one member's would.  Small mpm88 scenes (16^2 grid, 512 particles,
+float64), a device of 8 MiB (JAXMPM_MEMORY_BYTES) and chunks of at least 128 particles: one member's
+step fits (684 KiB of temporaries against a quarter of 8 MiB), eight members' do not.  The
+particles-over-CPU-devices share is checked in tests/parallel/devices_check.py."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxmpm as jm
+from jaxmpm.model import simulation
+from jaxmpm.run.memory import members_at_once, step_memory
+from jaxmpm.transfer import backend
+
+FREE = 8 * 2**20
+MEMBERS = 8
+STEPS = 10
+
+
+@pytest.fixture
+def small_device(monkeypatch):
+    """A device of ``FREE`` bytes, chunks of at least 128 particles, and the memory each step counted on."""
+    monkeypatch.setattr(backend, "SMALLEST_CHUNK", 128)
+    monkeypatch.setenv("JAXMPM_MEMORY_BYTES", str(FREE))
+    seen = []
+
+    def spy(devices=1):
+        seen.append(step_memory(devices))
+        return seen[-1]
+
+    monkeypatch.setattr(simulation, "step_memory", spy)
+    return seen
+
+
+def _scene():
+    setup = jm.scene("mpm88", n_particles=512, n_grid=16)
+    return setup.sim, setup.state, setup.dt
+
+
+def test_members_stepped_at_once_share_the_memory(small_device):
+    """One member's step fits the device; as one of eight stepped at once it counts on an eighth of the
+    memory and goes in chunks, and backend_info says why.  Nested counts multiply; leaving restores."""
+    sim, state, _ = _scene()
+    assert jm.backend_info(sim, state)["chunk_particles"] == 0
+    assert small_device[-1] == (FREE, "")
+    with members_at_once(MEMBERS):
+        info = jm.backend_info(sim, state)
+        with members_at_once(2):
+            assert step_memory() == (FREE // 16, "; that is an even share of the free memory among 16 members "
+                                                 "stepped at once")
+    assert info["chunk_particles"] == 128, info
+    assert info["chunk_reason"] == (
+        "the whole step's temporaries (about 684.0 KiB) would take more than 25% of the device's free memory "
+        "(1.0 MiB): chunks of at most 128 particles; that is an even share of the free memory among 8 members "
+        "stepped at once: 4 chunks of 128 particles")
+    assert step_memory() == (FREE, "")
+    with members_at_once(1):
+        assert step_memory() == (FREE, "")
+
+
+def test_a_vmapped_ensemble_steps_each_member_in_chunks_that_fit(small_device):
+    """jm.ensemble's members vmapped together: each member's step counts on its share of the memory (all
+    members at once: an eighth; ``chunk=2``: a half) and steps in the chunks that fit, bit for bit the
+    ensemble of those chunks forced; members one after another ("sequential") count on all of it.  The
+    results equal the whole steps' to round-off (003 §2.1: P2G sums over the particles)."""
+    sim, state, dt = _scene()
+    E = sim.material.E * jnp.linspace(0.9, 1.1, MEMBERS)
+
+    def ensemble(model, **how):
+        return jm.ensemble(model, state, dt, STEPS, STEPS, params={"E": E}, progress=False, **how)
+
+    fitted = ensemble(sim, strategy="vmap")
+    assert set(small_device) == {(FREE // MEMBERS, "; that is an even share of the free memory among 8 members "
+                                                   "stepped at once")}
+    forced = ensemble(sim.with_chunks(128), strategy="vmap")
+    whole = ensemble(sim.with_chunks(0), strategy="vmap")
+    for got, chunked, at_once in zip(jax.tree_util.tree_leaves(fitted), jax.tree_util.tree_leaves(forced),
+                                     jax.tree_util.tree_leaves(whole)):
+        np.testing.assert_array_equal(got, chunked)
+        if jnp.issubdtype(got.dtype, jnp.floating):
+            np.testing.assert_allclose(got, at_once, rtol=0, atol=1e-12 * max(1e-300, float(jnp.max(jnp.abs(
+                jnp.where(jnp.isfinite(at_once), at_once, 0))))))
+    for how, free in (({"strategy": "vmap", "chunk": 2}, FREE // 2), ({"strategy": "sequential"}, FREE)):
+        small_device.clear()
+        jax.eval_shape(lambda: ensemble(sim, **how))  # traced, not compiled: the memory each step counted on
+        assert {seen[0] for seen in small_device} == {free}, how

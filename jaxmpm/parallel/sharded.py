@@ -30,6 +30,11 @@ buffer -- the run gathers the particles on the host (:meth:`ShardedSimulation.co
 the boundaries that equalise the slabs' particle counts (:meth:`Slabs.balanced_bounds`) and
 distributes them again (:meth:`ShardedSimulation.distribute`).  When no boundaries fit the
 buffers, the run stops with the error naming ``capacity``, the state of the step before kept.
+
+:meth:`ShardedSimulation.run` computes the particle buffers in place of the ones before (JAX's buffer
+donation, :data:`DONATE`): a run holds one set of buffers, the run's own (made by ``distribute``), and
+never deletes the caller's state, model or time step.  The public ``rollout(steps)`` program keeps its
+arguments.
 """
 
 from __future__ import annotations
@@ -85,6 +90,11 @@ SUPPORTED_TERMS = (StressDivergence, BodyForce, Damping, Contact, Collider, Trac
 
 #: larger than any step, cause or particle index: "none" in the reduction of the devices' failure records
 _NEVER = np.iinfo(np.int32).max
+
+#: :meth:`ShardedSimulation.run` computes the particle buffers in place of the ones before (JAX's buffer
+#: donation: the buffers, ``valid`` and ``ids`` that :meth:`~ShardedSimulation.distribute` made, or the
+#: rollout returned); False: every call keeps its arguments (the same numbers, one buffer set more)
+DONATE = True
 
 
 class ShardedSimulation:
@@ -239,12 +249,16 @@ class ShardedSimulation:
         buffers = jax.tree_util.tree_map(lambda a: jnp.asarray(a)[slots] if per_particle(a, n) else a, state)
         sharding = NamedSharding(self.mesh, P(self.axis_name))
         rows = self.devices * capacity
+        on_cpu = self.mesh.devices.flat[0].platform == "cpu"
 
         def put(a):  # a global array, each process filling its devices' rows (several hosts: jax.distributed)
             if not per_particle(a, rows):
                 return np.asarray(a) if isinstance(a, jax.Array) else a  # replicated: the same on every process
             host = np.asarray(a)
-            return jax.make_array_from_callback(host.shape, sharding, lambda index: host[index])
+            array = jax.make_array_from_callback(host.shape, sharding, lambda index: host[index])
+            # a CPU device may hold the host array's memory itself (no copy), which XLA does not compute in
+            # place (the run's donation would copy instead): each device's rows copied into memory of its own
+            return _copied(array) if on_cpu else array
 
         return jax.tree_util.tree_map(put, buffers), put(valid), put(ids)
 
@@ -319,7 +333,7 @@ class ShardedSimulation:
                 chunk = min(self.rebalance_every, steps)
                 lengths = [chunk] * (steps // chunk) + ([steps % chunk] if steps % chunk else [])
             for length in lengths:
-                buffers, valid, ids = self._advance(self.rollout(length), self.sim, state, buffers, valid, ids,
+                buffers, valid, ids = self._advance(self._in_place(length), self.sim, state, buffers, valid, ids,
                                                     jnp.asarray(dt), length)
             return self.collect(buffers, valid, ids, n)
         return self._run_frames(state, dt, steps, save_every, save_particles, fields, writer, progress, timings,
@@ -335,13 +349,13 @@ class ShardedSimulation:
         self._reached, self._since = int(state.step), 0  # the buffers' step; steps since the slabs moved
 
     def _advance(self, program, sim, state, buffers, valid, ids, dt, steps: int, held=None):
-        """The ``steps`` steps of a compiled rollout from the buffers: the buffers reached, with
-        :attr:`stats` counted on; raises at an unstable step (``state``: a state of this run, for its
-        time) or a particle that did not fit (the run stopped at the step before).  With
-        ``rebalance_every``, the slabs move first when K steps have passed since they last did, and
-        when a particle would not fit, the run stops, the slabs move and the run goes on from the
-        step before; only when they have just moved does it raise.  ``held``: the buffers' particles
-        as a State, when the caller has collected them (a rebalance then needs no gather)."""
+        """The ``steps`` steps of a compiled rollout (:meth:`_in_place`'s: the buffers given are deleted)
+        from the buffers: the buffers reached, with :attr:`stats` counted on; raises at an unstable step
+        (``state``: a state of this run, for its time) or a particle that did not fit (the run stopped at
+        the step before).  With ``rebalance_every``, the slabs move first when K steps have passed since
+        they last did, and when a particle would not fit, the run stops, the slabs move and the run goes on
+        from the step before; only when they have just moved does it raise.  ``held``: the buffers'
+        particles as a State, when the caller has collected them (a rebalance then needs no gather)."""
         if self.rebalance_every is None:
             buffers, valid, ids, _, overflow = self._call(program, sim, state, buffers, valid, ids, dt)
             self._require_fit(overflow)
@@ -363,10 +377,12 @@ class ShardedSimulation:
         return buffers, valid, ids
 
     def _call(self, program, sim, state, buffers, valid, ids, dt, *moving):
-        """One call of a compiled rollout (``moving``: the boundaries and the step limit, for slabs
-        that move): (buffers, valid, ids, steps done, particles that did not fit), :attr:`stats`
-        counted on; raises at an unstable step."""
-        buffers, valid, ids, done, overflow, migrated, *rest = program(sim, buffers, valid, ids, dt, *moving)
+        """One call of a compiled rollout of :meth:`_in_place`, the buffers computed in place of ``buffers``,
+        ``valid`` and ``ids`` (``moving``: the boundaries and the step limit, for slabs that move): (buffers,
+        valid, ids, steps done, particles that did not fit), :attr:`stats` counted on; raises at an unstable
+        step."""
+        buffers, valid, ids, done, overflow, migrated, *rest = program(
+            *self._in_place_args(sim, buffers, valid, ids, dt, *moving))
         failure, census = rest[:3], rest[3:]
         done, overflow, migrated = (int(_local(a)) for a in (done, overflow, migrated))
         stats = self.stats
@@ -464,8 +480,8 @@ class ShardedSimulation:
         try:
             with _StopOnSignal() as stop:
                 with clock.compiling():  # the rollout of one frame, compiled before the first step
-                    program = self.rollout(save_every).lower(sim, buffers, valid, ids, dt,
-                                                             *self._moving_args(save_every)).compile()
+                    program = self._in_place(save_every).lower(*self._in_place_args(
+                        sim, buffers, valid, ids, dt, *self._moving_args(save_every))).compile()
                     fresh = done == 0 and (writer is None or writer.frames == 0)  # no frame saved yet
                     first = jax.block_until_ready(one_frame(state)) if fresh else None
                 if not writing:
@@ -475,7 +491,7 @@ class ShardedSimulation:
                 published = time.perf_counter()
                 clock.start()
                 if lead:  # resumed between two frames: on to the next frame, saved with the state there
-                    buffers, valid, ids = self._advance(self.rollout(lead), sim, state, buffers, valid, ids, dt,
+                    buffers, valid, ids = self._advance(self._in_place(lead), sim, state, buffers, valid, ids, dt,
                                                         lead, held=state)
                     state = self.collect(buffers, valid, ids, n)
                     frame = one_frame(state)
@@ -526,14 +542,52 @@ class ShardedSimulation:
         (a model of the same structure: other parameters, or differentiated, without recompiling;
         its leaves that are not arrays -- a load T(t), a solid's motion u(t) -- are static, as
         ``eqx.filter_jit`` keeps them); each step is rematerialised in reverse mode
-        (``jax.checkpoint``).  Call :meth:`distribute` first (it fixes the capacity)."""
+        (``jax.checkpoint``); its arguments are kept (:meth:`run` calls :meth:`_in_place`'s program, which
+        computes the buffers in place).  Call :meth:`distribute` first (it fixes the capacity)."""
         check(self.capacity is not None, "ShardedSimulation.rollout: call distribute(state) first (it sets capacity)")
         key = (steps, self.capacity, self.exchange)
         if key not in self._programs:
-            self._programs[key] = self._build(steps)
+            self._programs[key] = eqx.filter_jit(self._build(steps))
         return self._programs[key]
 
+    def _in_place(self, steps: int):
+        """The rollout of ``steps`` steps that :meth:`run` calls, its buffers computed in place of the ones it
+        is given: ``_in_place(steps)(kept, particles, valid, ids)`` (:meth:`_in_place_args` splits the
+        rollout's arguments so) returns what :meth:`rollout`'s program returns, and deletes ``particles``
+        (the buffers' per-particle arrays), ``valid`` and ``ids`` -- the run's own arrays, made by
+        :meth:`distribute` or returned by the call before (JAX's buffer donation, :data:`DONATE`).  The rest,
+        ``kept`` = (sim, dt, the buffers' replicated leaves, and the boundaries and step limit of slabs that
+        move), the caller's arrays among them, is never donated."""
+        check(self.capacity is not None, "ShardedSimulation.run: call distribute(state) first (it sets capacity)")
+        key = ("in place", DONATE, steps, self.capacity, self.exchange)
+        if key not in self._programs:
+            rollout = self._build(steps)
+
+            def in_place(kept, particles, valid, ids):
+                sim, dt, replicated, *moving = kept
+                return rollout(sim, eqx.combine(particles, replicated), valid, ids, dt, *moving)
+
+            self._programs[key] = eqx.filter_jit(in_place, donate="all-except-first" if DONATE else "none")
+        return self._programs[key]
+
+    def _in_place_args(self, sim, buffers, valid, ids, dt, *moving) -> tuple:
+        """The arguments of :meth:`_in_place`'s program for ``rollout(steps)(sim, buffers, valid, ids, dt,
+        *moving)``: the kept ones first, then the donated per-particle buffers, ``valid`` and ``ids``, each array
+        once (XLA donates a buffer once: one held by two leaves is copied for the second)."""
+        rows = self.devices * self.capacity
+        particles, replicated = eqx.partition(buffers, lambda a: per_particle(a, rows))
+        seen = set()
+
+        def once(a):
+            if id(a) in seen:
+                return _copied(a)
+            seen.add(id(a))
+            return a
+
+        return ((sim, dt, replicated, *moving), *jax.tree_util.tree_map(once, (particles, valid, ids)))
+
     def _build(self, steps: int):
+        """The rollout of ``steps`` steps, not yet compiled: :meth:`rollout` and :meth:`_in_place` jit it."""
         slabs, axis = self.slabs, self.axis_name
         capacity, exchange, D = self.capacity, self.exchange, self.devices
         moving = self.rebalance_every is not None
@@ -648,7 +702,7 @@ class ShardedSimulation:
             limit = jnp.asarray(steps if limit is None else limit, jnp.int32)
             return mapped(params, buffers, valid, ids, dt, jnp.asarray(bounds, jnp.int32), limit)
 
-        return eqx.filter_jit(program)
+        return program
 
 
 def local_devices(count, option: str = "devices") -> list:
@@ -685,6 +739,13 @@ def _local(a):
     if isinstance(a, jax.Array):
         return np.asarray(a.addressable_shards[0].data).reshape(-1)[0]
     return np.asarray(a).reshape(-1)[0]
+
+
+def _copied(a):
+    """A copy of a global array, each of this process's devices copying its own rows (one process cannot
+    copy another's)."""
+    shards = [jax.device_put(shard.data, shard.device, may_alias=False) for shard in a.addressable_shards]
+    return jax.make_array_from_single_device_arrays(a.shape, a.sharding, shards)
 
 
 def _expand(mask, a):

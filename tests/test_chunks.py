@@ -164,13 +164,17 @@ def test_chunk_count_and_the_backend_table():
 def test_a_step_too_large_for_the_memory_goes_in_chunks():
     """chunks_to_fit (issue 32 item 7): the whole step when its temporaries (STEP_FLOATS_PER_SLOT floats per
     slot and particle) take at most a quarter of the free memory; else chunks, a power of two of at least
-    SMALLEST_CHUNK particles, whose temporaries take at most that quarter, and a reason naming the sizes."""
+    SMALLEST_CHUNK particles, whose temporaries take at most that quarter, and a reason naming the sizes.  Several
+    velocity fields a node take more (step_floats)."""
     per_particle = backend.STEP_FLOATS_PER_SLOT[2] * 9 * 4  # 2D quadratic, float32: 684 bytes
     assert backend.chunks_to_fit(2, 10**6, 9, jnp.float32, 4 * per_particle * 10**6) == (0, "")
     per, why = backend.chunks_to_fit(2, 10**8, 9, jnp.float32, 80 * 2**30)  # 10^8 particles, 80 GiB free
     assert per & (per - 1) == 0 and per * per_particle <= 0.25 * 80 * 2**30 < 2 * per * per_particle
     assert "63.7 GiB" in why and "80.0 GiB" in why and f"chunks of at most {per} particles" in why
     assert backend.chunks_to_fit(3, 10**6, 27, jnp.float64, 2**20)[0] == backend.SMALLEST_CHUNK
+    two = backend.step_floats(2, 9, fields=2) * 4  # two velocity fields (contact): (19 + 13) 9 + 19 floats
+    assert two == 1228 and backend.chunks_to_fit(2, 10**6, 9, jnp.float32, 4 * two * 10**6, fields=2) == (0, "")
+    assert backend.chunks_to_fit(2, 10**6, 9, jnp.float32, 4 * per_particle * 10**6, fields=2)[0] > 0
 
 
 def test_the_library_chunks_a_step_that_would_not_fit(monkeypatch):
@@ -188,17 +192,24 @@ def test_the_library_chunks_a_step_that_would_not_fit(monkeypatch):
     _assert_same(step(sim.with_chunks(128), state), step(sim, state), tol=0.0)
 
 
-@pytest.mark.parametrize("dim", [1, 2, 3])
+@pytest.mark.parametrize("dim, fields", [(1, 1), (2, 1), (3, 1), (2, 2), (2, 3)])
 @pytest.mark.parametrize("scheme", ["APIC", "FLIP"])
-def test_the_memory_table_bounds_the_whole_steps_temporaries(dim, scheme):
+def test_the_memory_table_bounds_the_whole_steps_temporaries(dim, fields, scheme):
     """STEP_FLOATS_PER_SLOT holds: XLA's temporary buffers of a compiled 3-step loop of the whole step, per
-    particle and stencil slot, stay within the table (quadratic B-splines, the grid's arrays included)."""
+    particle and stencil slot, stay within the table (quadratic B-splines, the grid's arrays included); with
+    several velocity fields (jm.Contact(materials=fields), the bodies slabs along x, the separation criterion on:
+    the contact's heaviest program), within step_floats' MULTIFIELD_FLOATS_PER_SLOT and
+    FIELD_FLOATS_PER_PARTICLE more."""
     cells, ppc = {1: (64, 64), 2: (32, 8), 3: (12, 4)}[dim]
     grid = jm.Grid((0.0,) * dim, (1.0,) * dim, (cells,) * dim)
     material = jm.LinearElastic(E=1e3, density=1.0) if dim == 1 else jm.LinearElastic(E=1e3, nu=0.3, density=1.0)
+    terms = (jm.Contact(materials=fields, separation=0.5),) if fields > 1 else ()
     sim = jm.Simulation(grid=grid, shape=jm.QuadraticBSpline(), material=material, scheme=getattr(jm, scheme)(),
-                        damping=False).with_chunks(0)
-    state = sim.init(jm.fill(grid, jm.Box((0.2,) * dim, (0.8,) * dim), ppc=ppc))
+                        damping=False, terms=terms).with_chunks(0)
+    assert sim.velocity_fields == fields
+    particles = jm.fill(grid, jm.Box((0.2,) * dim, (0.8,) * dim), ppc=ppc)
+    ids = np.minimum(np.floor((np.asarray(particles.x)[:, 0] - 0.2) / 0.6 * fields), fields - 1)
+    state = sim.init(particles, fields={"material": jnp.asarray(ids)} if fields > 1 else None)
     arrays, static = eqx.partition((sim, state), eqx.is_array)
 
     def loop(arrays):
@@ -207,8 +218,8 @@ def test_the_memory_table_bounds_the_whole_steps_temporaries(dim, scheme):
 
     temporaries = jax.jit(loop).lower(arrays).compile().memory_analysis().temp_size_in_bytes
     n, slots, itemsize = state.x.shape[0], 3 ** dim, state.x.dtype.itemsize
-    floats = temporaries / (n * slots * itemsize)
-    assert 0.3 * backend.STEP_FLOATS_PER_SLOT[dim] < floats <= backend.STEP_FLOATS_PER_SLOT[dim], floats
+    floats, bound = temporaries / (n * slots * itemsize), backend.step_floats(dim, slots, fields) / slots
+    assert 0.3 * bound < floats <= bound, (floats, bound)
 
 
 @pytest.mark.parametrize("scheme", ["APIC", "FLIP"])

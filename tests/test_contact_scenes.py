@@ -331,6 +331,25 @@ def test_separation_criterion_narrows_the_contact_nodes():
         jm.Contact(separation=float("nan"))
 
 
+def test_separation_criterion_of_three_materials_against_the_rest():
+    """M = 3 (000 §4, each material against the rest's nodal centre of mass): at node 0 material 0 sits at 0,
+    material 1 (mass 1) at 0.2 and material 2 (mass 3) at 1.0, so the rest of material 0 is at (0.2 + 3) / 4 =
+    0.8, of material 1 at 3 / 4 = 0.75, of material 2 at 0.1; along n = +x that is 0.8, 0.55 and -0.9 h away.
+    With separation 0.6 materials 1 and 2 touch, 0 does not.  Node 1 holds material 0 alone."""
+    import jax.numpy as jnp
+
+    masses = jnp.array([1.0, 1.0, 1.0, 0.0, 3.0, 0.0])  # (M n): material a's nodes at [a n, (a + 1) n)
+    moments = jnp.array([[0.0], [0.0], [0.2], [0.0], [3.0], [0.0]])
+
+    class Fields:
+        values = {"mass_moment": moments}
+
+    normals = jnp.ones((3, 2, 1))
+    touching = jm.Contact(materials=3, separation=0.6).touching_rest(Fields, masses, normals, 1.0)
+    assert touching.shape == (3, 2)
+    assert touching[:, 0].tolist() == [False, True, True]
+
+
 # ------------------------------------------------------------------ rings
 @pytest.mark.slow
 @pytest.mark.parametrize("contact, friction", [("frictionless", 0.0), ("coulomb", 0.3)])

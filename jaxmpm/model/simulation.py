@@ -409,7 +409,8 @@ class Simulation(eqx.Module):
         ``devices`` devices would not fit its memory (:func:`chunks_to_fit` within
         :func:`~jaxmpm.run.memory.step_memory`); None where it fits."""
         free, shared = step_memory(devices)
-        per, why = chunks_to_fit(self.grid.dim, num_particles, self.shape.nodes_per_axis ** self.grid.dim, dtype, free)
+        per, why = chunks_to_fit(self.grid.dim, num_particles, self.shape.nodes_per_axis ** self.grid.dim, dtype, free,
+                                 self.velocity_fields)
         return (per, why + shared) if per else None
 
     def _chunk_row(self, state: State, kernel: str | None = None) -> tuple:

@@ -442,7 +442,7 @@ class Contact(Term):
         ma, q = self.per_material(m), self.per_material(fields.values["mass_moment"])
         m_all, q_all = jnp.sum(ma, axis=0), jnp.sum(q, axis=0)
         x_own = safe_divide(q, ma)
-        x_rest = safe_divide(q_all - q, m_all - ma)
+        x_rest = safe_divide(q_all[None] - q, m_all[None] - ma)  # the rest: all materials but a
         return jnp.sum((x_rest - x_own) * normals, axis=-1) <= self.separation * h
 
     # ------------------------------------------------------------------ the term's hooks

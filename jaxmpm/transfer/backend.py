@@ -649,21 +649,45 @@ def choose_devices(policy: str, dim: int, num_particles: int, dtype, available: 
 # buffers per particle, in floats per stencil slot: XLA's temp buffers of a compiled 5-step rollout without chunks
 # (``compiled.memory_analysis()``, CPU, jax 0.10.2, 2026-11-29; Linear, quadratic and cubic B-splines x APIC and
 # FLIP x float32 and float64, one material; 1D 4.9k particles on 4096 cells, 2D 23.7k on 128^2, 3D 54.9k on 32^3):
-# 1D 6.7-13.2, 2D 9.1-18.9, 3D 13.5-24.0.  The table takes the largest, rounded up.  On an H100 the whole 2D and 3D
-# programs took less (benchmarks/README.md, "Measured on an H100").  A step whose temporaries would take more than
-# STEP_MEMORY_SHARE of the device's free memory runs over chunks whose temporaries take at most that share.
-STEP_FLOATS_PER_SLOT = {1: 14, 2: 19, 3: 24}
+# 1D 6.7-13.2, 2D 9.1-18.9, 3D 13.5-24.03 (Linear FLIP, float32).  The table takes the largest, rounded up.  On an
+# H100 the whole 2D and 3D programs took less (benchmarks/README.md, "Measured on an H100").  A step whose
+# temporaries would take more than STEP_MEMORY_SHARE of the device's free memory runs over chunks whose temporaries
+# take at most that share.
+# Several velocity fields a node (multimaterial mode, jm.Contact(materials=M): M fields) take more: the same scenes
+# cut into M slabs, M = 2, 3, 4, 8, with the contact's defaults and with its heaviest options (separation=0.5, which
+# scatters the nodal mass moments: up to +20 floats a slot; Coulomb friction, "average" normals and volume gradients
+# add 0.6 at most), Linear, quadratic (and uGIMP) and cubic B-splines x APIC and FLIP x float32 and float64, XLA's
+# temp buffers of a compiled 3-step loop (CPU, jax 0.10.2, 2026-11-29), in floats per slot: M = 2 1D 9.6-25.7, 2D
+# 11.2-35.9, 3D 17.9-44.1; M = 8 1D 22.6-65.9, 2D 13.3-56.1, 3D 18.9-52.6 (float32 steps count more floats than
+# float64 ones: 2D quadratic M = 2 21.1-32.8 against 13.5-24.0).  Two parts: the contact's own temporaries, the same
+# for any M (a particle scatters to its own field only), MULTIFIELD_FLOATS_PER_SLOT more a slot; and each field past
+# the first, its nodal columns, up to 19 floats a particle (27 a node) at these scenes' 2 particles a cell along each
+# axis on grids 0.6^D full, FIELD_FLOATS_PER_PARTICLE.  Each the largest, fitted together and rounded up: within
+# 1-7% of the Linear M = 2 steps; the quadratic and cubic 3D ones take about 3/4 of it.  A body sparser on its grid
+# carries more per particle, and chunks do not make the nodal columns smaller.
+STEP_FLOATS_PER_SLOT = {1: 14, 2: 19, 3: 25}
+MULTIFIELD_FLOATS_PER_SLOT = {1: 4, 2: 13, 3: 18}
+FIELD_FLOATS_PER_PARTICLE = 19
 STEP_MEMORY_SHARE = 0.25
 SMALLEST_CHUNK = 1024  # particles: fewer would not save memory worth a chunk's second stencil evaluation
 
 
-def chunks_to_fit(dim: int, num_particles: int, slots: int, dtype, free_bytes: int) -> tuple:
+def step_floats(dim: int, slots: int, fields: int = 1) -> float:
+    """Floats of the whole step's temporaries per particle, for a ``dim``-dimensional step with ``slots`` stencil
+    slots a particle and ``fields`` velocity fields a node: :data:`STEP_FLOATS_PER_SLOT` a slot, with several
+    fields :data:`MULTIFIELD_FLOATS_PER_SLOT` more a slot and :data:`FIELD_FLOATS_PER_PARTICLE` for each field
+    past the first."""
+    per_slot = STEP_FLOATS_PER_SLOT[dim] + (MULTIFIELD_FLOATS_PER_SLOT[dim] if fields > 1 else 0)
+    return per_slot * slots + FIELD_FLOATS_PER_PARTICLE * (fields - 1)
+
+
+def chunks_to_fit(dim: int, num_particles: int, slots: int, dtype, free_bytes: int, fields: int = 1) -> tuple:
     """(particles per chunk, 0 when the whole step fits; why) for a ``dim``-dimensional step of ``num_particles``
-    particles with ``slots`` stencil slots each, computing in ``dtype``, on a device with ``free_bytes`` free:
-    chunks (a power of two, at least :data:`SMALLEST_CHUNK`) whose temporaries take at most
-    :data:`STEP_MEMORY_SHARE` of the free memory when the whole step's would take more
-    (:data:`STEP_FLOATS_PER_SLOT`)."""
-    per_particle = STEP_FLOATS_PER_SLOT[dim] * slots * jnp.dtype(dtype).itemsize
+    particles with ``slots`` stencil slots each and ``fields`` velocity fields a node (the model's
+    ``velocity_fields``), computing in ``dtype``, on a device with ``free_bytes`` free: chunks (a power of two, at
+    least :data:`SMALLEST_CHUNK`) whose temporaries take at most :data:`STEP_MEMORY_SHARE` of the free memory when
+    the whole step's would take more (:func:`step_floats`)."""
+    per_particle = step_floats(dim, slots, fields) * jnp.dtype(dtype).itemsize
     need, budget = per_particle * num_particles, STEP_MEMORY_SHARE * free_bytes
     if need <= budget:
         return 0, ""

@@ -6,6 +6,7 @@ float64), a device of 8 MiB (JAXMPM_MEMORY_BYTES) and chunks of at least 128 par
 step fits (684 KiB of temporaries against a quarter of 8 MiB), eight members' do not.  The
 particles-over-CPU-devices share is checked in tests/parallel/devices_check.py."""
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -56,7 +57,7 @@ def test_members_stepped_at_once_share_the_memory(small_device):
     assert info["chunk_reason"] == (
         "the whole step's temporaries (about 684.0 KiB) would take more than 25% of the device's free memory "
         "(1.0 MiB): chunks of at most 128 particles; that is an even share of the free memory among 8 members "
-        "stepped at once: 4 chunks of 128 particles")
+        "stepped at once: 4 chunks of 128 particles, their derivatives in the same chunks")
     assert step_memory() == (FREE, "")
     with members_at_once(1):
         assert step_memory() == (FREE, "")
@@ -88,3 +89,49 @@ def test_a_vmapped_ensemble_steps_each_member_in_chunks_that_fit(small_device):
         small_device.clear()
         jax.eval_shape(lambda: ensemble(sim, **how))  # traced, not compiled: the memory each step counted on
         assert {seen[0] for seen in small_device} == {free}, how
+
+
+@pytest.mark.slow
+def test_a_gradient_through_steps_too_large_for_the_memory_goes_in_chunks(small_device, monkeypatch):
+    """Where the whole step would not fit, its derivatives go in the same chunks, each chunk's P2G and G2P
+    recomputed in the reverse pass (chunks.step_in_chunks_to_fit).  A step's gradient then holds a fraction of
+    the temporaries the whole step's derivatives take (mpm88, 4096 particles, a device of 4 MiB: 8 chunks of
+    512; on the development machine 1.07 against 6.1 states), and a rollout's gradient equals the whole steps'
+    to round-off and a central difference (the disks colliding at speed 1, 416 particles in 4 chunks of 104 on
+    a device of 1 MiB, d/dE of the kinetic energy after 300 steps, float64)."""
+    monkeypatch.setenv("JAXMPM_MEMORY_BYTES", str(4 * 2**20))
+    setup = jm.scene("mpm88", n_particles=4096, n_grid=32)
+    sim, state, dt = setup.sim, setup.state, setup.dt
+    info = jm.backend_info(sim, state)
+    assert info["chunk_particles"] == 512 and info["chunk_reason"].endswith(
+        "8 chunks of 512 particles, their derivatives in the same chunks"), info
+
+    def temporaries(model):  # XLA's temporary bytes of one step's gradient with respect to the velocities
+        def kinetic(v):
+            new = model.step(eqx.tree_at(lambda s: s.v, state, v), dt)
+            return jnp.sum(new.mass[:, None] * new.v ** 2)
+
+        return jax.jit(jax.grad(kinetic)).lower(state.v).compile().memory_analysis().temp_size_in_bytes
+
+    in_chunks, whole_derivatives = temporaries(sim), temporaries(sim.with_chunks(512))
+    assert in_chunks < 0.3 * whole_derivatives, (in_chunks, whole_derivatives)
+
+    monkeypatch.setenv("JAXMPM_MEMORY_BYTES", str(2**20))
+    setup = jm.scene("disks", speed=1.0)
+    sim, state, dt = setup.sim, setup.state, setup.dt
+    assert jm.backend_info(sim, state)["chunk_reason"].endswith(
+        "4 chunks of 104 particles, their derivatives in the same chunks")
+    E0 = float(sim.material.E)
+
+    def kinetic(model, e):
+        final = jm.set_params(model, E=E0 * (1 + e)).run(state, dt, 300, progress=False)[0]
+        return jnp.sum(final.mass[:, None] * final.v ** 2)
+
+    gradient = jax.jit(jax.grad(lambda e: kinetic(sim, e)))(0.0)
+    whole = sim.with_chunks(0)
+    expected = jax.jit(jax.grad(lambda e: kinetic(whole, e)))(0.0)
+    forward = jax.jit(lambda e: kinetic(whole, e))
+    central = (forward(1e-5) - forward(-1e-5)) / 2e-5
+    assert abs(float(expected)) > 1.0
+    np.testing.assert_allclose(gradient, expected, rtol=1e-12)
+    np.testing.assert_allclose(gradient, central, rtol=1e-6)

@@ -17,7 +17,8 @@ as a scan's outputs, as the backend says (:data:`jaxmpm.transfer.backend.CHUNK_O
 is a second evaluation of the stencil.
 The nodal sums are added chunk by chunk, so a step in chunks equals the whole step to round-off,
 not bit for bit; the dissipated energy is the sum of the chunks' shares.
-Derivatives differentiate the whole step (:func:`step_in_chunks`): its gradient is the faster.
+Derivatives differentiate the whole step (:func:`step_in_chunks`): its gradient is the faster.  A step
+too large for the device's memory differentiates its chunks instead (:func:`step_in_chunks_to_fit`).
 
 Which steps: USL, a scheme whose update is local (``Scheme.local_update``: FLIP, PIC, their
 blends, APIC, TPIC, RPIC) and terms that are (``Term.local``: the stress divergence without XPIC
@@ -96,9 +97,26 @@ def step_in_chunks(sim, state, dt, per_chunk: int):
     return with_whole_step_derivatives(lambda sim, state, dt: chunked_step(sim, state, dt, per_chunk), sim, state, dt)
 
 
+def step_in_chunks_to_fit(sim, state, dt, per_chunk: int):
+    """One step in chunks (:func:`chunked_step`) for a step too large for the device's memory
+    (:func:`jaxmpm.transfer.backend.chunks_to_fit`), whose derivatives go in the same chunks: JVPs and
+    gradients differentiate the chunks' loops, each chunk's P2G and G2P recomputed in the reverse pass
+    (``jax.checkpoint``), so that a gradient holds one chunk's stencil and per-slot arrays at a time, not
+    the whole step's.  Forward runs are :func:`step_in_chunks`' (the same values)."""
+    return with_derivatives(lambda sim, state, dt: chunked_step(sim, state, dt, per_chunk),
+                            lambda sim, state, dt: chunked_step(sim, state, dt, per_chunk, recompute=True),
+                            sim, state, dt)
+
+
 def with_whole_step_derivatives(forward, sim, state, dt):
     """``forward(sim, state, dt)``, a step computed another way than :func:`jaxmpm.model.step.step` (in
     chunks, on several devices), whose JVPs and gradients are the whole step's on one device."""
+    return with_derivatives(forward, whole_step, sim, state, dt)
+
+
+def with_derivatives(forward, differentiated, sim, state, dt):
+    """``forward(sim, state, dt)``, whose JVPs (and so gradients) are those of ``differentiated(sim, state,
+    dt)``, the same step computed another way."""
     dt = jnp.asarray(dt, state.x.dtype)
     arrays, static = eqx.partition(sim, eqx.is_array)
 
@@ -108,7 +126,7 @@ def with_whole_step_derivatives(forward, sim, state, dt):
 
     @stepped.defjvp
     def _(primals, tangents):
-        return jax.jvp(lambda a, s, d: whole_step(eqx.combine(a, static), s, d), primals, tangents)
+        return jax.jvp(lambda a, s, d: differentiated(eqx.combine(a, static), s, d), primals, tangents)
 
     return stepped(arrays, state, dt)
 
@@ -140,11 +158,14 @@ def sums_in_chunks(sim, state, per_chunk: int) -> dict:
     return sums(arrays, state)
 
 
-def chunked_step(sim, state, dt, per_chunk: int, axis_name=None):
+def chunked_step(sim, state, dt, per_chunk: int, axis_name=None, recompute: bool = False):
     """One USL step of ``sim`` from ``state`` over chunks of about ``per_chunk`` particles (module
     docstring); ``chunk_obstacle`` must be None.  Equal to ``jaxmpm.model.step.step`` to round-off.
     ``axis_name``: ``state`` is one device's share of the particles inside a ``shard_map`` over that
-    axis (:mod:`jaxmpm.model.devices`): the nodal sums and the dissipated energy are added across it."""
+    axis (:mod:`jaxmpm.model.devices`): the nodal sums and the dissipated energy are added across it.
+    ``recompute``: for derivatives that go in chunks (:func:`step_in_chunks_to_fit`), each chunk's P2G and
+    G2P are recomputed in the reverse pass (``jax.checkpoint``), and the new rows are a scan's outputs (a
+    loop over the rows in place would keep the whole state at every chunk for its reverse pass)."""
     dt = jnp.asarray(dt, state.x.dtype)
     constraint = sim.constraint(state.x.dtype)
     count = num_chunks(state.x.shape[0], per_chunk)
@@ -155,7 +176,9 @@ def chunked_step(sim, state, dt, per_chunk: int, axis_name=None):
         return scatter_quantities(*p2g_quantities(sim, chunk, dt=folded_dt), sim.field_nodes)
 
     def add_chunk(sums, part):
-        return jax.tree_util.tree_map(jnp.add, sums, nodal_sums(_with_particle_part(state, part))), None
+        return jax.tree_util.tree_map(jnp.add, sums, chunk_sums(_with_particle_part(state, part))), None
+
+    chunk_sums = jax.checkpoint(nodal_sums) if recompute else nodal_sums
 
     first = _with_particle_part(state, jax.tree_util.tree_map(lambda a: a[0], split))
     zeros = jax.tree_util.tree_map(lambda s: _varying(jnp.zeros(s.shape, s.dtype), axis_name),
@@ -177,8 +200,9 @@ def chunked_step(sim, state, dt, per_chunk: int, axis_name=None):
     def total(dissipated):  # this chunk's or device's share of the dissipated energy, or every device's
         return dissipated if axis_name is None else jax.lax.psum(dissipated, axis_name)
 
-    if chunk_output(state.x.dtype) == "stacked":  # backend tuning: how the new rows are written
-        _, (parts, dissipated) = jax.lax.scan(lambda _, part: (None, updated(part)), None, split)
+    if recompute or chunk_output(state.x.dtype) == "stacked":  # backend tuning: how the new rows are written
+        chunk_update = jax.checkpoint(updated) if recompute else updated
+        _, (parts, dissipated) = jax.lax.scan(lambda _, part: (None, chunk_update(part)), None, split)
         part = jax.tree_util.tree_map(lambda a: a.reshape((-1,) + a.shape[2:]), parts)
         return _finished(state, part, dt, total(jnp.sum(dissipated)))
     size = state.x.shape[0] // count

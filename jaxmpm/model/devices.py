@@ -36,7 +36,14 @@ import numpy as np
 from jax.sharding import Mesh
 from jax.sharding import PartitionSpec as P
 
-from .chunks import _particle_part, _with_particle_part, chunk_obstacle, chunked_step, with_whole_step_derivatives
+from .chunks import (
+    _particle_part,
+    _with_particle_part,
+    chunk_obstacle,
+    chunked_step,
+    with_derivatives,
+    with_whole_step_derivatives,
+)
 
 AXIS = "particles"
 
@@ -61,11 +68,13 @@ def device_obstacle(sim, state, devices: int, kernel: str) -> str | None:
     return chunk_obstacle(sim, state, max(1, n // devices), kernel)
 
 
-def step_on_devices(sim, state, dt, devices: int, per_chunk: int):
+def step_on_devices(sim, state, dt, devices: int, per_chunk: int, derivatives_in_chunks: bool = False):
     """One step whose forward run shares the particles of ``state`` among the first ``devices`` local
     devices, each stepping its share in chunks of about ``per_chunk`` particles (0: its share at once);
     JVPs and gradients differentiate the whole step on one device (as
-    :func:`jaxmpm.model.chunks.step_in_chunks`).  ``device_obstacle`` must be None."""
+    :func:`jaxmpm.model.chunks.step_in_chunks`), or with ``derivatives_in_chunks`` (a share too large for
+    its device's memory) the step in chunks of ``per_chunk`` on one device, each recomputed in the reverse
+    pass (as :func:`jaxmpm.model.chunks.step_in_chunks_to_fit`).  ``device_obstacle`` must be None."""
     mesh = Mesh(np.asarray(local_devices()[:devices]), (AXIS,))
     share = state.x.shape[0] // devices
     part_specs = jax.tree_util.tree_map(lambda _: P(AXIS), _particle_part(state))
@@ -83,6 +92,9 @@ def step_on_devices(sim, state, dt, devices: int, per_chunk: int):
         part, clock = mapped(arrays, _particle_part(state), _clock(state), dt)
         return _with_clock(_with_particle_part(state, part), clock)
 
+    if derivatives_in_chunks:
+        return with_derivatives(forward, lambda sim, s, d: chunked_step(sim, s, d, per_chunk, recompute=True), sim,
+                                state, dt)
     return with_whole_step_derivatives(forward, sim, state, dt)
 
 

@@ -52,7 +52,7 @@ from ..transfer.backend import (
 from ..transfer.kernels.windowed import active_window, on_window
 from ..transfer.shapes import UGIMP, ShapeFunction, field_stencil
 from . import frame_fields
-from .chunks import chunk_obstacle, num_chunks, step_in_chunks, sums_in_chunks
+from .chunks import chunk_obstacle, num_chunks, step_in_chunks, step_in_chunks_to_fit, sums_in_chunks
 from .devices import device_obstacle, local_devices, step_on_devices
 from .step import folds_force
 from .step import step as _step
@@ -372,7 +372,8 @@ class Simulation(eqx.Module):
         return self._with_static(particle_devices=_checked_particle_devices(devices))
 
     def _device_row(self, state: State, kernel: str | None = None) -> tuple:
-        """(devices, particles per chunk on each, 0 for its share at once; why) for a step of ``state``
+        """(devices, particles per chunk on each, 0 for its share at once; why; whether the step's derivatives
+        go in chunks of that size, where a share would not fit its device's memory) for a step of ``state``
         whose transfers run on ``kernel`` (None: looked up, :meth:`_kernel_row`).  A forced count the
         process does not have is an error naming the fix."""
         n, dtype = state.x.shape[0], state.x.dtype
@@ -391,18 +392,21 @@ class Simulation(eqx.Module):
         if self.chunk_particles != "auto":
             per = self.chunk_particles
         if devices < 2:
-            return 1, 0, why
+            return 1, 0, why, False
+        to_fit = False
         if not per and self.chunk_particles == "auto":  # each device's share at once, unless it would not fit
             fit = self._memory_row(n // devices, dtype, devices)
-            per, why = (fit[0], f"{why}; {fit[1]}") if fit else (per, why)
+            per, why, to_fit = (fit[0], f"{why}; {fit[1]}", True) if fit else (per, why, False)
         kernel = kernel or self._kernel_row(n, dtype)[0] or "xla"
         obstacle = device_obstacle(self, state, devices, kernel)
         if obstacle is not None:
-            return 1, 0, f"one device: {obstacle} ({why})"
+            return 1, 0, f"one device: {obstacle} ({why})", False
         share = n // devices
         if per and per < share and num_chunks(share, per):
-            return devices, per, f"{why}: {share} particles a device, in chunks of {share // num_chunks(share, per)}"
-        return devices, 0, f"{why}: {share} particles a device, at once"
+            chunks = f"in chunks of {share // num_chunks(share, per)}" + (
+                ", their derivatives in the same chunks" if to_fit else "")
+            return devices, per, f"{why}: {share} particles a device, {chunks}", to_fit
+        return devices, 0, f"{why}: {share} particles a device, at once", False
 
     def _memory_row(self, num_particles: int, dtype, devices: int = 1) -> tuple | None:
         """(particles per chunk, why) where the whole step of ``num_particles`` particles on one of
@@ -414,23 +418,29 @@ class Simulation(eqx.Module):
         return (per, why + shared) if per else None
 
     def _chunk_row(self, state: State, kernel: str | None = None) -> tuple:
-        """(particles per chunk, 0 for the whole step; why) for a step of ``state`` whose transfers run
-        on ``kernel`` ("xla", "pallas"; None: looked up, :meth:`_kernel_row`)."""
+        """(particles per chunk, 0 for the whole step; why; whether its derivatives go in the chunks too) for a
+        step of ``state`` whose transfers run on ``kernel`` ("xla", "pallas"; None: looked up,
+        :meth:`_kernel_row`).  The derivatives go in chunks where the whole step would not fit the device's
+        memory (:func:`~jaxmpm.model.chunks.step_in_chunks_to_fit`); elsewhere they are the whole step's, the
+        faster (:func:`~jaxmpm.model.chunks.step_in_chunks`)."""
         n, dtype = state.x.shape[0], state.x.dtype
+        to_fit = False
         if self.chunk_particles != "auto":
             per, why = self.chunk_particles, f"chunk_particles={self.chunk_particles} given"
         else:
             per, why = choose_chunking(self.backend, self.grid.dim, n, dtype)
             if not per:  # the whole step, unless its temporaries would not fit the device's memory
-                per, why = self._memory_row(n, dtype) or (per, why)
+                fit = self._memory_row(n, dtype)
+                per, why, to_fit = (*fit, True) if fit else (per, why, False)
         if not per or per >= n:
-            return 0, why if not per else f"{why}; {n} particles fit one chunk: the whole step"
+            return 0, why if not per else f"{why}; {n} particles fit one chunk: the whole step", False
         kernel = kernel or self._kernel_row(n, dtype)[0] or "xla"
         obstacle = chunk_obstacle(self, state, per, kernel)
         if obstacle is not None:
-            return 0, f"the whole step: {obstacle} ({why})"
+            return 0, f"the whole step: {obstacle} ({why})", False
         count = num_chunks(n, per)
-        return per, f"{why}: {count} chunks of {n // count} particles"
+        return per, f"{why}: {count} chunks of {n // count} particles" + (
+            ", their derivatives in the same chunks" if to_fit else ""), to_fit
 
     def with_conventions(self, conventions: str, constrained_force: str | None = None):
         """A copy of a model built in jaxmpm's conventions that follows another code's rules where
@@ -611,10 +621,12 @@ class Simulation(eqx.Module):
         float32 state) are cast to the state's dtype on entry."""
         name, options, _ = self._kernel_row(state.x.shape[0], state.x.dtype)
         with use_policy(self.backend), use_adjoint(self.adjoint), use_kernel(name, options):
-            devices, per_device, _ = self._device_row(state, name or "xla")
+            devices, per_device, _, to_fit = self._device_row(state, name or "xla")
             if devices > 1:  # backend tuning: the same step on every device of the process at once
-                return step_on_devices(self.in_precision(state.x.dtype), state, dt, devices, per_device)
-            per_chunk, _ = self._chunk_row(state, name or "xla")
+                return step_on_devices(self.in_precision(state.x.dtype), state, dt, devices, per_device, to_fit)
+            per_chunk, _, to_fit = self._chunk_row(state, name or "xla")
+            if to_fit:  # a step too large for the device's memory, derivatives and all
+                return step_in_chunks_to_fit(self.in_precision(state.x.dtype), state, dt, per_chunk)
             if per_chunk:  # backend tuning: the same step with a working set that fits the cache
                 return step_in_chunks(self.in_precision(state.x.dtype), state, dt, per_chunk)
             return _step(self.in_precision(state.x.dtype), state, dt)
@@ -739,7 +751,7 @@ class Simulation(eqx.Module):
         """The frame's sums, over the step's chunks of particles where it steps in chunks (their per-particle
         terms then exist for one chunk at a time: :func:`jaxmpm.model.chunks.sums_in_chunks`), and the
         dissipated energy."""
-        per_chunk, _ = self._chunk_row(state)
+        per_chunk = self._chunk_row(state)[0]
         sums = sums_in_chunks(self, state, per_chunk) if per_chunk else self._frame_sums(state)
         return dict(sums, dissipated=state.dissipated)
 
@@ -821,8 +833,8 @@ def backend_info(sim: Simulation, state: State) -> dict:
     every, sort_why = sim._sort_row(n, dtype)
     member = state if state.x.ndim == 2 else jax.tree_util.tree_map(lambda a: a[0], state)  # an ensemble's
     with use_policy(sim.backend):
-        devices, per_device, devices_why = sim._device_row(member, name or "xla")
-        per_chunk, chunk_why = (per_device, devices_why) if devices > 1 else sim._chunk_row(member, name or "xla")
+        devices, per_device, devices_why, _ = sim._device_row(member, name or "xla")
+        per_chunk, chunk_why = (per_device, devices_why) if devices > 1 else sim._chunk_row(member, name or "xla")[:2]
     info = {"kernel": name or "xla", "options": dict(options), "policy": resolve(sim.backend),
             "dimension": sim.grid.dim, "particles_per_cell": n / max(1, int(np.prod(sim.grid.cells))),
             "dtype": jnp.dtype(dtype).name, "reason": why, "sort_every": every, "sort_reason": sort_why,

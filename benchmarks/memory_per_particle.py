@@ -20,6 +20,14 @@ Rows per case: the step as the library chooses it (``CHUNK_TABLE`` in ``jaxmpm/t
 chunks where the whole step's temporaries would not fit the device, ``chunks_to_fit``), the whole step at once
 (``with_chunks(0)``) where that differs, and with ``--chunks N`` the step over chunks of N particles.  Writes
 ``benchmarks/results/memory_per_particle.csv`` (or ``--csv``).
+
+``--gradient`` adds, for each row, the gradient of the final kinetic energy with respect to the initial
+velocities through ``sim.run`` (``checkpoint="auto"``), compiled the same way: its program per particle and
+against the state.  Where the library chose chunks because the whole step would not fit, the step's
+derivatives go in those chunks (``chunks.step_in_chunks_to_fit``), and the row "same chunks, whole
+derivatives" takes the same chunks forced (``with_chunks``), whose derivatives are the whole step's.
+``--device-memory SIZE`` (e.g. ``"64 MiB"``) is the free memory the library's rules see on a CPU
+(``JAXMPM_MEMORY_BYTES``): the choice on a smaller device.
 """
 
 from __future__ import annotations
@@ -46,6 +54,10 @@ def parse_args(argv=None):
     p.add_argument("--steps", type=int, default=10, help="steps in the compiled loop (default 10)")
     p.add_argument("--chunks", type=int, default=0,
                    help="also a row with the step over chunks of this many particles (with_chunks; default: none)")
+    p.add_argument("--gradient", action="store_true",
+                   help="also the gradient of the final kinetic energy through sim.run, per row (module docstring)")
+    p.add_argument("--device-memory", default=None,
+                   help="the free memory the library's rules see, e.g. '64 MiB' (CPU: JAXMPM_MEMORY_BYTES)")
     p.add_argument("--csv", default=str(DEFAULT_CSV))
     args = p.parse_args(argv)
     args.cases = args.cases or (QUICK if args.quick else CASES)
@@ -83,8 +95,31 @@ def measure(sim, state, dt, steps: int) -> dict:
     return out
 
 
+def measure_gradient(sim, state, dt, steps: int) -> dict:
+    """The compiled gradient's buffers per particle: d/dv0 of the final kinetic energy through ``sim.run``."""
+    import equinox as eqx
+    import jax.numpy as jnp
+
+    from jaxmpm.run.memory import tree_bytes
+
+    def kinetic(v):
+        final = sim.run(eqx.tree_at(lambda s: s.v, state, v), dt, steps, progress=False)[0]
+        return jnp.sum(final.mass[:, None] * final.v ** 2)
+
+    memory = jax.jit(jax.grad(kinetic)).lower(state.v).compile().memory_analysis()
+    n = int(state.x.shape[0])
+    program = (memory.argument_size_in_bytes + memory.output_size_in_bytes + memory.temp_size_in_bytes
+               - memory.alias_size_in_bytes) / n
+    return dict(gradient_temporaries=memory.temp_size_in_bytes / n, gradient_program=program,
+                gradient_over_state=program / (tree_bytes(state) / n))
+
+
 def main(argv=None) -> int:
     args = parse_args(argv)
+    if args.device_memory is not None:
+        from jaxmpm.run.memory import parse_memory
+
+        os.environ["JAXMPM_MEMORY_BYTES"] = str(parse_memory(args.device_memory))
     if any(c.endswith(":f64") for c in args.cases):
         jax.config.update("jax_enable_x64", True)
     sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -95,7 +130,7 @@ def main(argv=None) -> int:
     print(f"jax {jax.__version__} ({jax.devices()[0].device_kind}), {os.cpu_count()} CPUs, {args.steps} steps "
           "compiled (not run), bytes per particle\n")
     header = ("| case | step | state | arguments | outputs | temporaries | aliased | program | program / state "
-              "| without donation |")
+              "| without donation |" + (" gradient: program | gradient / state |" if args.gradient else ""))
     print(header)
     print("|---" * (header.count("|") - 1) + "|")
     rows = []
@@ -103,17 +138,23 @@ def main(argv=None) -> int:
         dim, n, dtype = case.split(":")
         sim, state, dt = model(dim, int(n), dtype)
         variants = [("library's", sim)]
-        if jm.backend_info(sim, state).get("chunk_particles"):  # else the library's choice is the whole step
+        info = jm.backend_info(sim, state)
+        if info.get("chunk_particles"):  # else the library's choice is the whole step
             variants.append(("whole", sim.with_chunks(0)))
+        if args.gradient and info["chunk_reason"].endswith("their derivatives in the same chunks"):
+            variants.append(("same chunks, whole derivatives", sim.with_chunks(info["chunk_particles"])))
         if args.chunks:
             variants.append(("forced", sim.with_chunks(args.chunks)))
         for label, chosen in variants:
             per = jm.backend_info(chosen, state).get("chunk_particles")
             step = f"{label} (chunks of {per})" if per else f"{label} (whole)"
             r = measure(chosen, state, dt, args.steps)
+            if args.gradient:
+                r.update(measure_gradient(chosen, state, dt, args.steps))
+            gradient = f" {r['gradient_program']:.0f} | {r['gradient_over_state']:.2f} |" if args.gradient else ""
             print(f"| {dim} {int(n)} {dtype} | {step} | {r['state']:.0f} | {r['arguments']:.0f} | "
                   f"{r['outputs']:.0f} | {r['temporaries']:.1f} | {r['aliased']:.0f} | {r['program']:.0f} | "
-                  f"**{r['program_over_state']:.2f}** | {r['without_donation_over_state']:.2f} |", flush=True)
+                  f"**{r['program_over_state']:.2f}** | {r['without_donation_over_state']:.2f} |{gradient}", flush=True)
             rows.append(dict(case=case, step=step, device=jax.devices()[0].device_kind, jax=jax.__version__, **r))
     print(f"\nwrote {write_csv(args.csv, list(rows[0]), rows)}")
     return 0

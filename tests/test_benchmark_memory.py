@@ -3,6 +3,8 @@ its buffers per particle against the particle state's."""
 
 import csv
 
+import pytest
+
 
 def test_program_bytes_against_the_state(benchmark_script, tmp_path):
     """mpm88 at 2048 particles, float32: the library steps it whole (one row) and --chunks 512 adds the chunked
@@ -21,3 +23,20 @@ def test_program_bytes_against_the_state(benchmark_script, tmp_path):
         assert abs(float(row["program"]) - program) < 1e-9
         assert abs(float(row["without_donation_over_state"]) - float(row["program_over_state"]) - 1.0) < 1e-9
     assert float(chunked["temporaries"]) < 0.6 * float(whole["temporaries"])
+
+
+@pytest.mark.slow
+def test_gradient_bytes_with_derivatives_in_chunks(benchmark_script, tmp_path, monkeypatch):
+    """--gradient on a device of 4 MiB (--device-memory): mpm88's 8192 particles then go in chunks that fit, their
+    derivatives in the same chunks, and the gradient program holds fewer bytes than with the whole step's
+    derivatives over the same chunks (the row "same chunks, whole derivatives")."""
+    monkeypatch.setenv("JAXMPM_MEMORY_BYTES", str(2**40))  # restored after the test: the script sets it
+    script = benchmark_script("memory_per_particle.py")
+    out = tmp_path / "memory.csv"
+    assert script.main(["--cases", "2d:8192:f32", "--steps", "2", "--gradient", "--device-memory", "4 MiB",
+                        "--csv", str(out)]) == 0
+    fitted, whole, forced = list(csv.DictReader(out.open()))
+    assert (fitted["step"], whole["step"], forced["step"]) == (
+        "library's (chunks of 1024)", "whole (whole)", "same chunks, whole derivatives (chunks of 1024)")
+    assert fitted["temporaries"] == forced["temporaries"]  # the same forward program
+    assert float(fitted["gradient_program"]) < 0.7 * float(forced["gradient_program"]), (fitted, forced)

@@ -63,6 +63,25 @@ def test_members_stepped_at_once_share_the_memory(small_device):
         assert step_memory() == (FREE, "")
 
 
+def test_chunks_for_speed_take_their_derivatives_in_chunks_where_the_whole_step_would_not_fit(monkeypatch):
+    """On the CPU the backend table steps 65536 particles of mpm88 in float64 in chunks of 16384 for speed
+    (CHUNK_TABLE), with the whole step's derivatives where the whole step fits the device (400 MiB free) and
+    in the same chunks where it does not (160 MiB: about 85.5 MiB of temporaries against a quarter); a device
+    smaller still takes smaller chunks."""
+    setup = jm.scene("mpm88", n_particles=65536, dtype="f64")
+    reasons = {}
+    for free in (400, 160, 40):
+        monkeypatch.setenv("JAXMPM_MEMORY_BYTES", str(free * 2**20))
+        info = jm.backend_info(setup.sim, setup.state)
+        reasons[free] = info["chunk_particles"], info["chunk_reason"]
+    assert reasons[400][0] == 16384 and "derivatives" not in reasons[400][1], reasons
+    assert reasons[160][0] == 16384 and reasons[160][1].startswith("CPU") and reasons[160][1].endswith(
+        "(160.0 MiB): chunks of at most 16384 particles: 4 chunks of 16384 particles, their derivatives in the "
+        "same chunks"), reasons
+    assert reasons[40][0] == 4096 and reasons[40][1].endswith(
+        "16 chunks of 4096 particles, their derivatives in the same chunks"), reasons
+
+
 def test_a_vmapped_ensemble_steps_each_member_in_chunks_that_fit(small_device):
     """jm.ensemble's members vmapped together: each member's step counts on its share of the memory (all
     members at once: an eighth; ``chunk=2``: a half) and steps in the chunks that fit, bit for bit the

@@ -394,9 +394,10 @@ class Simulation(eqx.Module):
         if devices < 2:
             return 1, 0, why, False
         to_fit = False
-        if not per and self.chunk_particles == "auto":  # each device's share at once, unless it would not fit
+        if self.chunk_particles == "auto":  # a device's share in chunks that fit its memory, derivatives too
             fit = self._memory_row(n // devices, dtype, devices)
-            per, why, to_fit = (fit[0], f"{why}; {fit[1]}", True) if fit else (per, why, False)
+            if fit:
+                per, why, to_fit = (fit[0] if not per or fit[0] < per else per), f"{why}; {fit[1]}", True
         kernel = kernel or self._kernel_row(n, dtype)[0] or "xla"
         obstacle = device_obstacle(self, state, devices, kernel)
         if obstacle is not None:
@@ -429,9 +430,10 @@ class Simulation(eqx.Module):
             per, why = self.chunk_particles, f"chunk_particles={self.chunk_particles} given"
         else:
             per, why = choose_chunking(self.backend, self.grid.dim, n, dtype)
-            if not per:  # the whole step, unless its temporaries would not fit the device's memory
-                fit = self._memory_row(n, dtype)
-                per, why, to_fit = (*fit, True) if fit else (per, why, False)
+            fit = self._memory_row(n, dtype)  # None where the whole step's temporaries fit the device's memory
+            if fit:  # chunks that fit, smaller than the table's if need be, and derivatives in chunks too
+                per, why = fit if not per or fit[0] < per else (per, f"{why}; {fit[1]}")
+                to_fit = True
         if not per or per >= n:
             return 0, why if not per else f"{why}; {n} particles fit one chunk: the whole step", False
         kernel = kernel or self._kernel_row(n, dtype)[0] or "xla"

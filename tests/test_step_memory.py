@@ -73,7 +73,8 @@ def test_chunks_for_speed_take_their_derivatives_in_chunks_where_the_whole_step_
     for free in (400, 160, 40):
         monkeypatch.setenv("JAXMPM_MEMORY_BYTES", str(free * 2**20))
         info = jm.backend_info(setup.sim, setup.state)
-        reasons[free] = info["chunk_particles"], info["chunk_reason"]
+        reasons[free] = info["chunk_particles"], info["chunk_reason"], info["chunk_derivatives"]
+    assert [reasons[free][2] for free in (400, 160, 40)] == ["whole step", "chunks", "chunks"]
     assert reasons[400][0] == 16384 and "derivatives" not in reasons[400][1], reasons
     assert reasons[160][0] == 16384 and reasons[160][1].startswith("CPU") and reasons[160][1].endswith(
         "(160.0 MiB): chunks of at most 16384 particles: 4 chunks of 16384 particles, their derivatives in the "

@@ -823,6 +823,8 @@ def backend_info(sim: Simulation, state: State) -> dict:
         "sort_every": the steps between the runs' sorts of the particles by cell (0: never),
         "sort_reason": why, "chunk_particles": the particles per chunk of a step (0: the whole step at
         once, ``jaxmpm.model.chunks``; with several devices: on each), "chunk_reason": why,
+        "chunk_derivatives": "whole step" (JVPs and gradients differentiate the whole step, the faster) or
+        "chunks" (they go in the same chunks: where the whole step would not fit the device's memory),
         "particle_devices": the devices a step shares its particles among (1: one device,
         ``jaxmpm.model.devices``), "devices_reason": why, and for the XLA kernel "xla_layout":
         {"p2g": "planar" or "rows", "p2g_derivatives": "planar" or "rows", "hold_gathers": bool}, its
@@ -835,12 +837,14 @@ def backend_info(sim: Simulation, state: State) -> dict:
     every, sort_why = sim._sort_row(n, dtype)
     member = state if state.x.ndim == 2 else jax.tree_util.tree_map(lambda a: a[0], state)  # an ensemble's
     with use_policy(sim.backend):
-        devices, per_device, devices_why, _ = sim._device_row(member, name or "xla")
-        per_chunk, chunk_why = (per_device, devices_why) if devices > 1 else sim._chunk_row(member, name or "xla")[:2]
+        devices, per_device, devices_why, to_fit = sim._device_row(member, name or "xla")
+        per_chunk, chunk_why, to_fit = ((per_device, devices_why, to_fit) if devices > 1
+                                        else sim._chunk_row(member, name or "xla"))
     info = {"kernel": name or "xla", "options": dict(options), "policy": resolve(sim.backend),
             "dimension": sim.grid.dim, "particles_per_cell": n / max(1, int(np.prod(sim.grid.cells))),
             "dtype": jnp.dtype(dtype).name, "reason": why, "sort_every": every, "sort_reason": sort_why,
-            "chunk_particles": per_chunk, "chunk_reason": chunk_why, "particle_devices": devices,
+            "chunk_particles": per_chunk, "chunk_reason": chunk_why,
+            "chunk_derivatives": "chunks" if per_chunk and to_fit else "whole step", "particle_devices": devices,
             "devices_reason": devices_why}
     if info["kernel"] == "xla":
         with use_policy(sim.backend):

@@ -23,9 +23,9 @@ chunks where the whole step's temporaries would not fit the device, ``chunks_to_
 
 ``--gradient`` adds, for each row, the gradient of the final kinetic energy with respect to the initial
 velocities through ``sim.run`` (``checkpoint="auto"``), compiled the same way: its program per particle and
-against the state.  Where the library chose chunks because the whole step would not fit, the step's
-derivatives go in those chunks (``chunks.step_in_chunks_to_fit``), and the row "same chunks, whole
-derivatives" takes the same chunks forced (``with_chunks``), whose derivatives are the whole step's.
+against the state.  Where the step's derivatives go in its chunks (``chunks.step_in_chunks``: the backend's
+``CHUNK_DERIVATIVES``, and wherever the whole step would not fit), the row "same chunks, whole derivatives"
+takes the same chunks with the whole step's derivatives.
 ``--device-memory SIZE`` (e.g. ``"64 MiB"``) is the free memory the library's rules see on a CPU
 (``JAXMPM_MEMORY_BYTES``): the choice on a smaller device.
 """
@@ -33,6 +33,7 @@ derivatives" takes the same chunks forced (``with_chunks``), whose derivatives a
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
 from pathlib import Path
@@ -95,6 +96,21 @@ def measure(sim, state, dt, steps: int) -> dict:
     return out
 
 
+@contextlib.contextmanager
+def whole_derivatives(whole: bool):
+    """With ``whole``: the derivatives of a step in forced chunks differentiate the whole step (the backend's
+    ``CHUNK_DERIVATIVES`` set so while the gradient is traced)."""
+    from jaxmpm.transfer import backend
+
+    saved = dict(backend.CHUNK_DERIVATIVES)
+    if whole:
+        backend.CHUNK_DERIVATIVES.update(dict.fromkeys(saved, "whole"))
+    try:
+        yield
+    finally:
+        backend.CHUNK_DERIVATIVES.update(saved)
+
+
 def measure_gradient(sim, state, dt, steps: int) -> dict:
     """The compiled gradient's buffers per particle: d/dv0 of the final kinetic energy through ``sim.run``."""
     import equinox as eqx
@@ -141,7 +157,7 @@ def main(argv=None) -> int:
         info = jm.backend_info(sim, state)
         if info.get("chunk_particles"):  # else the library's choice is the whole step
             variants.append(("whole", sim.with_chunks(0)))
-        if args.gradient and info["chunk_reason"].endswith("their derivatives in the same chunks"):
+        if args.gradient and info["chunk_derivatives"] == "chunks":
             variants.append(("same chunks, whole derivatives", sim.with_chunks(info["chunk_particles"])))
         if args.chunks:
             variants.append(("forced", sim.with_chunks(args.chunks)))
@@ -150,7 +166,8 @@ def main(argv=None) -> int:
             step = f"{label} (chunks of {per})" if per else f"{label} (whole)"
             r = measure(chosen, state, dt, args.steps)
             if args.gradient:
-                r.update(measure_gradient(chosen, state, dt, args.steps))
+                with whole_derivatives(label == "same chunks, whole derivatives"):
+                    r.update(measure_gradient(chosen, state, dt, args.steps))
             gradient = f" {r['gradient_program']:.0f} | {r['gradient_over_state']:.2f} |" if args.gradient else ""
             print(f"| {dim} {int(n)} {dtype} | {step} | {r['state']:.0f} | {r['arguments']:.0f} | "
                   f"{r['outputs']:.0f} | {r['temporaries']:.1f} | {r['aliased']:.0f} | {r['program']:.0f} | "

@@ -94,11 +94,16 @@ def test_a_collider_scene_steps_in_chunks():
     _assert_same(whole, _advance(chunked, setup.state, setup.dt))
 
 
-def test_gradients_and_ensembles_through_the_chunked_step():
+@pytest.mark.parametrize("derivatives", ["chunks", "whole"])
+def test_gradients_and_ensembles_through_the_chunked_step(derivatives, monkeypatch):
     """d(kinetic energy after 20 steps)/d(E, V0) of a chunked model equals the whole step's to 1e-10
-    (relative: its derivative rule differentiates the whole step, chunks.step_in_chunks), and a vmapped
-    ensemble of two initial velocities equals the members stepped alone."""
+    (relative), whether its derivatives go in the chunks, each recomputed in the reverse pass, or differentiate
+    the whole step (CHUNK_DERIVATIVES, chunks.step_in_chunks), and a vmapped ensemble of two initial
+    velocities equals the members stepped alone."""
+    monkeypatch.setitem(backend.CHUNK_DERIVATIVES, "cpu", derivatives)
     sim, state, dt = _scene()
+    assert jm.backend_info(sim.with_chunks(128), state)["chunk_derivatives"] == (
+        "chunks" if derivatives == "chunks" else "whole step")
 
     def loss(E, v, model):
         final = _advance(jm.set_params(model, E=E), eqx.tree_at(lambda s: s.v, state, v), dt)
@@ -119,6 +124,29 @@ def test_gradients_and_ensembles_through_the_chunked_step():
     together = jax.vmap(lambda s: _advance(model, s, dt))(batch)
     for i, member in enumerate(members):
         _assert_same(_advance(sim.with_chunks(0), member, dt), jax.tree_util.tree_map(lambda a, i=i: a[i], together))
+
+
+def test_the_chunks_derivatives_are_traced_in_the_models_context(monkeypatch):
+    """JAX traces the derivative of a jitted rollout's steps after the call (jax.grad from outside the jit):
+    the chunks' derivatives are traced with the model's adjoint and backend policy all the same."""
+    from jaxmpm.model import chunks
+
+    seen, chunked_step = [], chunks.chunked_step
+
+    def spy(*args, **options):
+        seen.append((options.get("recompute", False), backend._adjoint.get(), backend.active()))
+        return chunked_step(*args, **options)
+
+    monkeypatch.setattr(chunks, "chunked_step", spy)
+    sim, state, dt = _scene()
+    model = sim.with_chunks(128).with_adjoint("autodiff").with_backend("cpu")
+
+    def kinetic(v):
+        final = model.run(eqx.tree_at(lambda s: s.v, state, v), dt, 2, progress=False)[0]
+        return jnp.sum(final.v ** 2)
+
+    jax.grad(kinetic)(state.v)
+    assert (True, "autodiff", "cpu") in seen and {adjoint for _, adjoint, _ in seen} == {"autodiff"}, seen
 
 
 @pytest.mark.parametrize("options, reason", [

@@ -65,9 +65,10 @@ def test_members_stepped_at_once_share_the_memory(small_device):
 
 def test_chunks_for_speed_take_their_derivatives_in_chunks_where_the_whole_step_would_not_fit(monkeypatch):
     """On the CPU the backend table steps 65536 particles of mpm88 in float64 in chunks of 16384 for speed
-    (CHUNK_TABLE), with the whole step's derivatives where the whole step fits the device (400 MiB free) and
-    in the same chunks where it does not (160 MiB: about 85.5 MiB of temporaries against a quarter); a device
-    smaller still takes smaller chunks."""
+    (CHUNK_TABLE).  With a table whose chunks' derivatives differentiate the whole step (CHUNK_DERIVATIVES), they
+    still go in the chunks where the whole step would not fit the device (160 MiB: about 85.5 MiB of
+    temporaries against a quarter), not where it fits (400 MiB); a device smaller still takes smaller chunks."""
+    monkeypatch.setitem(backend.CHUNK_DERIVATIVES, "cpu", "whole")
     setup = jm.scene("mpm88", n_particles=65536, dtype="f64")
     reasons = {}
     for free in (400, 160, 40):
@@ -114,7 +115,7 @@ def test_a_vmapped_ensemble_steps_each_member_in_chunks_that_fit(small_device):
 @pytest.mark.slow
 def test_a_gradient_through_steps_too_large_for_the_memory_goes_in_chunks(small_device, monkeypatch):
     """Where the whole step would not fit, its derivatives go in the same chunks, each chunk's P2G and G2P
-    recomputed in the reverse pass (chunks.step_in_chunks_to_fit).  A step's gradient then holds a fraction of
+    recomputed in the reverse pass (chunks.step_in_chunks).  A step's gradient then holds a fraction of
     the temporaries the whole step's derivatives take (mpm88, 4096 particles, a device of 4 MiB: 8 chunks of
     512; on the development machine 1.07 against 6.1 states), and a rollout's gradient equals the whole steps'
     to round-off and a central difference (the disks colliding at speed 1, 416 particles in 4 chunks of 104 on
@@ -133,7 +134,9 @@ def test_a_gradient_through_steps_too_large_for_the_memory_goes_in_chunks(small_
 
         return jax.jit(jax.grad(kinetic)).lower(state.v).compile().memory_analysis().temp_size_in_bytes
 
-    in_chunks, whole_derivatives = temporaries(sim), temporaries(sim.with_chunks(512))
+    in_chunks = temporaries(sim)
+    monkeypatch.setitem(backend.CHUNK_DERIVATIVES, "cpu", "whole")  # the same chunks forced, the whole derivatives
+    whole_derivatives = temporaries(sim.with_chunks(512))
     assert in_chunks < 0.3 * whole_derivatives, (in_chunks, whole_derivatives)
 
     monkeypatch.setenv("JAXMPM_MEMORY_BYTES", str(2**20))

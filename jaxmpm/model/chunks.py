@@ -17,8 +17,9 @@ as a scan's outputs, as the backend says (:data:`jaxmpm.transfer.backend.CHUNK_O
 is a second evaluation of the stencil.
 The nodal sums are added chunk by chunk, so a step in chunks equals the whole step to round-off,
 not bit for bit; the dissipated energy is the sum of the chunks' shares.
-Derivatives differentiate the whole step (:func:`step_in_chunks`): its gradient is the faster.  A step
-too large for the device's memory differentiates its chunks instead (:func:`step_in_chunks_to_fit`).
+Derivatives differentiate the same chunks, each chunk recomputed in the reverse pass, or the whole step, as
+the backend's table says (:func:`step_in_chunks`); a step too large for the device's memory differentiates
+its chunks.
 
 Which steps: USL, a scheme whose update is local (``Scheme.local_update``: FLIP, PIC, their
 blends, APIC, TPIC, RPIC) and terms that are (``Term.local``: the stress divergence without XPIC
@@ -29,6 +30,9 @@ the chunk size comes from the backend's table (:data:`jaxmpm.transfer.backend.CH
 """
 
 from __future__ import annotations
+
+import contextvars
+from functools import partial
 
 import equinox as eqx
 import jax
@@ -88,24 +92,17 @@ def chunk_obstacle(sim, state, per_chunk: int, kernel: str) -> str | None:
     return None
 
 
-def step_in_chunks(sim, state, dt, per_chunk: int):
-    """One step in chunks (:func:`chunked_step`) whose derivatives are the whole step's: forward runs
-    take the chunks, while JVPs and gradients (the linearised step and its transpose) differentiate
-    :func:`jaxmpm.model.step.step`, whose gradient ran 1.25x faster than the chunked one's (mpm88,
-    131k particles, float64, a 20-step rollout: 131 against 163 ms a step).  Both give the same
-    values to round-off."""
-    return with_whole_step_derivatives(lambda sim, state, dt: chunked_step(sim, state, dt, per_chunk), sim, state, dt)
-
-
-def step_in_chunks_to_fit(sim, state, dt, per_chunk: int):
-    """One step in chunks (:func:`chunked_step`) for a step too large for the device's memory
-    (:func:`jaxmpm.transfer.backend.chunks_to_fit`), whose derivatives go in the same chunks: JVPs and
-    gradients differentiate the chunks' loops, each chunk's P2G and G2P recomputed in the reverse pass
-    (``jax.checkpoint``), so that a gradient holds one chunk's stencil and per-slot arrays at a time, not
-    the whole step's.  Forward runs are :func:`step_in_chunks`' (the same values)."""
-    return with_derivatives(lambda sim, state, dt: chunked_step(sim, state, dt, per_chunk),
-                            lambda sim, state, dt: chunked_step(sim, state, dt, per_chunk, recompute=True),
-                            sim, state, dt)
+def step_in_chunks(sim, state, dt, per_chunk: int, derivatives: str = "chunks"):
+    """One step in chunks (:func:`chunked_step`) and its derivatives (``derivatives``, the backend's
+    :data:`~jaxmpm.transfer.backend.CHUNK_DERIVATIVES`): "chunks" -- JVPs and gradients differentiate the
+    same chunks, each chunk's P2G and G2P recomputed in the reverse pass (``jax.checkpoint``), so that a
+    gradient holds one chunk's stencil and per-slot arrays at a time; or "whole" -- they differentiate
+    :func:`jaxmpm.model.step.step`.  Forward runs take the chunks either way; both give the same values to
+    round-off."""
+    forward = partial(chunked_step, per_chunk=per_chunk)
+    if derivatives == "whole":
+        return with_whole_step_derivatives(forward, sim, state, dt)
+    return with_derivatives(forward, partial(chunked_step, per_chunk=per_chunk, recompute=True), sim, state, dt)
 
 
 def with_whole_step_derivatives(forward, sim, state, dt):
@@ -116,9 +113,12 @@ def with_whole_step_derivatives(forward, sim, state, dt):
 
 def with_derivatives(forward, differentiated, sim, state, dt):
     """``forward(sim, state, dt)``, whose JVPs (and so gradients) are those of ``differentiated(sim, state,
-    dt)``, the same step computed another way."""
+    dt)``, the same step computed another way.  JAX may trace the JVP later than the call (a jitted rollout
+    differentiated from outside), so it is traced in the context of the call: the model's backend policy,
+    adjoint and kernel (:mod:`jaxmpm.transfer.backend`'s context variables)."""
     dt = jnp.asarray(dt, state.x.dtype)
     arrays, static = eqx.partition(sim, eqx.is_array)
+    context = contextvars.copy_context()
 
     @jax.custom_jvp
     def stepped(arrays, state, dt):
@@ -126,7 +126,8 @@ def with_derivatives(forward, differentiated, sim, state, dt):
 
     @stepped.defjvp
     def _(primals, tangents):
-        return jax.jvp(lambda a, s, d: differentiated(eqx.combine(a, static), s, d), primals, tangents)
+        return context.copy().run(jax.jvp, lambda a, s, d: differentiated(eqx.combine(a, static), s, d), primals,
+                                  tangents)
 
     return stepped(arrays, state, dt)
 
@@ -163,7 +164,7 @@ def chunked_step(sim, state, dt, per_chunk: int, axis_name=None, recompute: bool
     docstring); ``chunk_obstacle`` must be None.  Equal to ``jaxmpm.model.step.step`` to round-off.
     ``axis_name``: ``state`` is one device's share of the particles inside a ``shard_map`` over that
     axis (:mod:`jaxmpm.model.devices`): the nodal sums and the dissipated energy are added across it.
-    ``recompute``: for derivatives that go in chunks (:func:`step_in_chunks_to_fit`), each chunk's P2G and
+    ``recompute``: for derivatives that go in chunks (:func:`step_in_chunks`), each chunk's P2G and
     G2P are recomputed in the reverse pass (``jax.checkpoint``), and the new rows are a scan's outputs (a
     loop over the rows in place would keep the whole state at every chunk for its reverse pass)."""
     dt = jnp.asarray(dt, state.x.dtype)

@@ -18,9 +18,9 @@ kernels among its threads (benchmarks/README.md, "Particles shared among CPU dev
 large to copy on every device are :class:`jaxmpm.parallel.ShardedSimulation`'s (slabs of the grid).
 
 The added sums are those of one device to round-off, not bit for bit (as for chunks); the dissipated
-energy is the sum of the devices' shares.  Derivatives differentiate the whole step on one device
-(:func:`step_on_devices`), as a step in chunks does: differentiated through the devices, a rollout's
-gradient was the same to 5e-15 and 4-15% slower (mpm88, 2 CPU devices, 8k and 131k particles).
+energy is the sum of the devices' shares.  Derivatives run on one device (:func:`step_on_devices`), in
+chunks as a step in chunks differentiates them, or the whole step: differentiated through the devices, a
+rollout's gradient was the same to 5e-15 and 4-15% slower (mpm88, 2 CPU devices, 8k and 131k particles).
 
 Which steps: those that may step in chunks (:func:`jaxmpm.model.chunks.chunk_obstacle`), with a
 particle count that the device count divides; :func:`device_obstacle` names what keeps a model on one
@@ -68,13 +68,12 @@ def device_obstacle(sim, state, devices: int, kernel: str) -> str | None:
     return chunk_obstacle(sim, state, max(1, n // devices), kernel)
 
 
-def step_on_devices(sim, state, dt, devices: int, per_chunk: int, derivatives_in_chunks: bool = False):
+def step_on_devices(sim, state, dt, devices: int, per_chunk: int, derivatives: str = "whole"):
     """One step whose forward run shares the particles of ``state`` among the first ``devices`` local
-    devices, each stepping its share in chunks of about ``per_chunk`` particles (0: its share at once);
-    JVPs and gradients differentiate the whole step on one device (as
-    :func:`jaxmpm.model.chunks.step_in_chunks`), or with ``derivatives_in_chunks`` (a share too large for
-    its device's memory) the step in chunks of ``per_chunk`` on one device, each recomputed in the reverse
-    pass (as :func:`jaxmpm.model.chunks.step_in_chunks_to_fit`).  ``device_obstacle`` must be None."""
+    devices, each stepping its share in chunks of about ``per_chunk`` particles (0: its share at once).
+    JVPs and gradients run on one device: with ``derivatives="chunks"`` and chunks, they differentiate the
+    step in chunks of ``per_chunk``, each recomputed in the reverse pass (as
+    :func:`jaxmpm.model.chunks.step_in_chunks`); else the whole step.  ``device_obstacle`` must be None."""
     mesh = Mesh(np.asarray(local_devices()[:devices]), (AXIS,))
     share = state.x.shape[0] // devices
     part_specs = jax.tree_util.tree_map(lambda _: P(AXIS), _particle_part(state))
@@ -92,7 +91,7 @@ def step_on_devices(sim, state, dt, devices: int, per_chunk: int, derivatives_in
         part, clock = mapped(arrays, _particle_part(state), _clock(state), dt)
         return _with_clock(_with_particle_part(state, part), clock)
 
-    if derivatives_in_chunks:
+    if derivatives == "chunks" and per_chunk:
         return with_derivatives(forward, lambda sim, s, d: chunked_step(sim, s, d, per_chunk, recompute=True), sim,
                                 state, dt)
     return with_whole_step_derivatives(forward, sim, state, dt)

@@ -42,6 +42,7 @@ from ..transfer.backend import (
     choose_devices,
     choose_kernel,
     choose_sorting,
+    chunk_derivatives,
     chunks_to_fit,
     resolve,
     use_adjoint,
@@ -52,7 +53,7 @@ from ..transfer.backend import (
 from ..transfer.kernels.windowed import active_window, on_window
 from ..transfer.shapes import UGIMP, ShapeFunction, field_stencil
 from . import frame_fields
-from .chunks import chunk_obstacle, num_chunks, step_in_chunks, step_in_chunks_to_fit, sums_in_chunks
+from .chunks import chunk_obstacle, num_chunks, step_in_chunks, sums_in_chunks
 from .devices import device_obstacle, local_devices, step_on_devices
 from .step import folds_force
 from .step import step as _step
@@ -372,8 +373,10 @@ class Simulation(eqx.Module):
         return self._with_static(particle_devices=_checked_particle_devices(devices))
 
     def _device_row(self, state: State, kernel: str | None = None) -> tuple:
-        """(devices, particles per chunk on each, 0 for its share at once; why; whether the step's derivatives
-        go in chunks of that size, where a share would not fit its device's memory) for a step of ``state``
+        """(devices, particles per chunk on each, 0 for its share at once; why; what the step's derivatives
+        differentiate, "chunks" of that size on one device or the "whole" step: the backend's
+        :data:`~jaxmpm.transfer.backend.CHUNK_DERIVATIVES`, "chunks" where a share would not fit its device's
+        memory) for a step of ``state``
         whose transfers run on ``kernel`` (None: looked up, :meth:`_kernel_row`).  A forced count the
         process does not have is an error naming the fix."""
         n, dtype = state.x.shape[0], state.x.dtype
@@ -392,7 +395,7 @@ class Simulation(eqx.Module):
         if self.chunk_particles != "auto":
             per = self.chunk_particles
         if devices < 2:
-            return 1, 0, why, False
+            return 1, 0, why, "whole"
         to_fit = False
         if self.chunk_particles == "auto":  # a device's share in chunks that fit its memory, derivatives too
             fit = self._memory_row(n // devices, dtype, devices)
@@ -401,13 +404,14 @@ class Simulation(eqx.Module):
         kernel = kernel or self._kernel_row(n, dtype)[0] or "xla"
         obstacle = device_obstacle(self, state, devices, kernel)
         if obstacle is not None:
-            return 1, 0, f"one device: {obstacle} ({why})", False
+            return 1, 0, f"one device: {obstacle} ({why})", "whole"
         share = n // devices
         if per and per < share and num_chunks(share, per):
             chunks = f"in chunks of {share // num_chunks(share, per)}" + (
                 ", their derivatives in the same chunks" if to_fit else "")
-            return devices, per, f"{why}: {share} particles a device, {chunks}", to_fit
-        return devices, 0, f"{why}: {share} particles a device, at once", False
+            derivatives = "chunks" if to_fit else chunk_derivatives(self.backend)
+            return devices, per, f"{why}: {share} particles a device, {chunks}", derivatives
+        return devices, 0, f"{why}: {share} particles a device, at once", "whole"
 
     def _memory_row(self, num_particles: int, dtype, devices: int = 1) -> tuple | None:
         """(particles per chunk, why) where the whole step of ``num_particles`` particles on one of
@@ -419,11 +423,11 @@ class Simulation(eqx.Module):
         return (per, why + shared) if per else None
 
     def _chunk_row(self, state: State, kernel: str | None = None) -> tuple:
-        """(particles per chunk, 0 for the whole step; why; whether its derivatives go in the chunks too) for a
-        step of ``state`` whose transfers run on ``kernel`` ("xla", "pallas"; None: looked up,
-        :meth:`_kernel_row`).  The derivatives go in chunks where the whole step would not fit the device's
-        memory (:func:`~jaxmpm.model.chunks.step_in_chunks_to_fit`); elsewhere they are the whole step's, the
-        faster (:func:`~jaxmpm.model.chunks.step_in_chunks`)."""
+        """(particles per chunk, 0 for the whole step; why; what its derivatives differentiate, "chunks" or the
+        "whole" step) for a step of ``state`` whose transfers run on ``kernel`` ("xla", "pallas"; None: looked
+        up, :meth:`_kernel_row`).  The derivatives are the backend's choice
+        (:data:`~jaxmpm.transfer.backend.CHUNK_DERIVATIVES`), and "chunks" where the whole step would not fit
+        the device's memory (:func:`~jaxmpm.model.chunks.step_in_chunks`)."""
         n, dtype = state.x.shape[0], state.x.dtype
         to_fit = False
         if self.chunk_particles != "auto":
@@ -435,14 +439,15 @@ class Simulation(eqx.Module):
                 per, why = fit if not per or fit[0] < per else (per, f"{why}; {fit[1]}")
                 to_fit = True
         if not per or per >= n:
-            return 0, why if not per else f"{why}; {n} particles fit one chunk: the whole step", False
+            return 0, why if not per else f"{why}; {n} particles fit one chunk: the whole step", "whole"
         kernel = kernel or self._kernel_row(n, dtype)[0] or "xla"
         obstacle = chunk_obstacle(self, state, per, kernel)
         if obstacle is not None:
-            return 0, f"the whole step: {obstacle} ({why})", False
+            return 0, f"the whole step: {obstacle} ({why})", "whole"
         count = num_chunks(n, per)
         return per, f"{why}: {count} chunks of {n // count} particles" + (
-            ", their derivatives in the same chunks" if to_fit else ""), to_fit
+            ", their derivatives in the same chunks" if to_fit else ""), "chunks" if to_fit else chunk_derivatives(
+            self.backend)
 
     def with_conventions(self, conventions: str, constrained_force: str | None = None):
         """A copy of a model built in jaxmpm's conventions that follows another code's rules where
@@ -623,14 +628,12 @@ class Simulation(eqx.Module):
         float32 state) are cast to the state's dtype on entry."""
         name, options, _ = self._kernel_row(state.x.shape[0], state.x.dtype)
         with use_policy(self.backend), use_adjoint(self.adjoint), use_kernel(name, options):
-            devices, per_device, _, to_fit = self._device_row(state, name or "xla")
+            devices, per_device, _, derivatives = self._device_row(state, name or "xla")
             if devices > 1:  # backend tuning: the same step on every device of the process at once
-                return step_on_devices(self.in_precision(state.x.dtype), state, dt, devices, per_device, to_fit)
-            per_chunk, _, to_fit = self._chunk_row(state, name or "xla")
-            if to_fit:  # a step too large for the device's memory, derivatives and all
-                return step_in_chunks_to_fit(self.in_precision(state.x.dtype), state, dt, per_chunk)
-            if per_chunk:  # backend tuning: the same step with a working set that fits the cache
-                return step_in_chunks(self.in_precision(state.x.dtype), state, dt, per_chunk)
+                return step_on_devices(self.in_precision(state.x.dtype), state, dt, devices, per_device, derivatives)
+            per_chunk, _, derivatives = self._chunk_row(state, name or "xla")
+            if per_chunk:  # backend tuning (or memory): the same step with a working set that fits the cache
+                return step_in_chunks(self.in_precision(state.x.dtype), state, dt, per_chunk, derivatives)
             return _step(self.in_precision(state.x.dtype), state, dt)
 
     def _kernel_row(self, num_particles: int, dtype) -> tuple:
@@ -823,8 +826,9 @@ def backend_info(sim: Simulation, state: State) -> dict:
         "sort_every": the steps between the runs' sorts of the particles by cell (0: never),
         "sort_reason": why, "chunk_particles": the particles per chunk of a step (0: the whole step at
         once, ``jaxmpm.model.chunks``; with several devices: on each), "chunk_reason": why,
-        "chunk_derivatives": "whole step" (JVPs and gradients differentiate the whole step, the faster) or
-        "chunks" (they go in the same chunks: where the whole step would not fit the device's memory),
+        "chunk_derivatives": "chunks" (JVPs and gradients of a step in chunks go in the same chunks, each
+        recomputed in the reverse pass) or "whole step" (``jaxmpm.transfer.backend.CHUNK_DERIVATIVES``; "chunks"
+        where the whole step would not fit the device's memory),
         "particle_devices": the devices a step shares its particles among (1: one device,
         ``jaxmpm.model.devices``), "devices_reason": why, and for the XLA kernel "xla_layout":
         {"p2g": "planar" or "rows", "p2g_derivatives": "planar" or "rows", "hold_gathers": bool}, its
@@ -837,14 +841,14 @@ def backend_info(sim: Simulation, state: State) -> dict:
     every, sort_why = sim._sort_row(n, dtype)
     member = state if state.x.ndim == 2 else jax.tree_util.tree_map(lambda a: a[0], state)  # an ensemble's
     with use_policy(sim.backend):
-        devices, per_device, devices_why, to_fit = sim._device_row(member, name or "xla")
-        per_chunk, chunk_why, to_fit = ((per_device, devices_why, to_fit) if devices > 1
-                                        else sim._chunk_row(member, name or "xla"))
+        devices, per_device, devices_why, derivatives = sim._device_row(member, name or "xla")
+        per_chunk, chunk_why, derivatives = ((per_device, devices_why, derivatives) if devices > 1
+                                             else sim._chunk_row(member, name or "xla"))
     info = {"kernel": name or "xla", "options": dict(options), "policy": resolve(sim.backend),
             "dimension": sim.grid.dim, "particles_per_cell": n / max(1, int(np.prod(sim.grid.cells))),
             "dtype": jnp.dtype(dtype).name, "reason": why, "sort_every": every, "sort_reason": sort_why,
             "chunk_particles": per_chunk, "chunk_reason": chunk_why,
-            "chunk_derivatives": "chunks" if per_chunk and to_fit else "whole step", "particle_devices": devices,
+            "chunk_derivatives": "chunks" if derivatives == "chunks" else "whole step", "particle_devices": devices,
             "devices_reason": devices_why}
     if info["kernel"] == "xla":
         with use_policy(sim.backend):

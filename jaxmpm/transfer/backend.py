@@ -605,6 +605,24 @@ def chunk_output(dtype) -> str:
     return CHUNK_OUTPUT.get((active(), jnp.dtype(dtype).itemsize), "stacked")
 
 
+# What JVPs and gradients of a step in chunks differentiate, per policy: "chunks" (the same chunks, each chunk's
+# P2G and G2P recomputed in the reverse pass: jaxmpm.model.chunks.step_in_chunks) or "whole" (the whole step
+# at once).  A step whose whole temporaries would not fit the device's memory takes "chunks" whatever the
+# table says.  CPU: the gradient of a rollout (d/dv0 of the final kinetic energy through sim.run, the
+# CHUNK_TABLE's chunks, 2 cores, ms a step, best of 3, each in its own process, two alternated rounds,
+# 2026-11-29, benchmarks/README.md "Gradients of a step in chunks"), whole -> chunks: mpm88 float64 65k
+# 45.7-45.8 -> 34.9-36.1, 131k 103.9-105.6 -> 68.3-71.0; float32 131k 67.0-71.0 -> 58.3-67.6, 524k
+# 284.8-297.8 -> 222.4-223.4; mpm3d float64 32k 132.7-138.5 -> 110.1-114.6, float32 131k 423.7-425.0 ->
+# 301.2-338.6.  The GPU steps in chunks only where the whole step would not fit: "chunks".
+CHUNK_DERIVATIVES = {"cpu": "chunks", "gpu": "chunks"}
+
+
+def chunk_derivatives(policy: str) -> str:
+    """"chunks" or "whole" (:data:`CHUNK_DERIVATIVES`): what the derivatives of a step in chunks traced under
+    ``policy`` differentiate."""
+    return CHUNK_DERIVATIVES[resolve(policy)]
+
+
 # When a step shares its particles among the process's devices, each holding the whole grid
 # (jaxmpm.model.devices), and in chunks of how many particles each device steps its share:
 # (policy, dimension, bytes per float, fewest particles) -> (particles per chunk on a device, why).  A

@@ -23,9 +23,9 @@ chunks where the whole step's temporaries would not fit the device, ``chunks_to_
 
 ``--gradient`` adds, for each row, the gradient of the final kinetic energy with respect to the initial
 velocities through ``sim.run`` (``checkpoint="auto"``), compiled the same way: its program per particle and
-against the state.  Where the step's derivatives go in its chunks (``chunks.step_in_chunks``: the backend's
-``CHUNK_DERIVATIVES``, and wherever the whole step would not fit), the row "same chunks, whole derivatives"
-takes the same chunks with the whole step's derivatives.
+against the state.  Where the step's derivatives go in chunks (``chunks.step_in_chunks``: the backend's
+``DERIVATIVE_CHUNK_TABLE``, and wherever the whole step would not fit), the row "library's forward" takes the
+library's forward step with the whole step's derivatives (``with_derivative_chunks(0)``).
 ``--device-memory SIZE`` (e.g. ``"64 MiB"``) is the free memory the library's rules see on a CPU
 (``JAXMPM_MEMORY_BYTES``): the choice on a smaller device.
 """
@@ -33,7 +33,6 @@ takes the same chunks with the whole step's derivatives.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import os
 import sys
 from pathlib import Path
@@ -96,21 +95,6 @@ def measure(sim, state, dt, steps: int) -> dict:
     return out
 
 
-@contextlib.contextmanager
-def whole_derivatives(whole: bool):
-    """With ``whole``: the derivatives of a step in forced chunks differentiate the whole step (the backend's
-    ``CHUNK_DERIVATIVES`` set so while the gradient is traced)."""
-    from jaxmpm.transfer import backend
-
-    saved = dict(backend.CHUNK_DERIVATIVES)
-    if whole:
-        backend.CHUNK_DERIVATIVES.update(dict.fromkeys(saved, "whole"))
-    try:
-        yield
-    finally:
-        backend.CHUNK_DERIVATIVES.update(saved)
-
-
 def measure_gradient(sim, state, dt, steps: int) -> dict:
     """The compiled gradient's buffers per particle: d/dv0 of the final kinetic energy through ``sim.run``."""
     import equinox as eqx
@@ -157,17 +141,19 @@ def main(argv=None) -> int:
         info = jm.backend_info(sim, state)
         if info.get("chunk_particles"):  # else the library's choice is the whole step
             variants.append(("whole", sim.with_chunks(0)))
-        if args.gradient and info["chunk_derivatives"] == "chunks":
-            variants.append(("same chunks, whole derivatives", sim.with_chunks(info["chunk_particles"])))
+        if args.gradient and info["derivative_chunk_particles"]:
+            variants.append(("library's forward", sim.with_derivative_chunks(0)))
         if args.chunks:
             variants.append(("forced", sim.with_chunks(args.chunks)))
         for label, chosen in variants:
-            per = jm.backend_info(chosen, state).get("chunk_particles")
+            info = jm.backend_info(chosen, state)
+            per, derivatives = info["chunk_particles"], info["derivative_chunk_particles"]
             step = f"{label} (chunks of {per})" if per else f"{label} (whole)"
+            if args.gradient:
+                step += f", derivatives in chunks of {derivatives}" if derivatives else ", whole derivatives"
             r = measure(chosen, state, dt, args.steps)
             if args.gradient:
-                with whole_derivatives(label == "same chunks, whole derivatives"):
-                    r.update(measure_gradient(chosen, state, dt, args.steps))
+                r.update(measure_gradient(chosen, state, dt, args.steps))
             gradient = f" {r['gradient_program']:.0f} | {r['gradient_over_state']:.2f} |" if args.gradient else ""
             print(f"| {dim} {int(n)} {dtype} | {step} | {r['state']:.0f} | {r['arguments']:.0f} | "
                   f"{r['outputs']:.0f} | {r['temporaries']:.1f} | {r['aliased']:.0f} | {r['program']:.0f} | "

@@ -94,16 +94,16 @@ def test_a_collider_scene_steps_in_chunks():
     _assert_same(whole, _advance(chunked, setup.state, setup.dt))
 
 
-@pytest.mark.parametrize("derivatives", ["chunks", "whole"])
-def test_gradients_and_ensembles_through_the_chunked_step(derivatives, monkeypatch):
-    """d(kinetic energy after 20 steps)/d(E, V0) of a chunked model equals the whole step's to 1e-10
-    (relative), whether its derivatives go in the chunks, each recomputed in the reverse pass, or differentiate
-    the whole step (CHUNK_DERIVATIVES, chunks.step_in_chunks), and a vmapped ensemble of two initial
-    velocities equals the members stepped alone."""
-    monkeypatch.setitem(backend.CHUNK_DERIVATIVES, "cpu", derivatives)
+@pytest.mark.parametrize("forward, derivatives", [(128, 128), (128, 0), (0, 128)])
+def test_gradients_and_ensembles_through_the_chunked_step(forward, derivatives):
+    """d(kinetic energy after 20 steps)/d(E, V0) of a model in chunks equals the whole step's to 1e-10
+    (relative), whether its derivatives go in chunks, each recomputed in the reverse pass, or differentiate the
+    whole step, and whether the forward step goes in chunks or not (chunks.step_in_chunks); and a vmapped
+    ensemble of two initial velocities equals the members stepped alone."""
     sim, state, dt = _scene()
-    assert jm.backend_info(sim.with_chunks(128), state)["chunk_derivatives"] == (
-        "chunks" if derivatives == "chunks" else "whole step")
+    model = sim.with_chunks(forward).with_derivative_chunks(derivatives)
+    info = jm.backend_info(model, state)
+    assert (info["chunk_particles"], info["derivative_chunk_particles"]) == (forward, derivatives), info
 
     def loss(E, v, model):
         final = _advance(jm.set_params(model, E=E), eqx.tree_at(lambda s: s.v, state, v), dt)
@@ -112,13 +112,12 @@ def test_gradients_and_ensembles_through_the_chunked_step(derivatives, monkeypat
     def grad(model):
         return jax.jit(jax.grad(lambda E, v: loss(E, v, model), argnums=(0, 1)))(jnp.asarray(400.0), state.v)
 
-    whole, chunked = grad(sim.with_chunks(0)), grad(sim.with_chunks(128))
+    whole, chunked = grad(sim.with_chunks(0)), grad(model)
     assert abs(float(whole[0])) > 0
     np.testing.assert_allclose(float(chunked[0]), float(whole[0]), rtol=1e-10)
     np.testing.assert_allclose(np.asarray(chunked[1]), np.asarray(whole[1]), rtol=0,
                                atol=1e-10 * float(jnp.max(jnp.abs(whole[1]))))
 
-    model = sim.with_chunks(128)
     members = [state, eqx.tree_at(lambda s: s.v, state, state.v * 0.5)]
     batch = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *members)
     together = jax.vmap(lambda s: _advance(model, s, dt))(batch)
@@ -187,6 +186,8 @@ def test_chunk_count_and_the_backend_table():
     assert info["chunk_particles"] == 0 and "no divisor" in info["chunk_reason"]
     with pytest.raises(jm.InputError, match="chunk_particles"):
         sim.with_chunks(-1)
+    with pytest.raises(jm.InputError, match="derivative_chunk_particles = 1.5; give the particles per chunk"):
+        sim.with_derivative_chunks(1.5)
 
 
 def test_a_step_too_large_for_the_memory_goes_in_chunks():

@@ -57,7 +57,7 @@ def test_shared_particles_equal_one_device():
     # a device's share that would not fit (a host of 4 MiB, shared by the 2 devices) steps in chunks that do
     assert out["memory_reason"].endswith(
         "chunks of at most 256 particles; that is an even share of the free memory among 2 CPU devices: 1024 "
-        "particles a device, in chunks of 256, their derivatives in the same chunks"), out
+        "particles a device, in chunks of 256"), out
     assert out["memory_x"] < 1e-13 and out["memory_grad"] < 1e-13
     assert out["memory_fits_reason"].endswith("1024 particles a device, at once"), out
     assert "jax_num_cpu_devices" in out["too_many"] and "particle_devices=1" in out["too_many"]

@@ -57,31 +57,35 @@ def test_members_stepped_at_once_share_the_memory(small_device):
     assert info["chunk_reason"] == (
         "the whole step's temporaries (about 684.0 KiB) would take more than 25% of the device's free memory "
         "(1.0 MiB): chunks of at most 128 particles; that is an even share of the free memory among 8 members "
-        "stepped at once: 4 chunks of 128 particles, their derivatives in the same chunks")
+        "stepped at once: 4 chunks of 128 particles")
+    assert info["derivative_chunk_particles"] == 128 and info["derivative_chunk_reason"] == info["chunk_reason"]
     assert step_memory() == (FREE, "")
     with members_at_once(1):
         assert step_memory() == (FREE, "")
 
 
-def test_chunks_for_speed_take_their_derivatives_in_chunks_where_the_whole_step_would_not_fit(monkeypatch):
-    """On the CPU the backend table steps 65536 particles of mpm88 in float64 in chunks of 16384 for speed
-    (CHUNK_TABLE).  With a table whose chunks' derivatives differentiate the whole step (CHUNK_DERIVATIVES), they
-    still go in the chunks where the whole step would not fit the device (160 MiB: about 85.5 MiB of
-    temporaries against a quarter), not where it fits (400 MiB); a device smaller still takes smaller chunks."""
-    monkeypatch.setitem(backend.CHUNK_DERIVATIVES, "cpu", "whole")
+def test_the_tables_chunks_shrink_to_fit_the_memory():
+    """On the CPU the backend tables step 65536 particles of mpm88 in float64 in chunks of 16384 (CHUNK_TABLE) and
+    take its derivatives in chunks of 8192 (DERIVATIVE_CHUNK_TABLE).  Where the whole step would not fit the
+    device (160 MiB: about 85.5 MiB of temporaries against a quarter) chunks of 16384 fit, and both stay; on a
+    device smaller still (40 MiB) both take chunks of 4096; where it fits (400 MiB) nothing is said of memory."""
     setup = jm.scene("mpm88", n_particles=65536, dtype="f64")
-    reasons = {}
+    rows = {}
     for free in (400, 160, 40):
-        monkeypatch.setenv("JAXMPM_MEMORY_BYTES", str(free * 2**20))
-        info = jm.backend_info(setup.sim, setup.state)
-        reasons[free] = info["chunk_particles"], info["chunk_reason"], info["chunk_derivatives"]
-    assert [reasons[free][2] for free in (400, 160, 40)] == ["whole step", "chunks", "chunks"]
-    assert reasons[400][0] == 16384 and "derivatives" not in reasons[400][1], reasons
-    assert reasons[160][0] == 16384 and reasons[160][1].startswith("CPU") and reasons[160][1].endswith(
-        "(160.0 MiB): chunks of at most 16384 particles: 4 chunks of 16384 particles, their derivatives in the "
-        "same chunks"), reasons
-    assert reasons[40][0] == 4096 and reasons[40][1].endswith(
-        "16 chunks of 4096 particles, their derivatives in the same chunks"), reasons
+        with pytest.MonkeyPatch.context() as patch:
+            patch.setenv("JAXMPM_MEMORY_BYTES", str(free * 2**20))
+            info = jm.backend_info(setup.sim, setup.state)
+        rows[free] = [info[key] for key in ("chunk_particles", "chunk_reason", "derivative_chunk_particles",
+                                            "derivative_chunk_reason")]
+    assert [(rows[free][0], rows[free][2]) for free in (400, 160, 40)] == [(16384, 8192), (16384, 8192),
+                                                                           (4096, 4096)], rows
+    assert "memory" not in rows[400][1] + rows[400][3], rows
+    assert rows[400][3].startswith("CPU, 2D float64, from 24k particles: derivatives in chunks of 8k")
+    assert rows[160][1].endswith("(160.0 MiB): chunks of at most 16384 particles: 4 chunks of 16384 particles")
+    assert rows[160][3].endswith("(160.0 MiB): chunks of at most 16384 particles: 8 chunks of 8192 particles")
+    for reason in (rows[40][1], rows[40][3]):
+        assert reason.startswith("the whole step's temporaries (about 85.5 MiB) would take more than 25% of the "
+                                 "device's free memory (40.0 MiB)") and reason.endswith("16 chunks of 4096 particles")
 
 
 def test_a_vmapped_ensemble_steps_each_member_in_chunks_that_fit(small_device):
@@ -124,8 +128,7 @@ def test_a_gradient_through_steps_too_large_for_the_memory_goes_in_chunks(small_
     setup = jm.scene("mpm88", n_particles=4096, n_grid=32)
     sim, state, dt = setup.sim, setup.state, setup.dt
     info = jm.backend_info(sim, state)
-    assert info["chunk_particles"] == 512 and info["chunk_reason"].endswith(
-        "8 chunks of 512 particles, their derivatives in the same chunks"), info
+    assert (info["chunk_particles"], info["derivative_chunk_particles"]) == (512, 512), info
 
     def temporaries(model):  # XLA's temporary bytes of one step's gradient with respect to the velocities
         def kinetic(v):
@@ -134,16 +137,13 @@ def test_a_gradient_through_steps_too_large_for_the_memory_goes_in_chunks(small_
 
         return jax.jit(jax.grad(kinetic)).lower(state.v).compile().memory_analysis().temp_size_in_bytes
 
-    in_chunks = temporaries(sim)
-    monkeypatch.setitem(backend.CHUNK_DERIVATIVES, "cpu", "whole")  # the same chunks forced, the whole derivatives
-    whole_derivatives = temporaries(sim.with_chunks(512))
+    in_chunks, whole_derivatives = temporaries(sim), temporaries(sim.with_derivative_chunks(0))
     assert in_chunks < 0.3 * whole_derivatives, (in_chunks, whole_derivatives)
 
     monkeypatch.setenv("JAXMPM_MEMORY_BYTES", str(2**20))
     setup = jm.scene("disks", speed=1.0)
     sim, state, dt = setup.sim, setup.state, setup.dt
-    assert jm.backend_info(sim, state)["chunk_reason"].endswith(
-        "4 chunks of 104 particles, their derivatives in the same chunks")
+    assert jm.backend_info(sim, state)["derivative_chunk_reason"].endswith("4 chunks of 104 particles")
     E0 = float(sim.material.E)
 
     def kinetic(model, e):

@@ -17,9 +17,8 @@ as a scan's outputs, as the backend says (:data:`jaxmpm.transfer.backend.CHUNK_O
 is a second evaluation of the stencil.
 The nodal sums are added chunk by chunk, so a step in chunks equals the whole step to round-off,
 not bit for bit; the dissipated energy is the sum of the chunks' shares.
-Derivatives differentiate the same chunks, each chunk recomputed in the reverse pass, or the whole step, as
-the backend's table says (:func:`step_in_chunks`); a step too large for the device's memory differentiates
-its chunks.
+Derivatives go in chunks of their own size, each chunk recomputed in the reverse pass, or differentiate the
+whole step, as the backend's table says (:func:`step_in_chunks`); both sizes shrink to fit the device's memory.
 
 Which steps: USL, a scheme whose update is local (``Scheme.local_update``: FLIP, PIC, their
 blends, APIC, TPIC, RPIC) and terms that are (``Term.local``: the stress divergence without XPIC
@@ -92,17 +91,19 @@ def chunk_obstacle(sim, state, per_chunk: int, kernel: str) -> str | None:
     return None
 
 
-def step_in_chunks(sim, state, dt, per_chunk: int, derivatives: str = "chunks"):
-    """One step in chunks (:func:`chunked_step`) and its derivatives (``derivatives``, the backend's
-    :data:`~jaxmpm.transfer.backend.CHUNK_DERIVATIVES`): "chunks" -- JVPs and gradients differentiate the
-    same chunks, each chunk's P2G and G2P recomputed in the reverse pass (``jax.checkpoint``), so that a
-    gradient holds one chunk's stencil and per-slot arrays at a time; or "whole" -- they differentiate
-    :func:`jaxmpm.model.step.step`.  Forward runs take the chunks either way; both give the same values to
-    round-off."""
-    forward = partial(chunked_step, per_chunk=per_chunk)
-    if derivatives == "whole":
+def step_in_chunks(sim, state, dt, per_chunk: int, derivative_chunk: int):
+    """One step whose forward run goes in chunks of about ``per_chunk`` particles (:func:`chunked_step`; 0: the
+    whole step, :func:`jaxmpm.model.step.step`), and whose JVPs and gradients go in chunks of about
+    ``derivative_chunk`` particles, each chunk's P2G and G2P recomputed in the reverse pass
+    (``chunked_step(recompute=True)``: a gradient then holds one chunk's stencil and per-slot arrays at a time;
+    0: the whole step's derivatives).  The backend's tables choose both sizes
+    (:data:`~jaxmpm.transfer.backend.CHUNK_TABLE`, :data:`~jaxmpm.transfer.backend.DERIVATIVE_CHUNK_TABLE`); all
+    give the same values to round-off."""
+    forward = partial(chunked_step, per_chunk=per_chunk) if per_chunk else whole_step
+    if not derivative_chunk:
         return with_whole_step_derivatives(forward, sim, state, dt)
-    return with_derivatives(forward, partial(chunked_step, per_chunk=per_chunk, recompute=True), sim, state, dt)
+    return with_derivatives(forward, partial(chunked_step, per_chunk=derivative_chunk, recompute=True), sim, state,
+                            dt)
 
 
 def with_whole_step_derivatives(forward, sim, state, dt):

@@ -68,12 +68,12 @@ def device_obstacle(sim, state, devices: int, kernel: str) -> str | None:
     return chunk_obstacle(sim, state, max(1, n // devices), kernel)
 
 
-def step_on_devices(sim, state, dt, devices: int, per_chunk: int, derivatives: str = "whole"):
+def step_on_devices(sim, state, dt, devices: int, per_chunk: int, derivative_chunk: int = 0):
     """One step whose forward run shares the particles of ``state`` among the first ``devices`` local
     devices, each stepping its share in chunks of about ``per_chunk`` particles (0: its share at once).
-    JVPs and gradients run on one device: with ``derivatives="chunks"`` and chunks, they differentiate the
-    step in chunks of ``per_chunk``, each recomputed in the reverse pass (as
-    :func:`jaxmpm.model.chunks.step_in_chunks`); else the whole step.  ``device_obstacle`` must be None."""
+    JVPs and gradients run on one device, in chunks of about ``derivative_chunk`` particles each recomputed in
+    the reverse pass (as :func:`jaxmpm.model.chunks.step_in_chunks`; 0: the whole step).  ``device_obstacle``
+    must be None."""
     mesh = Mesh(np.asarray(local_devices()[:devices]), (AXIS,))
     share = state.x.shape[0] // devices
     part_specs = jax.tree_util.tree_map(lambda _: P(AXIS), _particle_part(state))
@@ -91,9 +91,9 @@ def step_on_devices(sim, state, dt, devices: int, per_chunk: int, derivatives: s
         part, clock = mapped(arrays, _particle_part(state), _clock(state), dt)
         return _with_clock(_with_particle_part(state, part), clock)
 
-    if derivatives == "chunks" and per_chunk:
-        return with_derivatives(forward, lambda sim, s, d: chunked_step(sim, s, d, per_chunk, recompute=True), sim,
-                                state, dt)
+    if derivative_chunk:
+        return with_derivatives(forward, lambda sim, s, d: chunked_step(sim, s, d, derivative_chunk, recompute=True),
+                                sim, state, dt)
     return with_whole_step_derivatives(forward, sim, state, dt)
 
 

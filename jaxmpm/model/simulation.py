@@ -39,10 +39,10 @@ from ..transfer.backend import (
     KERNEL_CHOICES,
     POLICIES,
     choose_chunking,
+    choose_derivative_chunking,
     choose_devices,
     choose_kernel,
     choose_sorting,
-    chunk_derivatives,
     chunks_to_fit,
     resolve,
     use_adjoint,
@@ -171,6 +171,11 @@ class Simulation(eqx.Module):
             (``jaxmpm.model.chunks``: USL with a local scheme and local terms), 0 never; "auto"
             (default): as the backend table says (``jm.backend_info``).  Speed only: a step in
             chunks equals the whole step to round-off.
+        derivative_chunk_particles: the step's JVPs and gradients go over its particles in chunks of
+            about this many, each chunk recomputed in the reverse pass (``jaxmpm.model.chunks.step_in_chunks``),
+            0: the whole step's derivatives; "auto" (default): as the backend's derivative table says where
+            ``chunk_particles`` is "auto", else the same as ``chunk_particles``.  Both "auto" sizes shrink to
+            fit the device's memory.  Speed and memory only: the derivatives equal the whole step's to round-off.
         particle_devices: a step shares its particles among this many of the process's devices,
             each holding the whole grid (``jaxmpm.model.devices``: the conditions of a step in chunks),
             1 never; "auto" (default): as the backend table says, among every local device where the
@@ -193,6 +198,7 @@ class Simulation(eqx.Module):
     kernel: str = eqx.field(static=True, default="auto")
     sort_every: object = eqx.field(static=True, default="auto")
     chunk_particles: object = eqx.field(static=True, default="auto")
+    derivative_chunk_particles: object = eqx.field(static=True, default="auto")
     particle_devices: object = eqx.field(static=True, default="auto")
 
     def __init__(
@@ -216,6 +222,7 @@ class Simulation(eqx.Module):
         sort_every="auto",
         chunk_particles="auto",
         particle_devices="auto",
+        derivative_chunk_particles="auto",
     ):
         check(isinstance(grid, Grid), f"Simulation: grid must be a jm.Grid, got {type(grid).__name__}")
         # a step holds a few nodal fields of 1 + D (mass, momentum) up to D^2 columns per node
@@ -290,6 +297,7 @@ class Simulation(eqx.Module):
         self.kernel = kernel
         self.sort_every = _checked_sort_every(sort_every)
         self.chunk_particles = _checked_chunk_particles(chunk_particles)
+        self.derivative_chunk_particles = _checked_derivative_chunk_particles(derivative_chunk_particles)
         self.particle_devices = _checked_particle_devices(particle_devices)
         self._check_terms()
 
@@ -367,17 +375,21 @@ class Simulation(eqx.Module):
         "auto": the backend table's choice; ``chunk_particles`` in the class docstring)."""
         return self._with_static(chunk_particles=_checked_chunk_particles(particles))
 
+    def with_derivative_chunks(self, particles):
+        """A copy whose steps' JVPs and gradients go over the particles in chunks of about ``particles``, each
+        recomputed in the reverse pass (0: the whole step's derivatives; "auto": the backend table's choice;
+        ``derivative_chunk_particles`` in the class docstring)."""
+        return self._with_static(derivative_chunk_particles=_checked_derivative_chunk_particles(particles))
+
     def with_particle_devices(self, devices):
         """A copy whose steps share their particles among ``devices`` of the process's devices (1: one
         device; "auto": the backend table's choice; ``particle_devices`` in the class docstring)."""
         return self._with_static(particle_devices=_checked_particle_devices(devices))
 
     def _device_row(self, state: State, kernel: str | None = None) -> tuple:
-        """(devices, particles per chunk on each, 0 for its share at once; why; what the step's derivatives
-        differentiate, "chunks" of that size on one device or the "whole" step: the backend's
-        :data:`~jaxmpm.transfer.backend.CHUNK_DERIVATIVES`, "chunks" where a share would not fit its device's
-        memory) for a step of ``state``
-        whose transfers run on ``kernel`` (None: looked up, :meth:`_kernel_row`).  A forced count the
+        """(devices, particles per chunk on each, 0 for its share at once; why; particles per chunk of the step's
+        derivatives, which run on one device, 0 for the whole step's: :meth:`_derivative_row`) for a step of
+        ``state`` whose transfers run on ``kernel`` (None: looked up, :meth:`_kernel_row`).  A forced count the
         process does not have is an error naming the fix."""
         n, dtype = state.x.shape[0], state.x.dtype
         available = len(local_devices())
@@ -395,23 +407,21 @@ class Simulation(eqx.Module):
         if self.chunk_particles != "auto":
             per = self.chunk_particles
         if devices < 2:
-            return 1, 0, why, "whole"
-        to_fit = False
-        if self.chunk_particles == "auto":  # a device's share in chunks that fit its memory, derivatives too
+            return 1, 0, why, 0
+        if self.chunk_particles == "auto":  # a device's share in chunks that fit its memory
             fit = self._memory_row(n // devices, dtype, devices)
             if fit:
-                per, why, to_fit = (fit[0] if not per or fit[0] < per else per), f"{why}; {fit[1]}", True
+                per, why = (fit[0] if not per or fit[0] < per else per), f"{why}; {fit[1]}"
         kernel = kernel or self._kernel_row(n, dtype)[0] or "xla"
         obstacle = device_obstacle(self, state, devices, kernel)
         if obstacle is not None:
-            return 1, 0, f"one device: {obstacle} ({why})", "whole"
+            return 1, 0, f"one device: {obstacle} ({why})", 0
         share = n // devices
+        derivatives = self._derivative_row(state, kernel)[0]
         if per and per < share and num_chunks(share, per):
-            chunks = f"in chunks of {share // num_chunks(share, per)}" + (
-                ", their derivatives in the same chunks" if to_fit else "")
-            derivatives = "chunks" if to_fit else chunk_derivatives(self.backend)
-            return devices, per, f"{why}: {share} particles a device, {chunks}", derivatives
-        return devices, 0, f"{why}: {share} particles a device, at once", "whole"
+            return devices, per, f"{why}: {share} particles a device, in chunks of {share // num_chunks(share, per)}", \
+                derivatives
+        return devices, 0, f"{why}: {share} particles a device, at once", derivatives
 
     def _memory_row(self, num_particles: int, dtype, devices: int = 1) -> tuple | None:
         """(particles per chunk, why) where the whole step of ``num_particles`` particles on one of
@@ -423,31 +433,52 @@ class Simulation(eqx.Module):
         return (per, why + shared) if per else None
 
     def _chunk_row(self, state: State, kernel: str | None = None) -> tuple:
-        """(particles per chunk, 0 for the whole step; why; what its derivatives differentiate, "chunks" or the
-        "whole" step) for a step of ``state`` whose transfers run on ``kernel`` ("xla", "pallas"; None: looked
-        up, :meth:`_kernel_row`).  The derivatives are the backend's choice
-        (:data:`~jaxmpm.transfer.backend.CHUNK_DERIVATIVES`), and "chunks" where the whole step would not fit
-        the device's memory (:func:`~jaxmpm.model.chunks.step_in_chunks`)."""
+        """(particles per chunk, 0 for the whole step; why) for a step of ``state`` whose transfers run on
+        ``kernel`` ("xla", "pallas"; None: looked up, :meth:`_kernel_row`): the backend's
+        :data:`~jaxmpm.transfer.backend.CHUNK_TABLE`, or ``chunk_particles``, in chunks no larger than fit the
+        device's memory (:func:`chunks_to_fit`)."""
         n, dtype = state.x.shape[0], state.x.dtype
-        to_fit = False
         if self.chunk_particles != "auto":
             per, why = self.chunk_particles, f"chunk_particles={self.chunk_particles} given"
         else:
-            per, why = choose_chunking(self.backend, self.grid.dim, n, dtype)
-            fit = self._memory_row(n, dtype)  # None where the whole step's temporaries fit the device's memory
-            if fit:  # chunks that fit, smaller than the table's if need be, and derivatives in chunks too
-                per, why = fit if not per or fit[0] < per else (per, f"{why}; {fit[1]}")
-                to_fit = True
+            per, why = self._fitted(*choose_chunking(self.backend, self.grid.dim, n, dtype), n, dtype)
+        return self._usable_chunks(state, per, why, kernel)
+
+    def _derivative_row(self, state: State, kernel: str | None = None) -> tuple:
+        """(particles per chunk of the step's JVPs and gradients, 0 for the whole step's; why), on one device
+        (:func:`~jaxmpm.model.chunks.step_in_chunks`: each chunk recomputed in the reverse pass): the backend's
+        :data:`~jaxmpm.transfer.backend.DERIVATIVE_CHUNK_TABLE` in chunks no larger than fit the device's
+        memory, or ``derivative_chunk_particles``, else ``chunk_particles``, where given."""
+        n, dtype = state.x.shape[0], state.x.dtype
+        if self.derivative_chunk_particles != "auto":
+            per = self.derivative_chunk_particles
+            why = f"derivative_chunk_particles={per} given"
+        elif self.chunk_particles != "auto":
+            per, why = self.chunk_particles, f"chunk_particles={self.chunk_particles} given"
+        else:
+            per, why = self._fitted(*choose_derivative_chunking(self.backend, self.grid.dim, n, dtype), n, dtype)
+        return self._usable_chunks(state, per, why, kernel)
+
+    def _fitted(self, per: int, why: str, num_particles: int, dtype) -> tuple:
+        """(per, why) of a table, or chunks that fit the device's memory where the whole step would not and the
+        table's are larger (:meth:`_memory_row`)."""
+        fit = self._memory_row(num_particles, dtype)  # None where the whole step's temporaries fit
+        if fit is None:
+            return per, why
+        return fit if not per or fit[0] < per else (per, f"{why}; {fit[1]}")
+
+    def _usable_chunks(self, state: State, per: int, why: str, kernel: str | None) -> tuple:
+        """(per, why) as a step of ``state`` can take them: 0 (the whole step) where one chunk holds every
+        particle or the model cannot step in chunks (:func:`chunk_obstacle`)."""
+        n = state.x.shape[0]
         if not per or per >= n:
-            return 0, why if not per else f"{why}; {n} particles fit one chunk: the whole step", "whole"
-        kernel = kernel or self._kernel_row(n, dtype)[0] or "xla"
+            return 0, why if not per else f"{why}; {n} particles fit one chunk: the whole step"
+        kernel = kernel or self._kernel_row(n, state.x.dtype)[0] or "xla"
         obstacle = chunk_obstacle(self, state, per, kernel)
         if obstacle is not None:
-            return 0, f"the whole step: {obstacle} ({why})", "whole"
+            return 0, f"the whole step: {obstacle} ({why})"
         count = num_chunks(n, per)
-        return per, f"{why}: {count} chunks of {n // count} particles" + (
-            ", their derivatives in the same chunks" if to_fit else ""), "chunks" if to_fit else chunk_derivatives(
-            self.backend)
+        return per, f"{why}: {count} chunks of {n // count} particles"
 
     def with_conventions(self, conventions: str, constrained_force: str | None = None):
         """A copy of a model built in jaxmpm's conventions that follows another code's rules where
@@ -631,8 +662,9 @@ class Simulation(eqx.Module):
             devices, per_device, _, derivatives = self._device_row(state, name or "xla")
             if devices > 1:  # backend tuning: the same step on every device of the process at once
                 return step_on_devices(self.in_precision(state.x.dtype), state, dt, devices, per_device, derivatives)
-            per_chunk, _, derivatives = self._chunk_row(state, name or "xla")
-            if per_chunk:  # backend tuning (or memory): the same step with a working set that fits the cache
+            kernel = name or "xla"
+            per_chunk, derivatives = self._chunk_row(state, kernel)[0], self._derivative_row(state, kernel)[0]
+            if per_chunk or derivatives:  # backend tuning (or memory): working sets that fit the cache
                 return step_in_chunks(self.in_precision(state.x.dtype), state, dt, per_chunk, derivatives)
             return _step(self.in_precision(state.x.dtype), state, dt)
 
@@ -826,9 +858,9 @@ def backend_info(sim: Simulation, state: State) -> dict:
         "sort_every": the steps between the runs' sorts of the particles by cell (0: never),
         "sort_reason": why, "chunk_particles": the particles per chunk of a step (0: the whole step at
         once, ``jaxmpm.model.chunks``; with several devices: on each), "chunk_reason": why,
-        "chunk_derivatives": "chunks" (JVPs and gradients of a step in chunks go in the same chunks, each
-        recomputed in the reverse pass) or "whole step" (``jaxmpm.transfer.backend.CHUNK_DERIVATIVES``; "chunks"
-        where the whole step would not fit the device's memory),
+        "derivative_chunk_particles": the particles per chunk of the step's JVPs and gradients, each chunk
+        recomputed in the reverse pass (0: the whole step's derivatives; on one device), "derivative_chunk_reason":
+        why,
         "particle_devices": the devices a step shares its particles among (1: one device,
         ``jaxmpm.model.devices``), "devices_reason": why, and for the XLA kernel "xla_layout":
         {"p2g": "planar" or "rows", "p2g_derivatives": "planar" or "rows", "hold_gathers": bool}, its
@@ -841,14 +873,15 @@ def backend_info(sim: Simulation, state: State) -> dict:
     every, sort_why = sim._sort_row(n, dtype)
     member = state if state.x.ndim == 2 else jax.tree_util.tree_map(lambda a: a[0], state)  # an ensemble's
     with use_policy(sim.backend):
-        devices, per_device, devices_why, derivatives = sim._device_row(member, name or "xla")
-        per_chunk, chunk_why, derivatives = ((per_device, devices_why, derivatives) if devices > 1
-                                             else sim._chunk_row(member, name or "xla"))
+        devices, per_device, devices_why, _ = sim._device_row(member, name or "xla")
+        per_chunk, chunk_why = (per_device, devices_why) if devices > 1 else sim._chunk_row(member, name or "xla")
+        derivatives, derivatives_why = sim._derivative_row(member, name or "xla")
     info = {"kernel": name or "xla", "options": dict(options), "policy": resolve(sim.backend),
             "dimension": sim.grid.dim, "particles_per_cell": n / max(1, int(np.prod(sim.grid.cells))),
             "dtype": jnp.dtype(dtype).name, "reason": why, "sort_every": every, "sort_reason": sort_why,
             "chunk_particles": per_chunk, "chunk_reason": chunk_why,
-            "chunk_derivatives": "chunks" if derivatives == "chunks" else "whole step", "particle_devices": devices,
+            "derivative_chunk_particles": derivatives, "derivative_chunk_reason": derivatives_why,
+            "particle_devices": devices,
             "devices_reason": devices_why}
     if info["kernel"] == "xla":
         with use_policy(sim.backend):
@@ -868,6 +901,11 @@ def _checked_particle_devices(devices):
 def _checked_chunk_particles(particles):
     return _auto_or_count(particles, "chunk_particles", "the particles per chunk of a step",
                           "the whole step at once")
+
+
+def _checked_derivative_chunk_particles(particles):
+    return _auto_or_count(particles, "derivative_chunk_particles", "the particles per chunk of a step's derivatives",
+                          "the whole step's derivatives")
 
 
 def _checked_sort_every(every):

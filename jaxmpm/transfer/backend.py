@@ -605,22 +605,45 @@ def chunk_output(dtype) -> str:
     return CHUNK_OUTPUT.get((active(), jnp.dtype(dtype).itemsize), "stacked")
 
 
-# What JVPs and gradients of a step in chunks differentiate, per policy: "chunks" (the same chunks, each chunk's
-# P2G and G2P recomputed in the reverse pass: jaxmpm.model.chunks.step_in_chunks) or "whole" (the whole step
-# at once).  A step whose whole temporaries would not fit the device's memory takes "chunks" whatever the
-# table says.  CPU: the gradient of a rollout (d/dv0 of the final kinetic energy through sim.run, the
-# CHUNK_TABLE's chunks, 2 cores, ms a step, best of 3, each in its own process, two alternated rounds,
-# 2026-11-29, benchmarks/README.md "Gradients of a step in chunks"), whole -> chunks: mpm88 float64 65k
-# 45.7-45.8 -> 34.9-36.1, 131k 103.9-105.6 -> 68.3-71.0; float32 131k 67.0-71.0 -> 58.3-67.6, 524k
-# 284.8-297.8 -> 222.4-223.4; mpm3d float64 32k 132.7-138.5 -> 110.1-114.6, float32 131k 423.7-425.0 ->
-# 301.2-338.6.  The GPU steps in chunks only where the whole step would not fit: "chunks".
-CHUNK_DERIVATIVES = {"cpu": "chunks", "gpu": "chunks"}
+# The chunks a step's JVPs and gradients go in (jaxmpm.model.chunks.step_in_chunks: each chunk's P2G and G2P
+# recomputed in the reverse pass, one chunk at a time in the cache), apart from the forward step's (CHUNK_TABLE):
+# (policy, dimension, bytes per float, fewest particles) -> (particles per chunk, 0 for the whole step's
+# derivatives; why).  Where the forward step itself would not fit the device's memory, the derivatives take
+# chunks no larger than its (chunks_to_fit).  CPU, 2026-11-29: the gradient of a rollout (d/dv0 of the final
+# kinetic energy through sim.run, "auto" checkpoints), 2 cores, ms a step, best of 3-5, each in its own
+# process (benchmarks/README.md, "Gradients of a step in chunks").  The whole step's derivatives against the
+# forward table's chunks (16k / 32k in 2D): mpm88 float64 65k 45.7-45.8 -> 34.9-36.1, 131k 103.9-105.6 ->
+# 68.3-71.0; float32 524k 284.8-297.8 -> 222.4-223.4; mpm3d float64 32k 132.7-138.5 -> 110.1-114.6, float32
+# 131k 423.7-425.0 -> 301.2-338.6.  Then the derivatives' own size: 2D float64 chunks of 8k 131k 59.1-59.2
+# (4k 67.8-67.9, 16k 70.6-71.8), 65k 30.3-31.0 (16k 38.5-56.4), 32k 14.6-15.9 (4k 16.8, 16k 17.9; whole step
+# 19.8-20.8), 16k 7.15 (whole 7.34, within noise); 2D float32 chunks of 16k 524k 205 (32k 232), 131k 48.1 (8k
+# 51.5, 32k 58.0, whole 56.6), 32k 9.96 (8k 12.8, whole 11.3); 8k particles lose in either precision (float64
+# 2.78-2.93 whole, 3.80-3.93 in 4k, 5.09-5.35 in 2k).  3D keeps the forward table's sizes: float64 32k 4k
+# 127.4 (2k 139.0), 8k whole 21.5 (4k 34.3); float32 131k 8k 317.1 (4k 368.4), 32k 8k 81.3 (4k 96.9).
+DERIVATIVE_CHUNK_TABLE = (
+    (("cpu", 3, 8, 16_000), (4096, "CPU, 3D float64, from 16k particles: derivatives in chunks of 4k particles, "
+                                   "each recomputed in the reverse pass (mpm3d, 2 cores: 32k 1.2x the whole "
+                                   "step's derivatives)")),
+    (("cpu", 3, 4, 32_000), (8192, "CPU, 3D float32, from 32k particles: derivatives in chunks of 8k particles, "
+                                   "each recomputed in the reverse pass (mpm3d, 2 cores: 131k 1.3x the whole "
+                                   "step's derivatives)")),
+    (("cpu", 2, 8, 24_000), (8192, "CPU, 2D float64, from 24k particles: derivatives in chunks of 8k particles, "
+                                   "each recomputed in the reverse pass (mpm88, 2 cores: 32k 1.3x, 131k 1.8x the "
+                                   "whole step's derivatives; 16k 1.03x, 8k 0.7x)")),
+    (("cpu", 2, 4, 24_000), (16384, "CPU, 2D float32, from 24k particles: derivatives in chunks of 16k particles, "
+                                    "each recomputed in the reverse pass (mpm88, 2 cores: 32k 1.13x, 131k 1.4x, "
+                                    "524k 1.4x the whole step's derivatives; 8k 0.6x)")),
+    (("cpu", None, None, 0), (0, "CPU, smaller steps and 1D: the whole step's derivatives")),
+    (("gpu", None, None, 0), (0, "GPU: the whole step's derivatives (not measured in chunks)")),
+)
 
 
-def chunk_derivatives(policy: str) -> str:
-    """"chunks" or "whole" (:data:`CHUNK_DERIVATIVES`): what the derivatives of a step in chunks traced under
-    ``policy`` differentiate."""
-    return CHUNK_DERIVATIVES[resolve(policy)]
+def choose_derivative_chunking(policy: str, dim: int, num_particles: int, dtype) -> tuple:
+    """(particles per chunk of a step's derivatives, 0 for the whole step's; why): the first row of
+    :data:`DERIVATIVE_CHUNK_TABLE` that matches a ``dim``-dimensional step of ``num_particles`` particles computing
+    in ``dtype`` traced under ``policy``."""
+    return _first_row(DERIVATIVE_CHUNK_TABLE, (resolve(policy), dim, jnp.dtype(dtype).itemsize), num_particles,
+                      (0, "no row of DERIVATIVE_CHUNK_TABLE matches: the whole step's derivatives"))
 
 
 # When a step shares its particles among the process's devices, each holding the whole grid

@@ -90,20 +90,23 @@ FIELDS = ["part", "case", "particles", "grid", "steps", "dtype", "engine", "kern
 # ------------------------------------------------------------------------------------------- scenes
 SORT_EVERY = "auto"  # --sort-every: steps between sorts of the particles by cell ("auto": the library's table)
 CHUNK_PARTICLES = "auto"  # --chunk-particles: particles per chunk of a step (0: whole; "auto": the library's table)
+DERIVATIVE_CHUNKS = "auto"  # --derivative-chunk-particles: particles per chunk of a step's derivatives (0: whole)
 
 
 def with_kernel(sim, kernel: str):
     """``sim`` with its transfers on ``kernel`` ("xla", "pallas"), or as the library chooses ("auto"), sorting its
     particles by cell as ``--sort-every`` says and stepping them in chunks as ``--chunk-particles`` does."""
     sim = sim if kernel == "auto" else sim.with_kernel(kernel)
-    return sim.with_sorting(SORT_EVERY).with_chunks(CHUNK_PARTICLES)
+    return sim.with_sorting(SORT_EVERY).with_chunks(CHUNK_PARTICLES).with_derivative_chunks(DERIVATIVE_CHUNKS)
 
 
 def kernel_of(sim, state) -> str:
     """The transfer kernel ``sim`` steps ``state`` with (``jm.backend_info``), its sorting and chunks if any."""
     info = jm.backend_info(sim, state)
     return (info["kernel"] + (f", sorted/{info['sort_every']}" if info.get("sort_every") else "")
-            + (f", chunks/{info['chunk_particles']}" if info.get("chunk_particles") else ""))
+            + (f", chunks/{info['chunk_particles']}" if info.get("chunk_particles") else "")
+            + (f", derivative chunks/{info['derivative_chunk_particles']}" if info.get("derivative_chunk_particles")
+               else ""))
 
 
 def mpm88(n: int, dtype: str, scheme=None, dt: float = DT, kernel: str = "auto"):
@@ -409,10 +412,15 @@ def main(argv=None) -> int:
     parser.add_argument("--chunk-particles", default="auto", type=_auto_or_int, metavar="P",
                         help="step the particles in chunks of about P (Simulation.with_chunks; 0: the whole step; "
                              "default auto: the library's table)")
+    parser.add_argument("--derivative-chunk-particles", default="auto", type=_auto_or_int, metavar="P",
+                        help="the gradient's steps differentiated in chunks of about P, each recomputed in the reverse "
+                             "pass (Simulation.with_derivative_chunks; 0: the whole step's; default auto: the "
+                             "library's table)")
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="folder of gpu.md and gpu.csv")
     args = parser.parse_args(argv)
-    global SORT_EVERY, CHUNK_PARTICLES
+    global SORT_EVERY, CHUNK_PARTICLES, DERIVATIVE_CHUNKS
     SORT_EVERY, CHUNK_PARTICLES = args.sort_every, args.chunk_particles
+    DERIVATIVE_CHUNKS = args.derivative_chunk_particles
     from jaxmpm.transfer import backend
     from jaxmpm.transfer.kernels import pallas
 
@@ -443,6 +451,7 @@ def main(argv=None) -> int:
               f"Taichi {taichi.version if taichi.ti else 'skipped: ' + taichi.why}, {common['date']}\n\n"
               f"jaxmpm {args.dtype}, --kernel {args.kernel}{' ' + variant if variant else ''}, "
               f"--sort-every {args.sort_every} --chunk-particles {args.chunk_particles} "
+              f"--derivative-chunk-particles {args.derivative_chunk_particles} "
               f"(the kernel each run used in brackets), Taichi f32; "
               f"best of {repeats}; {os.cpu_count()} CPUs, {platform.machine()}, "
               f"load {os.getloadavg()[0]:.2f} at the start.")

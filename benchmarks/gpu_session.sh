@@ -40,6 +40,9 @@ log=$out/log.txt
   stage schemes 75 --parts schemes --no-taichi
   stage gradient 65 --parts gradient --no-taichi
   stage gradient_two_levels 65 --parts gradient --no-taichi --checkpoint true  # "auto" keeps every step's state
+  # the gradient's steps differentiated in chunks, each recomputed in the reverse pass (the CPU's default from 24k
+  # particles in 2D; DERIVATIVE_CHUNK_TABLE's GPU row is unmeasured: the whole step's derivatives)
+  stage gradient_chunks 65 --parts gradient --no-taichi --derivative-chunk-particles 16384
   stage ensemble 50 --parts ensemble --no-taichi
   # the step over its particles in chunks (the CPU's default in 2D from 60k-100k particles, in 3D from 16k-32k;
   # CHUNK_TABLE's GPU row is unmeasured): time and program bytes per particle against the whole step's rows of the "auto" stage

@@ -419,8 +419,8 @@ class Simulation(eqx.Module):
         share = n // devices
         derivatives = self._derivative_row(state, kernel)[0]
         if per and per < share and num_chunks(share, per):
-            return devices, per, f"{why}: {share} particles a device, in chunks of {share // num_chunks(share, per)}", \
-                derivatives
+            chunks = f"in chunks of {share // num_chunks(share, per)}"
+            return devices, per, f"{why}: {share} particles a device, {chunks}", derivatives
         return devices, 0, f"{why}: {share} particles a device, at once", derivatives
 
     def _memory_row(self, num_particles: int, dtype, devices: int = 1) -> tuple | None:

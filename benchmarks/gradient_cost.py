@@ -11,6 +11,7 @@ with one XLA thread so that other load on the machine stays out of the ratios,
 
     XLA_FLAGS=--xla_cpu_multi_thread_eigen=false taskset -c 0 python benchmarks/gradient_cost.py
     ... python benchmarks/gradient_cost.py --scenes mpm88 --schemes apic --checkpoint True False
+    ... python benchmarks/gradient_cost.py --scenes mpm88 --particles 131072 --steps 20 --checkpoint auto
 
 Adding ``--xla_cpu_experimental_ynn_fusion_type=`` to XLA_FLAGS (jax 0.10) turns off the library
 kernels XLA:CPU uses for reductions, to see what they cost (see the benchmarks README).
@@ -56,10 +57,15 @@ def compiled(fn, *args, donate=()):
 FLOORS = {}  # (scene, scheme, adjoint) -> step_adjoint.floor_numbers
 
 
-def measure(scene, scheme, adjoint, checkpoint, repeat):
-    options, steps = SCENES[scene]
+def measure(scene, scheme, adjoint, checkpoint, repeat, particles=None, steps=None, derivative_chunks="auto"):
+    """One row; ``particles`` (mpm88's ``n_particles``) and ``steps`` replace the scene's defaults where given;
+    ``derivative_chunks``: the model's ``with_derivative_chunks``."""
+    options, default_steps = SCENES[scene]
+    steps = steps or default_steps
+    if particles is not None:
+        options = dict(options, n_particles=particles)
     setup = jm.scene(scene, scheme=SCHEMES[scheme], **options)
-    sim, state, dt = setup.sim.with_adjoint(adjoint), setup.state, setup.dt
+    sim, state, dt = setup.sim.with_adjoint(adjoint).with_derivative_chunks(derivative_chunks), setup.state, setup.dt
 
     def loss(v0):
         start = eqx.tree_at(lambda s: s.v, state, v0)
@@ -86,6 +92,13 @@ def main():
     parser.add_argument("--adjoints", nargs="+", default=["structured", "autodiff"], choices=["structured", "autodiff"])
     parser.add_argument("--checkpoint", nargs="+", default=["True"], choices=list(CHECKPOINTS))
     parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--particles", type=int, default=None,
+                        help="mpm88's particles (default: the scene's 8192); e.g. 131072, whose steps' derivatives go "
+                             "in chunks (DERIVATIVE_CHUNK_TABLE)")
+    parser.add_argument("--steps", type=int, default=None, help="steps of every scene (default: 1000, 300, 100)")
+    parser.add_argument("--derivative-chunk-particles", default="auto", type=lambda v: v if v == "auto" else int(v),
+                        help="the steps' derivatives in chunks of this many particles (0: the whole step's; default "
+                             "auto: the library's table)")
     parser.add_argument("--csv", default=str(Path(__file__).resolve().parent / "results" / "gradient_cost.csv"))
     args = parser.parse_args()
     print("| scene | scheme | particles | steps | adjoint | checkpoint | forward (s) | gradient (s) | gradient / "
@@ -96,7 +109,9 @@ def main():
         for scheme in args.schemes:
             for checkpoint in (CHECKPOINTS[c] for c in args.checkpoint):
                 for adjoint in args.adjoints:
-                    r = measure(scene, scheme, adjoint, checkpoint, args.repeat)
+                    r = measure(scene, scheme, adjoint, checkpoint, args.repeat,
+                                args.particles if scene == "mpm88" else None, args.steps,
+                                args.derivative_chunk_particles)
                     rows.append(r)
                     print(f"| {scene} | {scheme} | {r['particles']} | {r['steps']} | {adjoint} | {checkpoint} | "
                           f"{r['forward_s']:.3f} | {r['grad_s']:.3f} | {r['ratio']:.2f} | "

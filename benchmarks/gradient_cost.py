@@ -42,7 +42,8 @@ import jaxmpm as jm  # noqa: E402
 SCENES = {"bar": ({"cells": 128}, 1000), "disks": ({}, 300), "mpm88": ({}, 100)}
 SCHEMES = {"flip": "flip", "xpic2": "xpic:2", "fmpm2": "fmpm:2", "apic": "apic"}
 # sim.run's checkpoint options
-FIELDS = ["scene", "scheme", "particles", "steps", "adjoint", "checkpoint", "forward_s", "grad_s", "ratio",
+FIELDS = ["scene", "scheme", "particles", "steps", "derivative_chunks", "adjoint", "checkpoint", "forward_s", "grad_s",
+          "ratio",
           "forward_compile_s", "grad_compile_s", "floor_time", "floor_ops"]
 
 
@@ -79,7 +80,8 @@ def measure(scene, scheme, adjoint, checkpoint, repeat, particles=None, steps=No
     grad, grad_compile = compiled(jax.grad(loss), state.v)
     forward_s = cpu_best(forward, state.v, repeat=repeat)
     grad_s = cpu_best(grad, state.v, repeat=repeat)
-    return dict(scene=scene, scheme=scheme, particles=int(state.x.shape[0]), steps=steps, adjoint=adjoint,
+    return dict(scene=scene, scheme=scheme, particles=int(state.x.shape[0]), steps=steps,
+                derivative_chunks=jm.backend_info(sim, state)["derivative_chunk_particles"], adjoint=adjoint,
                 checkpoint=checkpoint, forward_s=forward_s, grad_s=grad_s, ratio=grad_s / forward_s,
                 forward_compile_s=forward_compile, grad_compile_s=grad_compile, floor_time=floor["floor_time"],
                 floor_ops=floor["floor_ops"])

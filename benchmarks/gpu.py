@@ -160,14 +160,22 @@ def compile_rollout(sim, state, dt, steps: int):
 
     program, compile_s = compiled(rollout, shared, state_arrays, donate=(1,))
     memory = program.memory_analysis()
-    program_bytes = (memory.argument_size_in_bytes + memory.output_size_in_bytes + memory.temp_size_in_bytes
-                     - memory.alias_size_in_bytes) if memory is not None else float("nan")
 
     def call():
         return program(shared, jax.tree_util.tree_map(lambda a: jax.device_put(a, may_alias=False), state_arrays))
 
     call.program = program  # the compiled program (benchmarks/gpu_profile.py --hlo writes its text)
-    return call, compile_s, program_bytes
+    return call, compile_s, held_bytes(memory)
+
+
+def held_bytes(memory) -> float:
+    """The bytes a run of a compiled program holds on its device, from XLA's account of it
+    (``compiled.memory_analysis()``): its arguments, outputs and temporaries, less the outputs written over
+    donated arguments; NaN where the backend gives no account."""
+    if memory is None:
+        return float("nan")
+    return (memory.argument_size_in_bytes + memory.output_size_in_bytes + memory.temp_size_in_bytes
+            - memory.alias_size_in_bytes)
 
 
 def time_rollout(sim, state, dt, steps: int, repeats: int) -> dict:

@@ -98,6 +98,7 @@ def measure(sim, state, dt, steps: int) -> dict:
 def measure_gradient(sim, state, dt, steps: int) -> dict:
     """The compiled gradient's buffers per particle: d/dv0 of the final kinetic energy through ``sim.run``."""
     import equinox as eqx
+    import gpu
     import jax.numpy as jnp
 
     from jaxmpm.run.memory import tree_bytes
@@ -108,8 +109,7 @@ def measure_gradient(sim, state, dt, steps: int) -> dict:
 
     memory = jax.jit(jax.grad(kinetic)).lower(state.v).compile().memory_analysis()
     n = int(state.x.shape[0])
-    program = (memory.argument_size_in_bytes + memory.output_size_in_bytes + memory.temp_size_in_bytes
-               - memory.alias_size_in_bytes) / n
+    program = gpu.held_bytes(memory) / n
     return dict(gradient_temporaries=memory.temp_size_in_bytes / n, gradient_program=program,
                 gradient_over_state=program / (tree_bytes(state) / n))
 

@@ -100,6 +100,13 @@ def step_in_chunks(sim, state, dt, per_chunk: int, derivative_chunk: int):
     (:data:`~jaxmpm.transfer.backend.CHUNK_TABLE`, :data:`~jaxmpm.transfer.backend.DERIVATIVE_CHUNK_TABLE`); all
     give the same values to round-off."""
     forward = partial(chunked_step, per_chunk=per_chunk) if per_chunk else whole_step
+    return with_step_derivatives(forward, sim, state, dt, derivative_chunk)
+
+
+def with_step_derivatives(forward, sim, state, dt, derivative_chunk: int):
+    """``forward(sim, state, dt)``, a step computed another way than :func:`jaxmpm.model.step.step` (in chunks, on
+    several devices), whose JVPs and gradients are those of the step on one device in chunks of about
+    ``derivative_chunk`` particles, each recomputed in the reverse pass (0: the whole step's)."""
     if not derivative_chunk:
         return with_whole_step_derivatives(forward, sim, state, dt)
     return with_derivatives(forward, partial(chunked_step, per_chunk=derivative_chunk, recompute=True), sim, state,

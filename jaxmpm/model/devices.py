@@ -36,14 +36,7 @@ import numpy as np
 from jax.sharding import Mesh
 from jax.sharding import PartitionSpec as P
 
-from .chunks import (
-    _particle_part,
-    _with_particle_part,
-    chunk_obstacle,
-    chunked_step,
-    with_derivatives,
-    with_whole_step_derivatives,
-)
+from .chunks import _particle_part, _with_particle_part, chunk_obstacle, chunked_step, with_step_derivatives
 
 AXIS = "particles"
 
@@ -91,10 +84,7 @@ def step_on_devices(sim, state, dt, devices: int, per_chunk: int, derivative_chu
         part, clock = mapped(arrays, _particle_part(state), _clock(state), dt)
         return _with_clock(_with_particle_part(state, part), clock)
 
-    if derivative_chunk:
-        return with_derivatives(forward, lambda sim, s, d: chunked_step(sim, s, d, derivative_chunk, recompute=True),
-                                sim, state, dt)
-    return with_whole_step_derivatives(forward, sim, state, dt)
+    return with_step_derivatives(forward, sim, state, dt, derivative_chunk)
 
 
 def _clock(state):

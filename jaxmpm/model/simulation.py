@@ -387,9 +387,8 @@ class Simulation(eqx.Module):
         return self._with_static(particle_devices=_checked_particle_devices(devices))
 
     def _device_row(self, state: State, kernel: str | None = None) -> tuple:
-        """(devices, particles per chunk on each, 0 for its share at once; why; particles per chunk of the step's
-        derivatives, which run on one device, 0 for the whole step's: :meth:`_derivative_row`) for a step of
-        ``state`` whose transfers run on ``kernel`` (None: looked up, :meth:`_kernel_row`).  A forced count the
+        """(devices, particles per chunk on each, 0 for its share at once; why) for a step of ``state``
+        whose transfers run on ``kernel`` (None: looked up, :meth:`_kernel_row`).  A forced count the
         process does not have is an error naming the fix."""
         n, dtype = state.x.shape[0], state.x.dtype
         available = len(local_devices())
@@ -407,7 +406,7 @@ class Simulation(eqx.Module):
         if self.chunk_particles != "auto":
             per = self.chunk_particles
         if devices < 2:
-            return 1, 0, why, 0
+            return 1, 0, why
         if self.chunk_particles == "auto":  # a device's share in chunks that fit its memory
             fit = self._memory_row(n // devices, dtype, devices)
             if fit:
@@ -415,13 +414,11 @@ class Simulation(eqx.Module):
         kernel = kernel or self._kernel_row(n, dtype)[0] or "xla"
         obstacle = device_obstacle(self, state, devices, kernel)
         if obstacle is not None:
-            return 1, 0, f"one device: {obstacle} ({why})", 0
+            return 1, 0, f"one device: {obstacle} ({why})"
         share = n // devices
-        derivatives = self._derivative_row(state, kernel)[0]
         if per and per < share and num_chunks(share, per):
-            chunks = f"in chunks of {share // num_chunks(share, per)}"
-            return devices, per, f"{why}: {share} particles a device, {chunks}", derivatives
-        return devices, 0, f"{why}: {share} particles a device, at once", derivatives
+            return devices, per, f"{why}: {share} particles a device, in chunks of {share // num_chunks(share, per)}"
+        return devices, 0, f"{why}: {share} particles a device, at once"
 
     def _memory_row(self, num_particles: int, dtype, devices: int = 1) -> tuple | None:
         """(particles per chunk, why) where the whole step of ``num_particles`` particles on one of
@@ -659,11 +656,12 @@ class Simulation(eqx.Module):
         float32 state) are cast to the state's dtype on entry."""
         name, options, _ = self._kernel_row(state.x.shape[0], state.x.dtype)
         with use_policy(self.backend), use_adjoint(self.adjoint), use_kernel(name, options):
-            devices, per_device, _, derivatives = self._device_row(state, name or "xla")
+            kernel = name or "xla"
+            devices, per_device, _ = self._device_row(state, kernel)
+            derivatives = self._derivative_row(state, kernel)[0]  # on one device, whatever the forward run shares
             if devices > 1:  # backend tuning: the same step on every device of the process at once
                 return step_on_devices(self.in_precision(state.x.dtype), state, dt, devices, per_device, derivatives)
-            kernel = name or "xla"
-            per_chunk, derivatives = self._chunk_row(state, kernel)[0], self._derivative_row(state, kernel)[0]
+            per_chunk = self._chunk_row(state, kernel)[0]
             if per_chunk or derivatives:  # backend tuning (or memory): working sets that fit the cache
                 return step_in_chunks(self.in_precision(state.x.dtype), state, dt, per_chunk, derivatives)
             return _step(self.in_precision(state.x.dtype), state, dt)
@@ -873,7 +871,7 @@ def backend_info(sim: Simulation, state: State) -> dict:
     every, sort_why = sim._sort_row(n, dtype)
     member = state if state.x.ndim == 2 else jax.tree_util.tree_map(lambda a: a[0], state)  # an ensemble's
     with use_policy(sim.backend):
-        devices, per_device, devices_why, _ = sim._device_row(member, name or "xla")
+        devices, per_device, devices_why = sim._device_row(member, name or "xla")
         per_chunk, chunk_why = (per_device, devices_why) if devices > 1 else sim._chunk_row(member, name or "xla")
         derivatives, derivatives_why = sim._derivative_row(member, name or "xla")
     info = {"kernel": name or "xla", "options": dict(options), "policy": resolve(sim.backend),

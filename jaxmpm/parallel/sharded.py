@@ -72,6 +72,7 @@ from ..run.driver import (
     _raise_if_failed,
     _require_frame_memory,
     _StopOnSignal,
+    _unshared,
     check_state,
 )
 from ..run.memory import tree_bytes
@@ -576,15 +577,7 @@ class ShardedSimulation:
         once (XLA donates a buffer once: one held by two leaves is copied for the second)."""
         rows = self.devices * self.capacity
         particles, replicated = eqx.partition(buffers, lambda a: per_particle(a, rows))
-        seen = set()
-
-        def once(a):
-            if id(a) in seen:
-                return _copied(a)
-            seen.add(id(a))
-            return a
-
-        return ((sim, dt, replicated, *moving), *jax.tree_util.tree_map(once, (particles, valid, ids)))
+        return ((sim, dt, replicated, *moving), *_unshared((particles, valid, ids), copy=_copied))
 
     def _build(self, steps: int):
         """The rollout of ``steps`` steps, not yet compiled: :meth:`rollout` and :meth:`_in_place` jit it."""

@@ -796,16 +796,17 @@ def _start_of(state) -> _Start:
     return _Start(int(state.step), float(state.time))
 
 
-def _unshared(state):
-    """``state`` with every array that an earlier leaf already holds copied (``eqx.tree_at(lambda s: s.v, state,
-    state.x)`` makes one): XLA refuses to donate one buffer twice."""
+def _unshared(state, copy=lambda a: jax.device_put(a, may_alias=False)):
+    """``state`` with every array that an earlier leaf already holds replaced by ``copy(array)`` (default: a copy
+    on its device; ``eqx.tree_at(lambda s: s.v, state, state.x)`` makes one): XLA refuses to donate one buffer
+    twice."""
     seen = set()
 
     def once(a):
         if not isinstance(a, jax.Array) or id(a) not in seen:
             seen.add(id(a))
             return a
-        return jax.device_put(a, may_alias=False)
+        return copy(a)
 
     return jax.tree_util.tree_map(once, state)
 

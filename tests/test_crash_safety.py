@@ -74,7 +74,7 @@ def test_a_failure_before_the_rename_leaves_the_last_publication(tmp_path, bar, 
     for name in before:
         np.testing.assert_array_equal(after[name], before[name], err_msg=name)
 
-    def crash_while_writing(f, operations):  # a copy left half-written (a kill inside HDF5's writes)
+    def crash_while_writing(f, operations, stored_state):  # a copy left half-written (a kill inside HDF5's writes)
         hdf5._append_frames(f, {"time": np.zeros(7)})
         raise Crash
 
@@ -91,6 +91,55 @@ def test_a_failure_before_the_rename_leaves_the_last_publication(tmp_path, bar, 
     np.testing.assert_array_equal(res["particles/x"], np.asarray(history.x))
     assert not [p for p in hdf5.working_paths(path) if os.path.exists(p)]
     assert not os.path.exists(f"{path}.lock")
+
+
+def test_a_state_let_go_of_is_read_back_from_the_published_copy(tmp_path, bar, monkeypatch):
+    """Once FILE.h5 holds a state, the writer keeps no array of it (on the CPU, views of the run's device
+    buffers, which would keep JAX from computing the next chunk in place of them): the other copy, brought up
+    to date at the next publication, reads it from FILE.h5's.  A publication that fails before its rename keeps
+    its state's arrays until one succeeds."""
+    setup, final, history = bar
+    path = tmp_path / "run.h5"
+    schedule = (0, setup.steps, setup.save_every)
+
+    def stored_state():
+        state, info = hdf5.read_state(path, setup.state)
+        return dict(hdf5.state_leaves(state)), info
+
+    def assert_state(expected, step):
+        state, info = stored_state()
+        for name, leaf in hdf5.state_leaves(expected):
+            np.testing.assert_array_equal(state[name], np.asarray(leaf), err_msg=name)
+        assert int(np.asarray(state["step"])) == step
+
+    writer = jm.H5Writer(path, setup.sim, setup.state, dt=setup.dt)
+    with writer.batch():
+        writer.append(frames(history, 0, 2))
+        writer.write_state(setup.state, *schedule)
+    assert [op[1] for op in writer._log if op[0] == "state"] == [None]  # let go of: FILE.h5 holds it
+    writer.append(frames(history, 2, 4))  # the other copy, brought up to date, takes the state from FILE.h5
+    assert_state(setup.state, 0)
+    writer.append(frames(history, 4, 5))  # and the first copy again (the state now in both: out of the log)
+    assert_state(setup.state, 0)
+    assert not [op for op in writer._log if op[0] == "state"]
+
+    real_replace = os.replace
+
+    def crash_on_publish(source, target):
+        if os.fspath(target) == os.fspath(path):
+            raise Crash
+        real_replace(source, target)
+
+    monkeypatch.setattr(hdf5.os, "replace", crash_on_publish)
+    with pytest.raises(Crash), writer.batch():
+        writer.write_state(final, *schedule)
+    monkeypatch.undo()
+    assert_state(setup.state, 0)  # the last publication's
+    assert any(op[0] == "state" and op[1] is not None for op in writer._log)  # kept until published
+    writer.append(frames(history, 5, len(history)))
+    writer.close()
+    assert_state(final, int(final.step))
+    np.testing.assert_array_equal(jm.load_h5(path)["particles/x"], np.asarray(history.x))
 
 
 def test_a_copy_damaged_on_disk_is_made_again(tmp_path, bar):

@@ -87,6 +87,38 @@ def test_a_donated_chunked_run_writes_what_a_kept_one_does(sim, reference, tmp_p
     np.testing.assert_array_equal(jm.load_h5(tmp_path / "donated.h5")["particles/x"], np.asarray(reference[1].x))
 
 
+def test_a_state_from_init_is_computed_in_place(sim):
+    """sim.init's arrays (jm.fill's, made on the host) lie in memory of XLA's own: a donated run's final state is
+    computed in the memory of its initial one.  (``jax.device_put`` of a NumPy array keeps the NumPy memory about
+    two times in three on the CPU, which XLA does not compute in place of: jaxmpm.core.device.to_device.)"""
+    for _ in range(8):  # whether device_put kept the host memory depended on its alignment
+        state = fresh(sim)
+        before = [leaf.unsafe_buffer_pointer() for leaf in jax.tree_util.tree_leaves(state)]
+        final, _ = sim.run(state, jnp.asarray(DT), 4, 1, donate=True)
+        assert [leaf.unsafe_buffer_pointer() for leaf in jax.tree_util.tree_leaves(final)] == before
+
+
+def test_every_chunk_of_a_donated_run_with_a_writer_is_computed_in_place(sim, reference, tmp_path, monkeypatch):
+    """Each chunk's state lies in the memory of the state before it.  (Until 2026-11-29 the file's log kept the
+    last state written as views of its device buffers on the CPU, so JAX computed every chunk after the first
+    into new memory: two states held.)"""
+    places = []
+    advance = driver._advance_in_place
+
+    def spy(args, state):
+        before = [leaf.unsafe_buffer_pointer() for leaf in jax.tree_util.tree_leaves(state)]
+        out = advance(args, state)
+        places.append(before == [leaf.unsafe_buffer_pointer() for leaf in jax.tree_util.tree_leaves(out[0])])
+        return out
+
+    monkeypatch.setattr(driver, "_advance_in_place", spy)
+    state = fresh(sim)
+    with jm.H5Writer(tmp_path / "in_place.h5", sim, state, dt=DT) as writer:
+        final, _ = sim.run(state, jnp.asarray(DT), 4, 1, writer=writer, frames_per_chunk=1, donate=True)
+    assert places == [True] * 5  # the compiling call without steps, then four chunks of one frame
+    assert_same(final, reference[0])
+
+
 @pytest.mark.parametrize("chunked", [False, True])
 def test_an_unstable_donated_run_names_its_step(sim, tmp_path, chunked):
     """The failure report reads the start's step and time, which a donated state no longer holds: they are

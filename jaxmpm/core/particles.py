@@ -5,10 +5,10 @@ from __future__ import annotations
 from typing import Callable, Sequence
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .device import to_device
 from .errors import check
 from .grid import Grid
 from .limits import require_memory
@@ -268,10 +268,10 @@ def fill(
     check(v.shape == (x.shape[0], dim), f"fill: velocity must give {dim} components per particle, got {v.shape}")
     check(density is None or np.shape(density) in ((), (x.shape[0],)),
           f"fill: density has shape {np.shape(density)}; give one number (or one per particle, {x.shape[0]})")
-    # onto the device with jax.device_put: jnp.asarray of a NumPy array compiles a small program per new
-    # shape on jaxlib 0.10 (jit(stage)), device_put none; the same dtypes (canonicalised) either way
-    mass = None if density is None else jax.device_put(np.asarray(density) * volume)
-    return Particles(x=jax.device_put(x), v=jax.device_put(np.array(v)), volume=jax.device_put(volume), mass=mass,
+    # onto the device without compiling (jnp.asarray of a NumPy array compiles a small program per new shape on
+    # jaxlib 0.10, jit(stage)), in memory of XLA's own that a donated run computes in place of (to_device)
+    mass = None if density is None else to_device(np.asarray(density) * volume)
+    return Particles(x=to_device(x), v=to_device(np.array(v)), volume=to_device(volume), mass=mass,
                      ppc=int(ppc), axisymmetric=grid.axisymmetric)
 
 
@@ -280,6 +280,6 @@ def joined(*parts: Particles, ppc: int) -> Particles:
     order, their masses from the material (``mass=None``); joined on the host (``jnp.concatenate``
     compiled a small program per array on a first call)."""
     def stacked(name):
-        return jax.device_put(np.concatenate([np.asarray(getattr(p, name)) for p in parts]))
+        return to_device(np.concatenate([np.asarray(getattr(p, name)) for p in parts]))
 
     return type(parts[0])(x=stacked("x"), v=stacked("v"), volume=stacked("volume"), mass=None, ppc=ppc)

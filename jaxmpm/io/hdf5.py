@@ -164,7 +164,8 @@ class H5Writer:
             check(os.path.exists(self.path), f"H5Writer: {self.path} does not exist; mode='a' appends to a run's file")
             self._continue_fields(fields is not None)
         self.frames = 0
-        self._log = []  # operations not yet in both copies: ("frames", {path: array}), ("state", ...), ("truncate", T)
+        self._log = []  # operations not yet in both copies: ("frames", {path: array}), ("state", leaves or None: in
+        # FILE.h5, attrs), ("truncate", T)
         self._applied = [0, 0]  # per copy, how much of the log it holds (None: unknown, copied from FILE.h5 again)
         self._current = 0  # the copy that FILE.h5 is
         self._held = 0  # depth of batch()
@@ -291,6 +292,10 @@ class H5Writer:
         done = min(self._applied)
         del self._log[:done]
         self._applied = [a - done for a in self._applied]
+        # every state left in the log is now in FILE.h5, the copy the other one is brought up to date from: its
+        # arrays are let go (on the CPU they are views of the run's device buffers, which JAX would otherwise not
+        # compute the next chunk in place of) and read back from FILE.h5's copy when needed (_stored_state)
+        self._log = [("state", None, op[2]) if op[0] == "state" else op for op in self._log]
         if self.xdmf:
             with h5py.File(self.path, "r") as f:
                 write_xdmf(self.path, f)
@@ -305,8 +310,19 @@ class H5Writer:
             self._recopy(index)
             f = h5py.File(path, "r+")
         with f:
-            _apply(f, self._log[self._applied[index]:])
+            _apply(f, self._log[self._applied[index]:], self._stored_state)
         self._applied[index] = len(self._log)
+
+    @contextlib.contextmanager
+    def _stored_state(self):
+        """(name, dataset) of every leaf under ``/state`` of the published copy, open for the block: the state
+        that :meth:`flush` let go of once FILE.h5 held it (the copy published last holds every operation left
+        in the log).  It is copied from there block by block (:func:`_fill`), never whole in memory."""
+        with h5py.File(self._copy_path(self._current), "r") as f:
+            leaves = []
+            f["state"].visititems(lambda name, obj: leaves.append((name, obj)) if isinstance(obj, h5py.Dataset)
+                                  else None)
+            yield leaves
 
     def _recopy(self, index: int) -> None:
         """The copy ``index`` made again from FILE.h5 (a new file: a reader of the old one keeps it)."""
@@ -398,9 +414,10 @@ def _release_lock(fd, path: str) -> None:
         os.close(fd)
 
 
-def _apply(f: h5py.File, operations) -> None:
+def _apply(f: h5py.File, operations, stored_state) -> None:
     """Apply a writer's logged operations to an open copy: frames and truncations in order, then
-    the last state (each state replaces the one before)."""
+    the last state (each state replaces the one before); a state whose arrays the log let go of is
+    ``stored_state()``'s."""
     state = None
     for operation in operations:
         if operation[0] == "frames":
@@ -409,8 +426,13 @@ def _apply(f: h5py.File, operations) -> None:
             _truncate(f, operation[1])
         else:
             state = operation
-    if state is not None:
-        _write_state(f, *state[1:])
+    if state is None:
+        return
+    if state[1] is not None:
+        _write_state(f, state[1], state[2])
+        return
+    with stored_state() as leaves:
+        _write_state(f, leaves, state[2])
 
 
 def _append_frames(f: h5py.File, arrays: dict) -> None:
@@ -436,7 +458,8 @@ def _truncate(f: h5py.File, frames: int) -> None:
 
 def _write_state(f: h5py.File, leaves, attrs: dict) -> None:
     """``/state``: its datasets overwritten in place when they have the leaves' names, shapes and
-    dtypes (no new space in the file each chunk), else made again."""
+    dtypes (no new space in the file each chunk), else made again.  A leaf is an array or a dataset
+    of another file (:func:`_fill`)."""
     group = f.get("state")
     if group is not None:
         held = {}
@@ -448,13 +471,27 @@ def _write_state(f: h5py.File, leaves, attrs: dict) -> None:
     if group is None:
         group = f.create_group("state")
         for name, value in leaves:
-            group.create_dataset(name, data=value)
-    else:
-        for name, value in leaves:
-            if value.size:
-                group[name][()] = value
+            group.create_dataset(name, shape=value.shape, dtype=value.dtype)
+    for name, value in leaves:
+        if value.size:
+            _fill(group[name], value)
     for k, v in attrs.items():
         group.attrs[k] = v
+
+
+_BLOCK_BYTES = 8 * 2**20  # a dataset of another file is copied this many bytes at a time
+
+
+def _fill(target: h5py.Dataset, value) -> None:
+    """``target[...] = value``, an array, or a dataset of another file copied block by block along its first axis
+    (a writer's state read back from its published copy: a whole state in memory at once would add one to the
+    run's peak)."""
+    if not isinstance(value, h5py.Dataset) or not value.ndim:
+        target[()] = value[()]
+        return
+    rows = max(1, _BLOCK_BYTES // max(1, value.nbytes // max(1, value.shape[0])))
+    for start in range(0, value.shape[0], rows):
+        target[start:start + rows] = value[start:start + rows]
 
 
 def save_h5(path, sim, history, state=None, dt=None, scene: str | None = None, params: dict | None = None,

@@ -15,6 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..core import measures as diag
+from ..core.device import to_device
 from ..core.errors import check
 from ..core.grid import Grid
 from ..core.limits import require_memory
@@ -612,7 +613,7 @@ class Simulation(eqx.Module):
             if density is None or vc is None:
                 mass = jnp.asarray(self.material.density, x.dtype) * volume  # a plain float density too
             else:  # on the host: op by op this compiled two small programs on a first call
-                mass = jax.device_put(np.asarray(density, x.dtype) * vc)
+                mass = to_device(np.asarray(density, x.dtype) * vc)
         else:
             mass = jnp.asarray(particles.mass)
             mc, vc, rc = concrete(mass), concrete(volume), concrete(self.material.density)

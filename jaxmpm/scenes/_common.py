@@ -11,6 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..core.device import to_device
 from ..core.errors import check
 from ..core.limits import require_steps
 
@@ -136,7 +137,7 @@ def material_ids(counts, dtype=None):
     """Material ids 0, 1, ... for bodies of ``counts`` particles each, concatenated in that order (made on
     the host: op by op jnp compiled a small program per body and one for the concatenation)."""
     dtype = jnp.result_type(float) if dtype is None else dtype
-    return jax.device_put(np.concatenate([np.full((int(n),), float(k), dtype=dtype) for k, n in enumerate(counts)]))
+    return to_device(np.concatenate([np.full((int(n),), float(k), dtype=dtype) for k, n in enumerate(counts)]))
 
 
 def resolve_dtype(dtype):

@@ -35,9 +35,9 @@ from __future__ import annotations
 import math
 
 import equinox as eqx
-import jax
 import numpy as np
 
+from ..core.device import to_device
 from ..core.errors import check
 from ..core.grid import Grid
 from ..core.particles import Box, fill
@@ -125,7 +125,7 @@ def dam_break(
     # hydrostatic start: p = rho_0 g (2a - y), F = J^(1/2) I with J the volume ratio at p
     y = np.asarray(particles.x)[:, 1]
     J = np.asarray(_volume_ratio(material, density * g * (height - y)))
-    state = cast_state(eqx.tree_at(lambda s: s.F, state, jax.device_put(np.sqrt(J)[:, None, None] * np.eye(2))), dtype)
+    state = cast_state(eqx.tree_at(lambda s: s.F, state, to_device(np.sqrt(J)[:, None, None] * np.eye(2))), dtype)
     if dt is None:
         dt = cfl * h / (c0 + top_speed)
     scale = math.sqrt(2.0 * g / a)  # T = t scale

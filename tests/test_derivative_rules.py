@@ -181,3 +181,22 @@ def test_a_read_inside_a_nested_trace_is_not_kept_for_the_outer_one():
 
     inside, outside = jax.jit(reads)(v)
     np.testing.assert_array_equal(inside, 2 * outside)
+
+
+@pytest.mark.parametrize("backend, boundaries", [("gpu", False), ("cpu", True)])
+def test_rules_are_traced_under_the_models_policy(backend, boundaries):
+    """JAX traces the transfer layer's JVP rules when it differentiates, after the jitted rollout that called them
+    has been traced (``jax.grad`` of ``sim.run``): they still follow the model's backend policy.  Under the GPU
+    policy, traced here on a CPU, the gradient program holds no stage boundary (``cond``); until 2026-11-29 the
+    rules traced late read the platform's policy, and a disks gradient held 16 of the CPU policy's."""
+    import equinox as eqx
+
+    setup = jm.scene("disks", spacing=0.1)
+    sim, state, dt = setup.sim.with_backend(backend), setup.state, setup.dt
+
+    def loss(v0):
+        final, _ = sim.run(eqx.tree_at(lambda s: s.v, state, v0), dt, 2, 2, save_particles=False)
+        return jnp.sum(final.v ** 2)
+
+    conds = str(jax.make_jaxpr(jax.grad(loss))(state.v)).count(" cond[")
+    assert (conds > 0) == boundaries, conds

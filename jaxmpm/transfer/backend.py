@@ -371,13 +371,27 @@ def structured() -> bool:
 
 def derivative_rule(plain, ruled):
     """``ruled`` (a ``jax.custom_jvp`` of the same function as ``plain``) under the structured
-    adjoint, ``plain`` under ``"autodiff"``; both give the same values."""
+    adjoint, ``plain`` under ``"autodiff"``; both give the same values.  The rule is traced in the
+    context of the call (:func:`in_call_context`)."""
 
     @wraps(plain)
     def dispatch(*args):
-        return (ruled if structured() else plain)(*args)
+        return in_call_context(ruled)(*args) if structured() else plain(*args)
 
     return dispatch
+
+
+def in_call_context(ruled):
+    """``ruled`` (a ``jax.custom_jvp``) whose JVP rule is traced in the context of this call: its backend
+    policy, adjoint and kernel (this module's context variables).  JAX traces a rule when it differentiates,
+    which may come after the call has returned (``jax.grad`` of a rollout differentiates the jitted rollout's
+    program once traced): the rule would then read the defaults, the platform's policy for a model that forces
+    another (``backend="gpu"`` traced on a CPU: half of a disks gradient's tangent boundaries were the CPU
+    policy's, tests/test_backend_policy.py)."""
+    context = contextvars.copy_context()
+    traced = jax.custom_jvp(ruled.fun, nondiff_argnums=ruled.nondiff_argnums)
+    traced.defjvp(lambda *args: context.copy().run(ruled.jvp, *args), symbolic_zeros=ruled.symbolic_zeros)
+    return traced
 
 
 # ------------------------------------------------------------------ the transfer kernel

@@ -30,6 +30,7 @@ from ..backend import (
     derivative_rule,
     evaluate_once,
     hold_tangent,
+    in_call_context,
     materialise,
     scatter_row_width,
     stencil_sum_form,
@@ -402,7 +403,7 @@ class XLAKernel(Kernel):
             _, out_dot = jax.jvp(lambda s, c: self._p2g_planar(s, c, num_nodes), primals, tangents)
             return rows_with_planar_tangents(*primals), out_dot
 
-        return rows_with_planar_tangents(stencil, columns)
+        return in_call_context(rows_with_planar_tangents)(stencil, columns)
 
     def _p2g_planar(self, stencil, columns: dict, num_nodes: int) -> dict:
         layout = {}  # name -> (width, scalar), in the order the columns are stacked

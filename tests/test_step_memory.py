@@ -64,6 +64,22 @@ def test_members_stepped_at_once_share_the_memory(small_device):
         assert step_memory() == (FREE, "")
 
 
+def test_backend_info_reports_members_stepped_at_once(small_device):
+    """``jm.backend_info(sim, state, members=B)`` reports the choice of each of B members stepped at once (an
+    ensemble's vmapped members), for a single state and an ensemble's batched one alike; ``members`` must be a
+    count."""
+    sim, state, _ = _scene()
+    with members_at_once(MEMBERS):
+        inside = jm.backend_info(sim, state)
+    batched = jax.tree_util.tree_map(lambda a: jnp.stack([a] * 2), state)
+    assert jm.backend_info(sim, state, members=MEMBERS) == inside
+    assert jm.backend_info(sim, batched, members=MEMBERS) == inside
+    assert jm.backend_info(sim, batched)["chunk_particles"] == 0  # one member alone: it fits
+    for bad in (0, 2.0, True):
+        with pytest.raises(jm.InputError, match="backend_info: members"):
+            jm.backend_info(sim, state, members=bad)
+
+
 def test_the_tables_chunks_shrink_to_fit_the_memory():
     """On the CPU the backend tables step 65536 particles of mpm88 in float64 in chunks of 16384 (CHUNK_TABLE) and
     take its derivatives in chunks of 8192 (DERIVATIVE_CHUNK_TABLE).  Where the whole step would not fit the

@@ -32,7 +32,7 @@ from ..physics.damping import Damping
 from ..physics.stress import StressDivergence
 from ..physics.term import Term, overrides
 from ..run.driver import History, StableTimeStepWarning, rollout, run  # noqa: F401  (re-exported)
-from ..run.memory import step_memory
+from ..run.memory import members_at_once, step_memory
 from ..run.sorting import Sorting
 from ..schemes.base import Scheme
 from ..transfer.backend import (
@@ -841,7 +841,7 @@ class Simulation(eqx.Module):
         return self.grid.dim
 
 
-def backend_info(sim: Simulation, state: State) -> dict:
+def backend_info(sim: Simulation, state: State, members: int = 1) -> dict:
     """Which transfer kernel ``sim`` steps ``state`` with, and why: the row of the kernel table
     (``jaxmpm.transfer.backend.KERNEL_TABLE``) that matches the model's backend, dimension,
     particles per cell, dtype and whether its P2G folds the force into the momentum
@@ -849,7 +849,12 @@ def backend_info(sim: Simulation, state: State) -> dict:
 
     Args:
         sim: the model (:class:`Simulation`).
-        state: a state it steps (its particle count and dtype decide).
+        state: a state it steps (its particle count and dtype decide); an ensemble's batched state gives
+            one member's.
+        members: how many members step at once on the device, whose steps share its free memory when each
+            decides whether its temporaries fit (chunks to fit): 1 (the default), a single run; ``jm.ensemble``'s
+            vmapped members, all of a device's or its ``chunk`` of them (:func:`jaxmpm.run.ensemble.plan` says
+            which its ``strategy`` picks).
 
     Returns:
         {"kernel": "xla" or "pallas", "options": the kernel's options, "policy": "cpu" or "gpu",
@@ -867,11 +872,13 @@ def backend_info(sim: Simulation, state: State) -> dict:
     """
     check(isinstance(sim, Simulation), f"backend_info: sim must be a jm.Simulation, got {type(sim).__name__}")
     check(isinstance(state, State), f"backend_info: state must be a jm.State, got {type(state).__name__}")
+    check(isinstance(members, (int, np.integer)) and not isinstance(members, bool) and members >= 1,
+          f"backend_info: members = {members!r}; give how many members step at once (an integer >= 1; 1: a single run)")
     n, dtype = state.x.shape[-2], state.x.dtype
     name, options, why = sim._kernel_row(n, dtype)
     every, sort_why = sim._sort_row(n, dtype)
     member = state if state.x.ndim == 2 else jax.tree_util.tree_map(lambda a: a[0], state)  # an ensemble's
-    with use_policy(sim.backend):
+    with use_policy(sim.backend), members_at_once(members):
         devices, per_device, devices_why = sim._device_row(member, name or "xla")
         per_chunk, chunk_why = (per_device, devices_why) if devices > 1 else sim._chunk_row(member, name or "xla")
         derivatives, derivatives_why = sim._derivative_row(member, name or "xla")

@@ -251,6 +251,37 @@ def test_the_memory_table_bounds_the_whole_steps_temporaries(dim, fields, scheme
     assert 0.3 * bound < floats <= bound, (floats, bound)
 
 
+@pytest.mark.parametrize("dim", [1, 2, 3])
+@pytest.mark.parametrize("scheme", ["APIC", "FLIP"])
+def test_the_memory_table_bounds_a_steps_gradient_too(dim, scheme):
+    """The derivatives' chunks are sized by the same table (Simulation._derivative_row): XLA's temporary buffers
+    of one step's gradient, the step and its pullback in one program (float64, quadratic B-splines), stay within
+    STEP_FLOATS_PER_SLOT too.  Measured on the CPU (2026-11-29, Linear to cubic, float32 and float64): a step's
+    gradient took 0.7-1.6x its forward step's temporaries, at most 12.6, 17.6 and 24.7 floats a slot in 1D-3D
+    against the table's 14, 19 and 25."""
+    cells, ppc = {1: (64, 64), 2: (32, 8), 3: (12, 4)}[dim]
+    grid = jm.Grid((0.0,) * dim, (1.0,) * dim, (cells,) * dim)
+    material = jm.LinearElastic(E=1e3, density=1.0) if dim == 1 else jm.LinearElastic(E=1e3, nu=0.3, density=1.0)
+    sim = jm.Simulation(grid=grid, shape=jm.QuadraticBSpline(), material=material, scheme=getattr(jm, scheme)(),
+                        damping=False).with_chunks(0).with_derivative_chunks(0)
+    state = sim.init(jm.fill(grid, jm.Box((0.2,) * dim, (0.8,) * dim), ppc=ppc))
+    arrays, static = eqx.partition((sim, state), eqx.is_array)
+
+    def gradient(arrays):
+        sim, state = eqx.combine(arrays, static)
+
+        def loss(v):
+            new = sim.step(eqx.tree_at(lambda s: s.v, state, v), 1e-5)
+            return jnp.sum(new.v ** 2) + jnp.sum(new.x ** 2) + jnp.sum(new.F ** 2)
+
+        return jax.grad(loss)(state.v)
+
+    temporaries = jax.jit(gradient).lower(arrays).compile().memory_analysis().temp_size_in_bytes
+    n, slots, itemsize = state.x.shape[0], 3 ** dim, state.x.dtype.itemsize
+    floats, bound = temporaries / (n * slots * itemsize), backend.STEP_FLOATS_PER_SLOT[dim]
+    assert 0.3 * bound < floats <= bound, (floats, bound)
+
+
 @pytest.mark.parametrize("scheme", ["APIC", "FLIP"])
 def test_a_frames_sums_over_the_steps_chunks_equal_the_whole_sums(scheme):
     """Where the step goes in chunks, a frame's energies and momenta are summed chunk by chunk (sums_in_chunks:

@@ -579,8 +579,13 @@ def compiler_options(policy: str = "auto", fast_compile: bool = False) -> dict:
 #            22.8-23.1 -> 16.3-16.7 (4k; 8k 18.3-18.5), 131k (64^3) 106-108 -> 84-88 (4k; 8k 90, 16k 94-98)
 #   float32: 8k 3.05-3.11 -> 3.63-3.68 (4k), 32k 17.4-17.9 -> 13.9-14.2 (8k; 4k 15.6-15.7), 65k (48^3)
 #            38.4-38.9 -> 28.4-29.8 (8k), 131k 77.5-84 -> 59.5-63.4 (8k; 16k 64-68, 32k 69-70)
+# * 1D, the bar (4 particles a cell), 50 steps, best of 5, one process (2026-11-29), whole -> chunks of 64k:
+#   float32: Linear 262k 5.19 -> 4.95 (128k 4.75), 1M 24.2 -> 23.4 (128k 22.2); quadratic 262k 6.34 -> 5.46, 1M
+#            29.4-29.8 -> 25.1-26.0 (128k 23.8, 256k 24.0-24.3); cubic 262k 8.14 -> 7.05, 1M 33.6 -> 27.4 (128k 25.7)
+#   float64: Linear 65k 1.18 -> 1.19, 262k 5.82 -> 6.03, 1M 28.2 -> 39.1 (16k chunks 2-3x slower everywhere);
+#            quadratic 262k 7.43-7.73 -> 6.95, 1M 34.8-34.9 -> 41.8-42.1 (128k 40.6, 256k 40.1-40.2): whole
 # Smaller steps keep their arrays in the 32 MiB L3, and a chunk only adds the second evaluation of the
-# stencil (a step of one chunk: 18% slower at 131k float64 in 2D).  1D is not measured: whole.
+# stencil (a step of one chunk: 18% slower at 131k float64 in 2D).
 CHUNK_TABLE = (
     (("cpu", 3, 8, 16_000), (4096, "CPU, 3D float64, from 16k particles: the step over chunks of 4k particles, "
                                    "whose arrays stay in the cache (mpm3d, 2 cores: 16k 1.3x, 32k 1.4x, 131k 1.2x "
@@ -594,8 +599,10 @@ CHUNK_TABLE = (
     (("cpu", 2, 4, 100_000), (32768, "CPU, 2D float32, from 100k particles: the step over chunks of 32k particles, "
                                      "whose arrays stay in the cache (mpm88, 2 cores: 131k 1.1-1.2x the whole step; "
                                      "65k 0.84x)")),
-    (("cpu", None, None, 0), (0, "CPU, smaller steps and 1D: the whole step at once (its arrays stay in the L3 "
-                                 "cache; a chunk adds a second evaluation of the stencil)")),
+    (("cpu", 1, 4, 250_000), (65536, "CPU, 1D float32, from 250k particles: the step over chunks of 64k particles "
+                                     "(the bar, 2 cores: 262k 1.05-1.16x, 1M 1.04-1.23x the whole step)")),
+    (("cpu", None, None, 0), (0, "CPU, smaller steps and 1D float64: the whole step at once (its arrays stay in the "
+                                 "L3 cache; a chunk adds a second evaluation of the stencil)")),
     (("gpu", None, None, 0), (0, "GPU: the whole step at once (not measured in chunks)")),
 )
 

@@ -133,7 +133,8 @@ STORE_RESIDUALS_UP_TO = {"cpu": 0, "gpu": 64 * 2**20}
 #   costs what recomputing them does;
 # * cpu, 2D: disks 1000 steps (32 MB) 6.37 -> 5.58, 4000 steps (128 MB) 6.00 -> 5.43; mpm88 8k particles,
 #   1000 steps (0.9 GB) 6.27 -> 5.36 (FLIP), 7.08 -> 6.44 (APIC);
-# * cpu, 3D: not measured; kept as 2D (more work per state byte);
+# * cpu, 3D (benchmarks/gpu.py's mpm3d, APIC, 8k particles on 20^3, 2026-11-29): 100 steps (0.2 GB kept) 6.14-6.27
+#   -> 5.35-5.40, 1000 steps (1.8 GB) 6.31 -> 5.46: as 2D;
 # * gpu: not measured (benchmarks/gpu_session.sh times "auto" against two levels); kept as the CPU's 2D.
 KEEP_STATES_UP_TO = {"cpu": {1: 16 * 2**20}, "gpu": {}}
 

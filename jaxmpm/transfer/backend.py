@@ -641,7 +641,10 @@ def chunk_output(dtype) -> str:
 # 19.8-20.8), 16k 7.15 (whole 7.34, within noise); 2D float32 chunks of 16k 524k 205 (32k 232), 131k 48.1 (8k
 # 51.5, 32k 58.0, whole 56.6), 32k 9.96 (8k 12.8, whole 11.3); 8k particles lose in either precision (float64
 # 2.78-2.93 whole, 3.80-3.93 in 4k, 5.09-5.35 in 2k).  3D keeps the forward table's sizes: float64 32k 4k
-# 127.4 (2k 139.0), 8k whole 21.5 (4k 34.3); float32 131k 8k 317.1 (4k 368.4), 32k 8k 81.3 (4k 96.9).
+# 127.4 (2k 139.0), 8k whole 21.5 (4k 34.3); float32 131k 8k 317.1 (4k 368.4), 32k 8k 81.3 (4k 96.9).  1D (the
+# bar, 4 particles a cell, 20 steps, the forward whole, 2026-11-29) loses in chunks: quadratic float32 262k whole
+# 26.9 (16k 42.7, 64k 41.4), 1M 97.2 (64k 113.7, 256k 132.3); float64 262k 27.9 (16k 39.0, 64k 32.6); Linear
+# float64 1M 97.6 (64k 152.7).
 DERIVATIVE_CHUNK_TABLE = (
     (("cpu", 3, 8, 16_000), (4096, "CPU, 3D float64, from 16k particles: derivatives in chunks of 4k particles, "
                                    "each recomputed in the reverse pass (mpm3d, 2 cores: 32k 1.2x the whole "
@@ -655,7 +658,8 @@ DERIVATIVE_CHUNK_TABLE = (
     (("cpu", 2, 4, 24_000), (16384, "CPU, 2D float32, from 24k particles: derivatives in chunks of 16k particles, "
                                     "each recomputed in the reverse pass (mpm88, 2 cores: 32k 1.13x, 131k 1.4x, "
                                     "524k 1.4x the whole step's derivatives; 8k 0.6x)")),
-    (("cpu", None, None, 0), (0, "CPU, smaller steps and 1D: the whole step's derivatives")),
+    (("cpu", None, None, 0), (0, "CPU, smaller steps and 1D: the whole step's derivatives (1D in chunks: 1.2-1.6x "
+                                 "slower at 262k-1M particles)")),
     (("gpu", None, None, 0), (0, "GPU: the whole step's derivatives (not measured in chunks)")),
 )
 

@@ -139,22 +139,20 @@ def test_an_unstable_donated_run_names_its_step(sim, tmp_path, chunked):
 
 
 def in_place_memory(sim, state, dt, steps_per_frame: int):
-    """XLA's memory account of the two programs that compute a run's state in place of ``state`` (lowered and
-    compiled, never called): the whole run's (2 frames) and one chunk's (1 frame)."""
-    options = (sim, dt, 2, steps_per_frame, True, "auto", True, (), None)
-    whole = driver._jit_rollout_in_place.lower(options, state).compile()
+    """XLA's memory account of the program that computes a run's state in place of ``state`` (lowered and
+    compiled, never called): the loop of a whole run in memory (frames and steps runtime counts, a buffer of 2
+    frames) and of a chunked one alike (driver._advance_in_place)."""
     none = driver.Failure(*(jnp.int32(i) for i in (-1, 0, -1)))
     counts = jnp.int32(1), jnp.int32(steps_per_frame)
-    chunk = driver._advance_in_place.lower((sim, none, dt, *counts, 2, True, True, ()), state).compile()
-    return [program.compiled.memory_analysis() for program in (whole, chunk)]  # equinox's Compiled wraps jax's
+    loop = driver._advance_in_place.lower((sim, none, dt, *counts, 2, True, True, ()), state).compile()
+    return loop.compiled.memory_analysis()  # equinox's Compiled wraps jax's
 
 
-def test_the_programs_compute_the_state_in_place(sim):
-    """XLA aliases the final state with the initial one: the programs' aliased bytes are the state's."""
+def test_the_program_computes_the_state_in_place(sim):
+    """XLA aliases the final state with the initial one: the program's aliased bytes are the state's."""
     state = fresh(sim)
-    whole, chunk = in_place_memory(sim, state, jnp.asarray(DT), 1)
-    assert whole.alias_size_in_bytes == tree_bytes(state)
-    assert chunk.alias_size_in_bytes >= tree_bytes(state)
+    memory = in_place_memory(sim, state, jnp.asarray(DT), 1)
+    assert memory.alias_size_in_bytes >= tree_bytes(state)
     assert not deleted(state)  # lowered and compiled, never called
 
 
@@ -165,8 +163,7 @@ def test_no_copy_of_the_state_in_a_run_in_chunks():
     setup = jm.scene("mpm88", n_particles=4096, n_grid=16)
     sim, state = setup.sim.with_chunks(256), setup.state
     assert jm.backend_info(sim, state)["chunk_particles"] == 256
-    for memory in in_place_memory(sim, state, jnp.asarray(setup.dt), 2):
-        assert memory.temp_size_in_bytes < tree_bytes(state)
+    assert in_place_memory(sim, state, jnp.asarray(setup.dt), 2).temp_size_in_bytes < tree_bytes(state)
 
 
 def test_donate_does_nothing_under_jit_and_grad(sim):

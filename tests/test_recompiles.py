@@ -40,6 +40,12 @@ def compiled_by(action):
     return out, list(_COMPILED)
 
 
+def a_run(name: str) -> bool:
+    """Whether a compiled program is a run's loop: ``sim.run``'s (its chunked runner's loop, which an in-memory run
+    also calls) or a traced rollout's."""
+    return "advance" in name or "rollout" in name
+
+
 def quadratic(p):
     return (p["a"] - 2.0) ** 2 + (jnp.log(p["b"]) - 1.0) ** 2 + 0.1 * p["a"] * jnp.log(p["b"])
 
@@ -122,11 +128,11 @@ def test_contact_separation_and_normal_vector_compile_nothing():
         return sim.run(state, 0.01, 3, 3)[0].v
 
     touching, names = compiled_by(lambda: run(2.0, (1.0,)))
-    assert any("rollout" in n for n in names)
+    assert any(a_run(n) for n in names)
     apart, names = compiled_by(lambda: run(-2.0, (1.0,)))  # never touch
-    assert not any("rollout" in n for n in names)
+    assert not any(a_run(n) for n in names)
     reversed_normal, names = compiled_by(lambda: run(2.0, (-1.0,)))
-    assert not any("rollout" in n for n in names)
+    assert not any(a_run(n) for n in names)
     assert not np.array_equal(touching, apart) and not np.array_equal(touching, reversed_normal)
     contact = jm.Contact(separation=0.5, normal=(0.0, 2.0))
     assert isinstance(contact.separation, jax.Array) and contact.normal == (0.0, 1.0)
@@ -145,9 +151,9 @@ def test_a_transport_terms_initial_value_compiles_nothing():
         return sim.run(sim.init(particles), 1e-3, 1, 1)[0].fields["temperature"]
 
     cold, names = compiled_by(lambda: first_step(0.0))
-    assert any("rollout" in n for n in names)
+    assert any(a_run(n) for n in names)
     warm, names = compiled_by(lambda: first_step(0.25))
-    assert not any("rollout" in n for n in names)
+    assert not any(a_run(n) for n in names)
     # k = 0: only the switch-on moves the particles beside the held end, by (1 - T0) S
     np.testing.assert_allclose(np.asarray(warm) - 0.25, 0.75 * np.asarray(cold), rtol=1e-12, atol=1e-15)
 
@@ -160,10 +166,49 @@ def test_new_E_beta_and_dt_compile_nothing():
         return model.run(state, step, 4, 4)[0].v
 
     _, names = compiled_by(run)
-    assert any("rollout" in n for n in names)
+    assert any(a_run(n) for n in names)
     for change in (lambda: run(jm.set_params(sim, E=2.0 * float(jm.get_params(sim, "E")["E"]))),
                    lambda: run(jm.set_params(sim, beta=0.5)), lambda: run(step=dt / 2)):
-        assert not any("rollout" in n for n in compiled_by(change)[1])
+        assert not any(a_run(n) for n in compiled_by(change)[1])
+
+
+def test_a_new_step_count_or_save_every_compiles_nothing():
+    """sim.run outside a trace calls one compiled loop whose frame and step counts are runtime values (issue 30
+    item 2: "a new E, beta, dt or step count must not recompile"): after a first run, runs of other lengths and
+    another save_every compile nothing, and each equals the rollout traced for its own lengths (static scans, what
+    jax.grad differentiates), bit for bit, history and final state."""
+    setup = jm.scene("bar", scheme="xpic:2", cells=8)
+    sim, state, dt = setup.sim, setup.state, setup.dt
+    traced = jax.jit(lambda s, steps, every: sim.run(s, dt, steps, every), static_argnums=(1, 2))
+    _, names = compiled_by(lambda: sim.run(state, dt, 40, 4))  # the loop, unless a test before compiled it
+    assert set(names) <= {"jit(_advance_in_place)", "jit(_time_step_limits)"}, names
+    for steps, every in ((40, 4), (12, 4), (200, 2), (7, 7), (0, 1)):
+        got, names = compiled_by(lambda: sim.run(state, dt, steps, every))  # noqa: B023
+        assert names == [], (steps, every, names)
+        want = traced(state, steps, every)
+        assert got[1].time.shape == (steps // every + 1,)
+        for g, w in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want)):
+            np.testing.assert_array_equal(g, w)
+
+
+def test_a_long_run_in_memory_fills_its_buffers_in_order(monkeypatch):
+    """Buffers of a few frames (a frame's bytes against a small _CHUNK_BYTES), joined on the host and, for a
+    history larger than _CHUNK_BYTES, by a program on the device: the frames in order, bit for bit the traced
+    rollout's; donated, the final state lies in the initial state's memory."""
+    from jaxmpm.run import driver
+
+    setup = jm.scene("bar", cells=8)
+    sim, state, dt = setup.sim, setup.state, setup.dt
+    want = jax.jit(lambda s: sim.run(s, dt, 60, 3))(state)
+    frame = driver._frame_bytes(sim, state, True)
+    for limit in (4 * frame, 40 * frame):  # buffers of 4 frames: the 21 frames' history on the device, the host
+        monkeypatch.setattr(driver, "_CHUNK_BYTES", limit)
+        start = jax.tree_util.tree_map(lambda a: a.copy(), state)
+        before = [leaf.unsafe_buffer_pointer() for leaf in jax.tree_util.tree_leaves(start)]
+        got = sim.run(start, dt, 60, 3, donate=True)
+        assert [leaf.unsafe_buffer_pointer() for leaf in jax.tree_util.tree_leaves(got[0])] == before
+        for g, w in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want)):
+            np.testing.assert_array_equal(g, w)
 
 
 def test_the_stable_time_step_is_one_program_for_any_cfl():
@@ -233,9 +278,9 @@ def test_rebuilt_scenes_compile_nothing():
 
     for build in (heat1d, cylinder, lambda: slide(0.05)):
         first, names = compiled_by(build)
-        assert any("rollout" in n for n in names)
+        assert any(a_run(n) for n in names)
         again, names = compiled_by(build)
-        assert not any("rollout" in n for n in names)
+        assert not any(a_run(n) for n in names)
         np.testing.assert_array_equal(again, first)
     other, names = compiled_by(lambda: slide(0.1))
-    assert not any("rollout" in n for n in names)
+    assert not any(a_run(n) for n in names)

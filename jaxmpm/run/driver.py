@@ -153,9 +153,7 @@ def rollout(sim, state: State, dt, frames: int, save_every: int = 1, save_partic
 def _later_frames(sim, state: State, dt, frames: int, save_every: int, save_particles: bool, checkpoint,
                   history_gradients: bool, fields: tuple, memory):
     """:func:`rollout` without its initial frame: (final state, the ``frames`` frames after the initial one,
-    failure record, the frame of a state).  A run that computes its states in place of the initial one
-    (:func:`_jit_rollout_in_place`) takes the initial frame in a program of its own: read in the same program,
-    the initial state would have to outlive the loop, and XLA would copy it."""
+    failure record, the frame of a state)."""
     sim = sim.in_precision(state.x.dtype)  # the model computes in its state's precision
     fields = _chosen_fields(sim, state, fields, save_particles)
     dt = jnp.asarray(dt, state.x.dtype)
@@ -219,8 +217,10 @@ def run(
     """Run ``steps`` steps, saving a frame every ``save_every`` steps (plus the initial frame).
 
     Returns ``(final_state, history)``.  Traceable: under ``jax.grad``/``vmap``/``jit`` it is a
-    single ``lax.scan``.  Called eagerly it also warns when ``dt`` exceeds the CFL limit and
-    raises :class:`InstabilityError` naming the first bad step.  With ``writer`` (a
+    single ``lax.scan`` (:func:`rollout`, static lengths).  Called eagerly it runs one compiled loop whose
+    frame and step counts are runtime values (:func:`_run_at_once`: a new ``steps`` or ``save_every``
+    compiles nothing), warns when ``dt`` exceeds the CFL limit and raises :class:`InstabilityError` naming
+    the first bad step.  With ``writer`` (a
     :class:`jaxmpm.H5Writer`) or ``progress=True`` it runs in chunks of ``frames_per_chunk``
     frames, writing/reporting each before the next, and returns ``(final_state, None)`` when
     a writer holds the frames.  ``checkpoint`` controls rematerialisation for reverse-mode
@@ -296,23 +296,81 @@ def run(
                  f"use dt <= {0.5 * limit:.6g} (CFL 0.5) to stay stable", StableTimeStepWarning)
         first = int(state.step) if start_step is None else int(start_step)
         require_steps(first + steps, "shorten t_end, use a larger dt, or split the run")
-        _require_frame_memory(sim, state, frames, save_particles, writer is None, fields)
+        frame_bytes = _require_frame_memory(sim, state, frames, save_particles, writer is None, fields)
     if donate and not traced:
         state = _unshared(state)  # a buffer two leaves hold can be donated once only
-    if traced or (writer is None and not progress):
-        if traced or not donate:
-            final, history, failure = _jit_rollout(sim, state, dt, frames, save_every, save_particles,
-                                                   checkpoint, history_gradients, fields, memory)
-        else:  # the initial frame first, in a program of its own (_later_frames)
-            start, first = _start_of(state), _jit_first_frame(sim, state, save_particles, fields)
-            final, later, failure = _jit_rollout_in_place(
-                (sim, dt, frames, save_every, save_particles, checkpoint, history_gradients, fields, memory), state)
-            history, state = _jit_joined(first, later), start
-        if not traced and check_stability:
-            _raise_if_failed(failure, dt, state, None, sim.grid)
+    if traced:  # differentiated or staged: scans of static lengths (reverse mode needs them)
+        final, history, _ = _jit_rollout(sim, state, dt, frames, save_every, save_particles, checkpoint,
+                                         history_gradients, fields, memory)
+        return final, history
+    if writer is None and not progress:
+        if not is_schedule(checkpoint, "auto"):
+            _segment_length(save_every, checkpoint, frames)  # validated; a run outside a trace is forward only
+        start = _start_of(state)  # read before the run deletes the state (donation)
+        final, history, failure = _run_at_once(sim, state, dt, frames, save_every, save_particles, fields, donate,
+                                               frame_bytes)
+        if check_stability:
+            _raise_if_failed(failure, dt, start, None, sim.grid)
         return final, history
     return _run_chunked(sim, state, dt, frames, save_every, save_particles, check_stability,
                         progress, writer, frames_per_chunk, checkpoint, start_step, fields, timings, donate)
+
+
+#: Frames a run's compiled loop (:func:`_advance`) fills per call, at most (fewer where they would take more than
+#: ``_CHUNK_BYTES``): a number that does not depend on the run's length, so that a run of another length or
+#: ``save_every`` calls the same compiled loop
+_BUFFER_FRAMES = 64
+
+
+def _buffer_frames(frame_bytes: int, frames_per_chunk=None) -> int:
+    """The frames of the buffer a run's loop fills per call (:data:`_BUFFER_FRAMES`, ``_CHUNK_BYTES``)."""
+    return max(1, min(frames_per_chunk or _BUFFER_FRAMES, _CHUNK_BYTES // max(1, frame_bytes)))
+
+
+def _run_at_once(sim, state, dt, frames, save_every, save_particles, fields, donate, frame_bytes: int):
+    """A run outside any trace, without a writer or progress: (final state, history, failure record).
+
+    The chunked runner's compiled loop (:func:`_advance`, its frame and step counts runtime values) is called until
+    the run's frames are done, the initial frame too (a frame of no steps), each call filling a buffer of
+    :func:`_buffer_frames` frames; the buffers are joined on the host where the history is small, else by one small
+    program.  A run of another length or ``save_every`` compiles at most that join (until 2026-11-29 each new step
+    count compiled the whole rollout again: 0.45-1.2 s for bar, disks and mpm88).  Each call computes in place of
+    the state before it: the caller's, donated, or a copy (which a kept state needs in any case: the final state is
+    another state).  The arithmetic is :func:`rollout`'s, bit for bit; the run goes on past an unstable step, as
+    :func:`rollout` does, and the failure record names the first.  ``frame_bytes``: the bytes of a frame
+    (:func:`_frame_bytes`)."""
+    capacity = _buffer_frames(frame_bytes)
+    failure = Failure(*(jax.device_put(np.int32(i)) for i in (-1, 0, -1)))  # device_put: nothing compiled
+    per_frame = jax.device_put(np.int32(save_every))
+    working = state if donate else _copied(state)
+    # the initial frame: one frame of no steps, from the same compiled loop (a program of its own compiled in
+    # 0.04-0.1 s more)
+    one, no_steps = jax.device_put(np.int32(1)), jax.device_put(np.int32(0))
+    working, failure, first = _advance_in_place(
+        (sim, failure, dt, one, no_steps, capacity, save_particles, False, fields), working)
+    buffers, done = [first], 0  # the first buffer holds the initial frame alone
+    while done < frames:
+        count = min(capacity, frames - done)
+        working, failure, buffer = _advance_in_place(
+            (sim, failure, dt, jax.device_put(np.int32(count)), per_frame, capacity, save_particles, False, fields),
+            working)
+        buffers.append(buffer)
+        done += count
+    if (frames + 1) * frame_bytes <= _CHUNK_BYTES:  # joined on the host: nothing compiled (device_put)
+        buffers = jax.device_get(buffers)
+        history = jax.tree_util.tree_map(lambda *b: jax.device_put(_joined(np, b, frames)), *buffers)
+    else:  # a large history stays on the device: one small program per length
+        history = _jit_history(tuple(buffers), frames)
+    return working, history, failure
+
+
+def _joined(xnp, buffers, frames: int):
+    """The run's ``frames + 1`` frames, from the buffers of :func:`_run_at_once`: the initial frame (the first
+    buffer's first), then each later buffer's frames, the last one's only as many as are left."""
+    capacity = buffers[0].shape[0]
+    last = frames - capacity * (len(buffers) - 2) if len(buffers) > 1 else 0
+    return xnp.concatenate([buffers[0][:1], *buffers[1:-1], buffers[-1][:last]] if len(buffers) > 1
+                           else [buffers[0][:1]])
 
 
 def _chosen_fields(sim, state, fields, save_particles) -> tuple:
@@ -330,7 +388,8 @@ def _frame_bytes(sim, state, save_particles, fields=()) -> int:
 
 def _require_frame_memory(sim, state, frames, save_particles, in_memory, fields=()):
     """The saved frames (all of them when kept in memory, twice: the device result and the
-    concatenated history) plus the state and its step temporaries, before the run starts."""
+    concatenated history) plus the state and its step temporaries, before the run starts; returns the
+    bytes of a frame."""
     state_bytes = tree_bytes(state)
     frame_bytes = _frame_bytes(sim, state, save_particles, fields)
     # a writer holds up to two chunks of frames (the file's two copies lag one publication apart)
@@ -339,6 +398,7 @@ def _require_frame_memory(sim, state, frames, save_particles, in_memory, fields=
            "write to a file (writer=jm.H5Writer(...), the CLI's --out)") if in_memory else "use fewer particles"
     require_memory(f"this run ({frames + 1} frames of {frame_bytes:,} bytes, {int(state.x.shape[0]):,} particles)",
                    held + 4 * state_bytes, fix)
+    return frame_bytes
 
 
 class RunInterrupted(KeyboardInterrupt):
@@ -553,7 +613,7 @@ def _run_chunked(sim, state, dt, frames, save_every, save_particles, check_stabi
                                     f"steps {start_step}..{start_step + total}")
     seconds = _chunk_seconds()
     frame_bytes = _frame_bytes(sim, state, save_particles, fields)
-    buffer_frames = max(1, min(frames, frames_per_chunk or frames, _CHUNK_BYTES // max(1, frame_bytes)))
+    buffer_frames = _buffer_frames(frame_bytes, frames_per_chunk)  # not the run's frames: one loop for any length
     rate = 0.0  # steps per second, measured on each chunk (compiled before the first: 0.0, unknown)
     clock = _Clock(total, done_steps, progress, timings)
     pieces = []
@@ -760,20 +820,10 @@ def _jit_rollout(sim, state, dt, frames, save_every, save_particles, checkpoint=
     return sim.rollout(state, dt, frames, save_every, save_particles, checkpoint, history_gradients, fields, memory)
 
 
-@functools.partial(eqx.filter_jit, donate="all-except-first")
-def _jit_rollout_in_place(options, state):
-    """:func:`_jit_rollout` of ``state`` with ``options`` (sim, dt, frames, ...) without the initial frame
-    (:func:`_later_frames`), its final state computed in place of ``state`` (donated: every array but the
-    first argument's): (final state, the later frames, failure record)."""
-    sim, dt, *rest = options
-    final, later, failure, _ = _later_frames(sim, state, dt, *rest)
-    return final, later, failure
-
-
 @eqx.filter_jit
-def _jit_joined(first, later):
-    """The initial frame (with its leading axis) and the later ones, as one history."""
-    return jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b]), first, later)
+def _jit_history(buffers: tuple, frames: int):
+    """:func:`_joined` on the device, as one program."""
+    return jax.tree_util.tree_map(lambda *b: _joined(jnp, b, frames), *buffers)
 
 
 @functools.partial(eqx.filter_jit, donate="all-except-first")

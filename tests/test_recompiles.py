@@ -238,8 +238,8 @@ def test_the_stable_time_step_is_one_program_for_any_cfl():
 def test_diagnostics_and_a_written_run_compile_no_small_programs(tmp_path):
     """sim.diagnostics on a concrete state is one compiled program (some thirty op by op: the CLI's
     energy summary), equal bit for bit to the same arithmetic op by op and inside the caller's jit; a
-    run written to a file (the chunked path of `jaxmpm run`) compiles its check of dt, its loop and
-    its first frame, and nothing op by op."""
+    run written to a file (the chunked path of `jaxmpm run`) compiles its check of dt and its loop (its
+    first frame a frame of no steps of that loop), and nothing op by op."""
     s = jm.scene("disks")
     sim, state = s.sim, s.state
     jax.clear_caches()
@@ -257,7 +257,7 @@ def test_diagnostics_and_a_written_run_compile_no_small_programs(tmp_path):
             return sim.run(state, s.dt, 4, 1, writer=writer, frames_per_chunk=2)[0].x
 
     _, names = compiled_by(written)
-    assert sorted(names) == ["jit(_advance_in_place)", "jit(_jit_first_frame)", "jit(_time_step_limits)"]
+    assert sorted(names) == ["jit(_advance_in_place)", "jit(_time_step_limits)"]
 
 
 @pytest.mark.slow

@@ -634,11 +634,12 @@ def _run_chunked(sim, state, dt, frames, save_every, save_particles, check_stabi
     try:
         with _StopOnSignal() as stop:
             first = None
-            with clock.compiling():  # no frames: compiles the loop (and the initial frame), runs no step
-                if done_steps < total:  # the state handed back as it came
+            with clock.compiling():  # compiles the loop and runs no step: the state handed back as it came
+                if done_steps == 0 and (writer is None or writer.frames == 0):  # with the initial frame: a frame of
+                    state, _, buffer = advance(state, 1, 0)  # no steps (no program of its own to compile)
+                    first = jax.tree_util.tree_map(lambda a: jax.device_put(a[:1].copy()), jax.device_get(buffer))
+                elif done_steps < total:
                     state = jax.block_until_ready(advance(state, 0, 1))[0]
-                if done_steps == 0 and (writer is None or writer.frames == 0):
-                    first = jax.block_until_ready(_jit_first_frame(sim, state, save_particles, fields))
             if first is not None:
                 if writer is None:
                     pieces.append(first)

@@ -319,7 +319,7 @@ def run(
 #: Frames a run's compiled loop (:func:`_advance`) fills per call, at most (fewer where they would take more than
 #: ``_CHUNK_BYTES``): a number that does not depend on the run's length, so that a run of another length or
 #: ``save_every`` calls the same compiled loop
-_BUFFER_FRAMES = 64
+_BUFFER_FRAMES = 256
 
 
 def _buffer_frames(frame_bytes: int, frames_per_chunk=None) -> int:
@@ -381,8 +381,26 @@ def _chosen_fields(sim, state, fields, save_particles) -> tuple:
     return fields
 
 
+_FRAME_BYTES: dict = {}  # (the model's and state's structure, save_particles, fields) -> bytes of a frame
+
+
 def _frame_bytes(sim, state, save_particles, fields=()) -> int:
+    """The bytes of a frame of ``state`` (``sim.diagnostics_frame``'s shapes), kept per structure of the model and
+    the state (tracing the frame took 3-7 ms a call; an ensemble or a run of a small scene takes about 10)."""
+    leaves, treedef = jax.tree_util.tree_flatten((sim, state, save_particles, tuple(fields)))
+    try:
+        key = (treedef, tuple(jax.typeof(leaf) if isinstance(leaf, (jax.Array, np.ndarray)) else (type(leaf), leaf)
+                              for leaf in leaves))
+        hash(key)
+    except TypeError:  # a static leaf without a hash (a function defined anew): not kept
+        key = None
+    if key is not None and key in _FRAME_BYTES:
+        return _FRAME_BYTES[key]
     shape = jax.eval_shape(lambda s: sim.diagnostics_frame(s, save_particles, fields), state)
+    if key is not None:
+        if len(_FRAME_BYTES) >= 64:
+            _FRAME_BYTES.clear()
+        _FRAME_BYTES[key] = tree_bytes(shape)
     return tree_bytes(shape)
 
 

@@ -191,6 +191,23 @@ def test_a_new_step_count_or_save_every_compiles_nothing():
             np.testing.assert_array_equal(g, w)
 
 
+def test_under_the_gpu_policy_a_run_keeps_static_scans():
+    """backend.RUNTIME_COUNTS: under the GPU policy (traced here on the CPU) sim.run keeps the rollout's static scans
+    (XLA:GPU would read a runtime trip count's predicate back to the host every step), so another length
+    compiles its rollout again; donated, the final state lies in the initial one's memory, equal to the kept run."""
+    setup = jm.scene("bar", cells=8)
+    sim, state, dt = setup.sim.with_backend("gpu"), setup.state, setup.dt
+    kept, names = compiled_by(lambda: sim.run(state, dt, 24, 4))
+    _, names = compiled_by(lambda: sim.run(state, dt, 28, 4))
+    assert "jit(_jit_rollout)" in names and "jit(_advance_in_place)" not in names, names
+    start = jax.tree_util.tree_map(lambda a: a.copy(), state)
+    before = [leaf.unsafe_buffer_pointer() for leaf in jax.tree_util.tree_leaves(start)]
+    donated = sim.run(start, dt, 24, 4, donate=True)
+    assert [leaf.unsafe_buffer_pointer() for leaf in jax.tree_util.tree_leaves(donated[0])] == before
+    for g, w in zip(jax.tree_util.tree_leaves(donated), jax.tree_util.tree_leaves(kept)):
+        np.testing.assert_array_equal(g, w)
+
+
 def test_a_long_run_in_memory_fills_its_buffers_in_order(monkeypatch):
     """Buffers of a few frames (a frame's bytes against a small _CHUNK_BYTES), joined on the host and, for a
     history larger than _CHUNK_BYTES, by a program on the device: the frames in order, bit for bit the traced

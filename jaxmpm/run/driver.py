@@ -20,6 +20,7 @@ from ..core.errors import InstabilityError, ParticlesLeftGrid, check
 from ..core.limits import require_memory, require_steps
 from ..core.state import State
 from ..core.warn import warn
+from ..transfer.backend import RUNTIME_COUNTS, resolve
 from .collector import with_fewer_collections
 from .memory import _segment_length, choose_checkpoint, is_schedule, parse_memory, tree_bytes  # noqa: F401  (_segment_length: tests)
 
@@ -304,11 +305,20 @@ def run(
                                          history_gradients, fields, memory)
         return final, history
     if writer is None and not progress:
-        if not is_schedule(checkpoint, "auto"):
-            _segment_length(save_every, checkpoint, frames)  # validated; a run outside a trace is forward only
         start = _start_of(state)  # read before the run deletes the state (donation)
-        final, history, failure = _run_at_once(sim, state, dt, frames, save_every, save_particles, fields, donate,
-                                               frame_bytes)
+        if RUNTIME_COUNTS[resolve(sim.backend)]:  # one compiled loop for any length (backend tuning)
+            if not is_schedule(checkpoint, "auto"):
+                _segment_length(save_every, checkpoint, frames)  # validated; a run outside a trace is forward only
+            final, history, failure = _run_at_once(sim, state, dt, frames, save_every, save_particles, fields,
+                                                   donate, frame_bytes)
+        elif not donate:
+            final, history, failure = _jit_rollout(sim, state, dt, frames, save_every, save_particles, checkpoint,
+                                                   history_gradients, fields, memory)
+        else:  # the initial frame first, in a program of its own (_later_frames)
+            first = _jit_first_frame(sim, state, save_particles, fields)
+            final, later, failure = _jit_rollout_in_place(
+                (sim, dt, frames, save_every, save_particles, checkpoint, history_gradients, fields, memory), state)
+            history = _jit_joined(first, later)
         if check_stability:
             _raise_if_failed(failure, dt, start, None, sim.grid)
         return final, history
@@ -837,6 +847,23 @@ def _jit_first_frame(sim, state, save_particles, fields=()):
 def _jit_rollout(sim, state, dt, frames, save_every, save_particles, checkpoint="auto", history_gradients=True,
                  fields=(), memory=None):
     return sim.rollout(state, dt, frames, save_every, save_particles, checkpoint, history_gradients, fields, memory)
+
+
+@functools.partial(eqx.filter_jit, donate="all-except-first")
+def _jit_rollout_in_place(options, state):
+    """:func:`_jit_rollout` of ``state`` with ``options`` (sim, dt, frames, ...) without the initial frame
+    (:func:`_later_frames`), its final state computed in place of ``state`` (donated: every array but the
+    first argument's): (final state, the later frames, failure record).  Read in the same program, the initial
+    state would have to outlive the loop, and XLA would copy it: the initial frame is a program of its own."""
+    sim, dt, *rest = options
+    final, later, failure, _ = _later_frames(sim, state, dt, *rest)
+    return final, later, failure
+
+
+@eqx.filter_jit
+def _jit_joined(first, later):
+    """The initial frame (with its leading axis) and the later ones, as one history."""
+    return jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b]), first, later)
 
 
 @eqx.filter_jit

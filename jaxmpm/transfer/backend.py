@@ -138,6 +138,13 @@ STORE_RESIDUALS_UP_TO = {"cpu": 0, "gpu": 64 * 2**20}
 # * gpu: not measured (benchmarks/gpu_session.sh times "auto" against two levels); kept as the CPU's 2D.
 KEEP_STATES_UP_TO = {"cpu": {1: 16 * 2**20}, "gpu": {}}
 
+# Whether ``sim.run`` outside a trace loops with runtime frame and step counts (one compiled loop for any run
+# length, jaxmpm.run.driver._run_at_once), per policy.  cpu: yes, as fast as the static scans (mpm88, 2026-11-29:
+# 8k float32 0.88-0.92 against 0.94 ms a step, 131k float64 10.75 against 10.67-10.94).  gpu: no, a static scan
+# -- XLA:GPU reads a while loop's predicate back to the host every iteration unless its trip count is known at
+# compile time (not measured here: no device).
+RUNTIME_COUNTS = {"cpu": True, "gpu": False}
+
 
 def scatter_row_width(width: int) -> int:
     """How many columns a scatter-add of ``width`` columns per (node) row is given: under the CPU

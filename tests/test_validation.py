@@ -56,6 +56,13 @@ ISSUE_ROWS = {
     "Grid cells 'ab'": (lambda: jm.Grid((0,), (1,), ("ab",)), ["cells[0] = 'ab'", "positive integer"]),
     "Grid cells string": (lambda: jm.Grid((0,), (1,), "ab"), ["cells", "'ab'"]),
     "Grid lower nan": (lambda: jm.Grid((NAN,), (1,), (4,)), ["lower", "nan", "finite"]),
+    # node numbers are int32; np.prod of the node counts wrapped past int64, so the memory check let a grid of
+    # 4e35 nodes through to an OverflowError (jaxmpm run incline --t-end 1e8, found by tests/test_cli_fuzz.py)
+    "Grid too many nodes": (lambda: jm.Grid((0, 0), (1, 1), (2**16, 2**16)), ["65537 x 65537", "int32",
+                                                                            "at most 2147483647 nodes"]),
+    "Grid far too many nodes": (lambda: jm.Grid((0, 0), (1, 1), (849570921112534144, 10**17)),
+                                ["8.496e+34 nodes", "fewer cells"]),
+    "scene incline t_end=1e8": (lambda: jm.scene("incline", t_end=1e8), ["Grid", "nodes", "int32"]),
     "Grid.covering spacing inf": (lambda: jm.Grid.covering((0,), (1,), INF), ["spacing = inf", "finite"]),
     "Grid.covering pad -1": (lambda: jm.Grid.covering((0,), (1,), 0.1, pad=-1.0), ["pad = -1.0", ">= 0"]),
     "Grid.covering axes differ": (lambda: jm.Grid.covering((0, 0), (1,), 0.1), ["upper", "lower has 2"]),

@@ -16,6 +16,8 @@ from .errors import check
 from .validate import NON_NEGATIVE, POSITIVE, finite_vector, positive_int, sequence, show
 
 _AXES = "xyz"
+#: the most nodes a grid may have: the stencils' node numbers are int32
+MAX_NODES = 2**31 - 1
 
 
 def _as_tuple(value, name: str, owner: str = "Grid") -> tuple:
@@ -68,6 +70,10 @@ class Grid(eqx.Module):
             check(math.isfinite(hi - lo) and math.isfinite((hi - lo) / cells_out[a]) and (hi - lo) / cells_out[a] > 0,
                   f"Grid: the box [{lo}, {hi}] along axis {_AXES[a]} with {cells_out[a]} cells has no finite "
                   "positive cell size; use a smaller box or fewer cells")
+        nodes = math.prod(c + 1 for c in cells_out)
+        check(nodes <= MAX_NODES,
+              f"Grid: {' x '.join(str(c + 1) for c in cells_out)} = {nodes:.4g} nodes; node numbers are int32, so a "
+              f"grid has at most {MAX_NODES} nodes: use fewer cells (a coarser spacing or a smaller box)")
         check(isinstance(axisymmetric, (bool, np.bool_)),
               f"Grid: axisymmetric = {show(axisymmetric)} must be True (an r-z grid, 001 §7) or False")
         check(not axisymmetric or len(lower) == 2,
@@ -99,7 +105,7 @@ class Grid(eqx.Module):
 
     @property
     def num_nodes(self) -> int:
-        return int(np.prod(self.node_shape))
+        return math.prod(self.node_shape)  # exact (np.prod wraps past int64)
 
     @property
     def strides(self) -> tuple:

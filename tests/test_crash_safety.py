@@ -48,6 +48,19 @@ class Crash(BaseException):
     """Stands for a kill: nothing after it runs in the writer."""
 
 
+def crash_on_renaming_into(path, monkeypatch):
+    """From here on the writer 'dies' as it renames a copy over ``path`` (a Crash); returns the real os.replace."""
+    real_replace = os.replace
+
+    def crash_on_publish(source, target):
+        if os.fspath(target) == os.fspath(path):
+            raise Crash
+        real_replace(source, target)
+
+    monkeypatch.setattr(hdf5.os, "replace", crash_on_publish)
+    return real_replace
+
+
 def test_a_failure_before_the_rename_leaves_the_last_publication(tmp_path, bar, monkeypatch):
     """The copy is written, then the process 'dies' before (and, once, while) renaming it into place:
     FILE.h5 is the previous publication, complete, and the writer goes on from there."""
@@ -58,14 +71,7 @@ def test_a_failure_before_the_rename_leaves_the_last_publication(tmp_path, bar, 
     before = h5_arrays(path)
     assert before["time"].shape == (3,)
 
-    real_replace = os.replace
-
-    def crash_on_publish(source, target):
-        if os.fspath(target) == os.fspath(path):
-            raise Crash
-        real_replace(source, target)
-
-    monkeypatch.setattr(hdf5.os, "replace", crash_on_publish)
+    real_replace = crash_on_renaming_into(path, monkeypatch)
     with pytest.raises(Crash):
         writer.append(frames(history, 3, 5))
     monkeypatch.setattr(hdf5.os, "replace", real_replace)
@@ -123,14 +129,7 @@ def test_a_state_let_go_of_is_read_back_from_the_published_copy(tmp_path, bar, m
     assert_state(setup.state, 0)
     assert not [op for op in writer._log if op[0] == "state"]
 
-    real_replace = os.replace
-
-    def crash_on_publish(source, target):
-        if os.fspath(target) == os.fspath(path):
-            raise Crash
-        real_replace(source, target)
-
-    monkeypatch.setattr(hdf5.os, "replace", crash_on_publish)
+    crash_on_renaming_into(path, monkeypatch)
     with pytest.raises(Crash), writer.batch():
         writer.write_state(final, *schedule)
     monkeypatch.undo()

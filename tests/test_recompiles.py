@@ -40,6 +40,22 @@ def compiled_by(action):
     return out, list(_COMPILED)
 
 
+def run_in_place(run, state):
+    """``run(start)`` of a copy of ``state``, donated: (final state, history), the final state checked to lie in the
+    memory of the initial one."""
+    start = jax.tree_util.tree_map(lambda a: a.copy(), state)
+    before = [leaf.unsafe_buffer_pointer() for leaf in jax.tree_util.tree_leaves(start)]
+    out = run(start)
+    assert [leaf.unsafe_buffer_pointer() for leaf in jax.tree_util.tree_leaves(out[0])] == before
+    return out
+
+
+def assert_same(got, want):
+    """Every leaf equal, bit for bit."""
+    for g, w in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want), strict=True):
+        np.testing.assert_array_equal(g, w)
+
+
 def a_run(name: str) -> bool:
     """Whether a compiled program is a run's loop: ``sim.run``'s (its chunked runner's loop, which an in-memory run
     also calls) or a traced rollout's."""
@@ -200,12 +216,7 @@ def test_under_the_gpu_policy_a_run_keeps_static_scans():
     kept, names = compiled_by(lambda: sim.run(state, dt, 24, 4))
     _, names = compiled_by(lambda: sim.run(state, dt, 28, 4))
     assert "jit(_jit_rollout)" in names and "jit(_advance_in_place)" not in names, names
-    start = jax.tree_util.tree_map(lambda a: a.copy(), state)
-    before = [leaf.unsafe_buffer_pointer() for leaf in jax.tree_util.tree_leaves(start)]
-    donated = sim.run(start, dt, 24, 4, donate=True)
-    assert [leaf.unsafe_buffer_pointer() for leaf in jax.tree_util.tree_leaves(donated[0])] == before
-    for g, w in zip(jax.tree_util.tree_leaves(donated), jax.tree_util.tree_leaves(kept)):
-        np.testing.assert_array_equal(g, w)
+    assert_same(run_in_place(lambda start: sim.run(start, dt, 24, 4, donate=True), state), kept)
 
 
 def test_a_long_run_in_memory_fills_its_buffers_in_order(monkeypatch):
@@ -220,12 +231,7 @@ def test_a_long_run_in_memory_fills_its_buffers_in_order(monkeypatch):
     frame = driver._frame_bytes(sim, state, True)
     for limit in (4 * frame, 40 * frame):  # buffers of 4 frames: the 21 frames' history on the device, the host
         monkeypatch.setattr(driver, "_CHUNK_BYTES", limit)
-        start = jax.tree_util.tree_map(lambda a: a.copy(), state)
-        before = [leaf.unsafe_buffer_pointer() for leaf in jax.tree_util.tree_leaves(start)]
-        got = sim.run(start, dt, 60, 3, donate=True)
-        assert [leaf.unsafe_buffer_pointer() for leaf in jax.tree_util.tree_leaves(got[0])] == before
-        for g, w in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want)):
-            np.testing.assert_array_equal(g, w)
+        assert_same(run_in_place(lambda start: sim.run(start, dt, 60, 3, donate=True), state), want)
 
 
 def test_the_stable_time_step_is_one_program_for_any_cfl():

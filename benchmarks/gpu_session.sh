@@ -47,6 +47,9 @@ log=$out/log.txt
   # the step over its particles in chunks (the CPU's default in 2D from 60k-100k particles, in 3D from 16k-32k;
   # CHUNK_TABLE's GPU row is unmeasured): time and program bytes per particle against the whole step's rows of the "auto" stage
   stage chunks 60 --parts mpm88 --sizes 524288 2097152 --chunk-particles 262144 --no-taichi
+  # sim.run with runtime frame and step counts against static scans: RUNTIME_COUNTS's GPU row (static scans, unmeasured)
+  echo "=== run_counts (limit 120 s): benchmarks/run_counts.py"
+  timeout 120 python3 benchmarks/run_counts.py ${GPU_SESSION_EXTRA:-} 2>&1
   # program bytes per particle against the state's (issue 32 item 7), compiled only: the library's step, the whole
   # step, and chunks of 65536 particles
   echo "=== memory (limit 90 s): benchmarks/memory_per_particle.py --chunks 65536"

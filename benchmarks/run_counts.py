@@ -8,9 +8,10 @@ process.
 With runtime counts (the CPU's setting) ``sim.run`` outside a trace calls one compiled loop for any run length; with
 static scans (the GPU's setting) each length compiles its rollout.  On the CPU the two run at the same speed for
 runs of some length (2026-11-29: mpm88 8k float32, 200 steps, 0.88-0.92 against 0.94 ms a step; 131k float64 10.75
-against 10.67-10.94), while a short run of a small model pays its two calls of the loop (about 2 ms; equinox's
-dispatch of the model): ``--quick``, 40 steps, 1k particles 0.151 against 0.105 ms a step, 4k 0.355 against 0.306,
-and a run of another length 0.02-0.04 s against 1.10-1.17 s.  XLA:GPU
+against 10.67-10.94), while a short run of a small model pays 1-2 ms a run (the initial frame's call of the loop,
+the state's copy, the frames joined on the host; a call of the loop itself costs 0.16 ms to dispatch): ``--quick``,
+40 steps, 1k particles 0.125-0.128 against 0.096-0.099 ms a step, 4k 0.331-0.350 against 0.287-0.306, and a run of
+another length 0.01-0.04 s against 1.07-1.16 s.  XLA:GPU
 reads a while loop's predicate back to the host every iteration unless its trip count is known, so a step there may
 cost a host round trip more with runtime counts: this script measures it on a device (``gpu_session.sh``), and
 whoever runs it sets the GPU row of ``RUNTIME_COUNTS`` from the ratio.  Each row: the first ``sim.run`` (compile

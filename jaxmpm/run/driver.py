@@ -350,25 +350,24 @@ def _run_at_once(sim, state, dt, frames, save_every, save_particles, fields, don
     :func:`rollout` does, and the failure record names the first.  ``frame_bytes``: the bytes of a frame
     (:func:`_frame_bytes`)."""
     capacity = _buffer_frames(frame_bytes)
-    failure = Failure(*(jax.device_put(np.int32(i)) for i in (-1, 0, -1)))  # device_put: nothing compiled
-    per_frame = jax.device_put(np.int32(save_every))
+    counts = [min(capacity, frames - done) for done in range(0, frames, capacity)]  # frames of each later call
+    # every count on the device in one transfer (device_put: nothing compiled; one call each cost about 70 us)
+    failure, one, no_steps, per_frame, *counts = jax.device_put(
+        [Failure(*(np.int32(i) for i in (-1, 0, -1))), np.int32(1), np.int32(0), np.int32(save_every)]
+        + [np.int32(c) for c in counts])
     working = state if donate else _copied(state)
     # the initial frame: one frame of no steps, from the same compiled loop (a program of its own compiled in
     # 0.04-0.1 s more)
-    one, no_steps = jax.device_put(np.int32(1)), jax.device_put(np.int32(0))
     working, failure, first = _advance_in_place(
         (sim, failure, dt, one, no_steps, capacity, save_particles, False, fields), working)
-    buffers, done = [first], 0  # the first buffer holds the initial frame alone
-    while done < frames:
-        count = min(capacity, frames - done)
+    buffers = [first]  # the first buffer holds the initial frame alone
+    for count in counts:
         working, failure, buffer = _advance_in_place(
-            (sim, failure, dt, jax.device_put(np.int32(count)), per_frame, capacity, save_particles, False, fields),
-            working)
+            (sim, failure, dt, count, per_frame, capacity, save_particles, False, fields), working)
         buffers.append(buffer)
-        done += count
     if (frames + 1) * frame_bytes <= _CHUNK_BYTES:  # joined on the host: nothing compiled (device_put)
         buffers = jax.device_get(buffers)
-        history = jax.tree_util.tree_map(lambda *b: jax.device_put(_joined(np, b, frames)), *buffers)
+        history = jax.device_put(jax.tree_util.tree_map(lambda *b: _joined(np, b, frames), *buffers))
     else:  # a large history stays on the device: one small program per length
         history = _jit_history(tuple(buffers), frames)
     return working, history, failure
@@ -910,8 +909,11 @@ def _unshared(state, copy=lambda a: jax.device_put(a, may_alias=False)):
 def _copied(state):
     """``state`` with every array copied on its device (nothing compiled): a working state that a run
     may donate while the caller keeps ``state``."""
-    return jax.tree_util.tree_map(lambda a: jax.device_put(a, may_alias=False) if isinstance(a, jax.Array) else a,
-                                  state)
+    leaves, treedef = jax.tree_util.tree_flatten(state)
+    arrays = [i for i, leaf in enumerate(leaves) if isinstance(leaf, jax.Array)]
+    for i, copy in zip(arrays, jax.device_put([leaves[i] for i in arrays], may_alias=False)):  # one transfer call
+        leaves[i] = copy
+    return jax.tree_util.tree_unflatten(treedef, leaves)
 
 
 def _raise_if_failed(failure: Failure, dt, state0, reached=None, grid=None):

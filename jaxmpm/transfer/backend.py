@@ -140,7 +140,8 @@ KEEP_STATES_UP_TO = {"cpu": {1: 16 * 2**20}, "gpu": {}}
 
 # Whether ``sim.run`` outside a trace loops with runtime frame and step counts (one compiled loop for any run
 # length, jaxmpm.run.driver._run_at_once), per policy.  cpu: yes, as fast as the static scans (mpm88, 2026-11-29:
-# 8k float32 0.88-0.92 against 0.94 ms a step, 131k float64 10.75 against 10.67-10.94).  gpu: no, a static scan
+# 8k float32 0.88-0.92 against 0.94 ms a step, 131k float64 10.75 against 10.67-10.94; a short run of a small model
+# pays 1-2 ms, benchmarks/run_counts.py).  gpu: no, a static scan
 # -- XLA:GPU reads a while loop's predicate back to the host every iteration unless its trip count is known at
 # compile time (not measured here: no device).
 RUNTIME_COUNTS = {"cpu": True, "gpu": False}
@@ -395,7 +396,7 @@ def in_call_context(ruled):
     which may come after the call has returned (``jax.grad`` of a rollout differentiates the jitted rollout's
     program once traced): the rule would then read the defaults, the platform's policy for a model that forces
     another (``backend="gpu"`` traced on a CPU: half of a disks gradient's tangent boundaries were the CPU
-    policy's, tests/test_backend_policy.py)."""
+    policy's, tests/test_derivative_rules.py::test_rules_are_traced_under_the_models_policy)."""
     context = contextvars.copy_context()
     traced = jax.custom_jvp(ruled.fun, nondiff_argnums=ruled.nondiff_argnums)
     traced.defjvp(lambda *args: context.copy().run(ruled.jvp, *args), symbolic_zeros=ruled.symbolic_zeros)

@@ -664,7 +664,7 @@ def _run_chunked(sim, state, dt, frames, save_every, save_particles, check_stabi
             with clock.compiling():  # compiles the loop and runs no step: the state handed back as it came
                 if done_steps == 0 and (writer is None or writer.frames == 0):  # with the initial frame: a frame of
                     state, _, buffer = advance(state, 1, 0)  # no steps (no program of its own to compile)
-                    first = jax.tree_util.tree_map(lambda a: jax.device_put(a[:1].copy()), jax.device_get(buffer))
+                    first = jax.device_put(jax.tree_util.tree_map(lambda a: a[:1].copy(), jax.device_get(buffer)))
                 elif done_steps < total:
                     state = jax.block_until_ready(advance(state, 0, 1))[0]
             if first is not None:

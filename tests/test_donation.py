@@ -144,7 +144,7 @@ def in_place_memory(sim, state, dt, steps_per_frame: int):
     frames) and of a chunked one alike (driver._advance_in_place)."""
     none = driver.Failure(*(jnp.int32(i) for i in (-1, 0, -1)))
     counts = jnp.int32(1), jnp.int32(steps_per_frame)
-    loop = driver._advance_in_place.lower((sim, none, dt, *counts, 2, True, True, ()), state).compile()
+    loop = driver._advance_in_place.lower((sim, none, dt, *counts, 2, True, True, (), counts[1]), state).compile()
     return loop.compiled.memory_analysis()  # equinox's Compiled wraps jax's
 
 

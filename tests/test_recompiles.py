@@ -207,6 +207,45 @@ def test_a_new_step_count_or_save_every_compiles_nothing():
             np.testing.assert_array_equal(g, w)
 
 
+def test_a_run_of_closed_over_arrays_is_traced_under_jit():
+    """A function of no arguments that runs closed-over arrays, under jax.jit or jax.eval_shape, is traced (until
+    2026-11-29 sim.run took it for a run outside any trace and failed reading dt back to the host: "The
+    numpy.ndarray conversion method __array__() was called on traced array"); the same numbers as a run outside."""
+    setup = jm.scene("bar", cells=8)
+    sim, state, dt = setup.sim, setup.state, setup.dt
+    want = sim.run(state, dt, 12, 4)
+    assert_same(jax.jit(lambda: sim.run(state, dt, 12, 4))(), want)
+    shapes = jax.eval_shape(lambda: sim.run(state, dt, 12, 4))
+    assert [a.shape for a in jax.tree_util.tree_leaves(shapes)] == [a.shape for a in jax.tree_util.tree_leaves(want)]
+
+
+def test_an_ensemble_of_another_length_compiles_nothing():
+    """On the CPU, members that run one after another ("sequential", what "auto" picks from 257 particles) are single
+    runs outside a trace (jaxmpm.run.ensemble._one_by_one): an ensemble after a sim.run of its model compiles no run
+    of its own, nor does one of another length or save_every, or of a batch of states; each equals the traced
+    ensemble (lax.map over the members' static rollouts, what jax.grad differentiates) bit for bit."""
+    setup = jm.scene("bar", scheme="xpic:2", cells=8)
+    sim, state, dt = setup.sim, setup.state, setup.dt
+    E = float(jm.get_params(sim, "E")["E"])
+    values = jnp.asarray([E, 2.0 * E, 1e4 * E])  # the last member fails, and the others go on
+    states = jax.tree_util.tree_map(lambda a: jnp.stack([a, a]), state)
+    states = eqx.tree_at(lambda s: s.v, states, states.v * jnp.asarray([1.0, 0.5])[:, None, None])
+
+    def ensemble(steps, every, **batch):
+        return jm.ensemble(sim, state, dt, steps, every, strategy="sequential", progress=False, **batch)
+
+    traced = jax.jit(ensemble, static_argnums=(0, 1))
+    compiled_by(lambda: sim.run(state, dt, 40, 4, save_particles=False))  # the loop, unless a test before compiled it
+    for steps, every, batch in ((40, 4, {"params": {"E": values}}), (12, 3, {"params": {"E": values}}),
+                                (40, 40, {"states": states}), (8, 2, {"states": states, "params": {"E": values[:2]}})):
+        got, names = compiled_by(lambda: ensemble(steps, every, **batch))  # noqa: B023
+        assert not any(a_run(n) for n in names), (steps, every, names)
+        assert got[1].time.shape == (len(got[2]), steps // every + 1)
+        assert_same(got, traced(steps, every, **batch))
+    failed = np.asarray(ensemble(40, 4, params={"E": values})[2])
+    assert failed[0] == failed[1] == -1 and failed[2] > 0, failed
+
+
 def test_under_the_gpu_policy_a_run_keeps_static_scans():
     """backend.RUNTIME_COUNTS: under the GPU policy (traced here on the CPU) sim.run keeps the rollout's static scans
     (XLA:GPU would read a runtime trip count's predicate back to the host every step), so another length

@@ -93,7 +93,11 @@ class Failure(eqx.Module):
 
 
 def _is_traced(tree) -> bool:
-    return any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(tree))
+    """Whether ``tree`` holds a traced array, or JAX is tracing at all: a function of closed-over arrays under
+    ``jax.jit`` or ``jax.eval_shape`` gets no traced argument, but what it puts on the device is traced (a run
+    outside a trace reads values back to the host, which a trace cannot)."""
+    return (any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(tree))
+            or isinstance(jax.device_put(np.int32(0)), jax.core.Tracer))
 
 
 def check_state(state) -> None:
@@ -337,49 +341,61 @@ def _buffer_frames(frame_bytes: int, frames_per_chunk=None) -> int:
     return max(1, min(frames_per_chunk or _BUFFER_FRAMES, _CHUNK_BYTES // max(1, frame_bytes)))
 
 
-def _run_at_once(sim, state, dt, frames, save_every, save_particles, fields, donate, frame_bytes: int):
+def _run_at_once(sim, state, dt, frames, save_every, save_particles, fields, donate, frame_bytes: int,
+                 on_host: bool = False):
     """A run outside any trace, without a writer or progress: (final state, history, failure record).
 
     The chunked runner's compiled loop (:func:`_advance`, its frame and step counts runtime values) is called until
-    the run's frames are done, the initial frame too (a frame of no steps), each call filling a buffer of
-    :func:`_buffer_frames` frames; the buffers are joined on the host where the history is small, else by one small
-    program.  A run of another length or ``save_every`` compiles at most that join (until 2026-11-29 each new step
-    count compiled the whole rollout again: 0.45-1.2 s for bar, disks and mpm88).  Each call computes in place of
-    the state before it: the caller's, donated, or a copy (which a kept state needs in any case: the final state is
-    another state).  The arithmetic is :func:`rollout`'s, bit for bit; the run goes on past an unstable step, as
-    :func:`rollout` does, and the failure record names the first.  ``frame_bytes``: the bytes of a frame
-    (:func:`_frame_bytes`)."""
+    the run's frames are done, each call filling a buffer of :func:`_buffer_frames` frames, the first call's first
+    frame the initial one (a frame of no steps); the buffers are joined on the host where the history is small,
+    else by one small program.  A run of another length or ``save_every`` compiles at most that join (until
+    2026-11-29 each new step count compiled the whole rollout again: 0.45-1.2 s for bar, disks and mpm88).
+
+    Each call computes in place of the state before it: the caller's, donated, or a copy (which a kept state needs
+    in any case: the final state is another state).  The arithmetic is :func:`rollout`'s, bit for bit; the run goes
+    on past an unstable step, as :func:`rollout` does, and the failure record names the first.  ``frame_bytes``:
+    the bytes of a frame (:func:`_frame_bytes`); ``on_host``: a history joined on the host is handed back there,
+    as NumPy arrays (an ensemble stacks its members' histories there)."""
     capacity = _buffer_frames(frame_bytes)
-    counts = [min(capacity, frames - done) for done in range(0, frames, capacity)]  # frames of each later call
-    # every count on the device in one transfer (device_put: nothing compiled; one call each cost about 70 us)
-    failure, one, no_steps, per_frame, *counts = jax.device_put(
-        [Failure(*(np.int32(i) for i in (-1, 0, -1))), np.int32(1), np.int32(0), np.int32(save_every)]
-        + [np.int32(c) for c in counts])
+    # frames of each call: the first call's first frame is the initial one (a frame of no steps)
+    counts = [min(capacity, frames + 1 - done) for done in range(0, frames + 1, capacity)]
+    no_steps, per_frame, *counts = _device_ints(0, save_every, *counts)
+    failure = Failure(*_device_ints(-1, 0, -1))
     working = state if donate else _copied(state)
-    # the initial frame: one frame of no steps, from the same compiled loop (a program of its own compiled in
-    # 0.04-0.1 s more)
-    working, failure, first = _advance_in_place(
-        (sim, failure, dt, one, no_steps, capacity, save_particles, False, fields), working)
-    buffers = [first]  # the first buffer holds the initial frame alone
-    for count in counts:
+    buffers = []
+    for call, count in enumerate(counts):
         working, failure, buffer = _advance_in_place(
-            (sim, failure, dt, count, per_frame, capacity, save_particles, False, fields), working)
+            (sim, failure, dt, count, per_frame, capacity, save_particles, False, fields,
+             no_steps if call == 0 else per_frame), working)
         buffers.append(buffer)
     if (frames + 1) * frame_bytes <= _CHUNK_BYTES:  # joined on the host: nothing compiled (device_put)
-        buffers = jax.device_get(buffers)
-        history = jax.device_put(jax.tree_util.tree_map(lambda *b: _joined(np, b, frames), *buffers))
+        history = jax.tree_util.tree_map(lambda *b: _joined(np, b, frames), *jax.device_get(buffers))
+        if not on_host:
+            history = jax.device_put(history)
     else:  # a large history stays on the device: one small program per length
         history = _jit_history(tuple(buffers), frames)
     return working, history, failure
 
 
+@functools.lru_cache(maxsize=1024)
+def _device_int(value: int, default_device) -> jax.Array:
+    """``value`` as an int32 scalar on the default device (``default_device``, the setting it was put under: the
+    cache's key)."""
+    return jax.device_put(np.int32(value))
+
+
+def _device_ints(*values: int) -> list:
+    """``values`` as int32 scalars on the default device, each kept for later runs (putting five of them on the
+    device took 0.2 ms a run); a run's loop reads them and never donates them."""
+    return [_device_int(int(v), jax.config.jax_default_device) for v in values]
+
+
 def _joined(xnp, buffers, frames: int):
-    """The run's ``frames + 1`` frames, from the buffers of :func:`_run_at_once`: the initial frame (the first
-    buffer's first), then each later buffer's frames, the last one's only as many as are left."""
+    """The run's ``frames + 1`` frames, from the buffers of :func:`_run_at_once`: every buffer's frames, the last
+    one's only as many as are left."""
     capacity = buffers[0].shape[0]
-    last = frames - capacity * (len(buffers) - 2) if len(buffers) > 1 else 0
-    return xnp.concatenate([buffers[0][:1], *buffers[1:-1], buffers[-1][:last]] if len(buffers) > 1
-                           else [buffers[0][:1]])
+    last = frames + 1 - capacity * (len(buffers) - 1)
+    return xnp.concatenate([*buffers[:-1], buffers[-1][:last]]) if len(buffers) > 1 else buffers[0][:last]
 
 
 def _chosen_fields(sim, state, fields, save_particles) -> tuple:
@@ -653,7 +669,8 @@ def _run_chunked(sim, state, dt, frames, save_every, save_particles, check_stabi
         """``n_frames`` frames of ``per_frame`` steps from ``s``: one call of the compiled loop, which
         computes the new state in place of ``s`` (``s`` is deleted)."""
         counts = jax.device_put(np.int32(n_frames)), jax.device_put(np.int32(per_frame))
-        return _advance_in_place((sim, none, dt, *counts, buffer_frames, save_particles, check_stability, fields), s)
+        return _advance_in_place((sim, none, dt, *counts, buffer_frames, save_particles, check_stability, fields,
+                                  counts[1]), s)
 
     if not donate:
         state = _copied(state)  # the run's working state; the caller's stays as it is
@@ -772,10 +789,11 @@ def _measured_rate(rate, steps, elapsed):
 
 
 def _advance(sim, state, failure, dt, n_frames, steps_per_frame, buffer_frames: int, save_particles: bool,
-             stop_at_failure: bool = True, fields: tuple = ()):
-    """``n_frames`` (<= ``buffer_frames``) frames of ``steps_per_frame`` steps, both runtime
-    values, stopping at the first unstable step (``stop_at_failure``); returns the state, the failure record and a
-    ``buffer_frames`` buffer whose first ``n_frames`` frames hold the frames reached."""
+             stop_at_failure: bool, fields: tuple, first_steps):
+    """``n_frames`` (<= ``buffer_frames``) frames of ``steps_per_frame`` steps, the first of ``first_steps`` (0: the
+    state as it came, a run's initial frame), all three runtime values, stopping at the first unstable step
+    (``stop_at_failure``); returns the state, the failure record and a ``buffer_frames`` buffer whose first
+    ``n_frames`` frames hold the frames reached."""
 
     def running(fail):
         return (fail.step < 0) if stop_at_failure else jnp.bool_(True)
@@ -789,7 +807,8 @@ def _advance(sim, state, failure, dt, n_frames, steps_per_frame, buffer_frames: 
 
     def one_frame(carry):
         moving, buffer, j = carry
-        moving, _ = jax.lax.while_loop(lambda c: (c[1] < steps_per_frame) & running(c[0][1]), one_step,
+        steps = jnp.where(j == 0, first_steps, steps_per_frame)
+        moving, _ = jax.lax.while_loop(lambda c: (c[1] < steps) & running(c[0][1]), one_step,
                                        (moving, jnp.zeros((), jnp.int32)))
         frame = sim.diagnostics_frame(_in_user_order(sorting, moving), save_particles, fields)
         buffer = jax.tree_util.tree_map(lambda b, f: b.at[j].set(f), buffer, frame)

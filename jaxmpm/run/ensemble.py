@@ -5,9 +5,12 @@ backend (:func:`plan`; benchmarks/ensemble_throughput.py):
 
 * a GPU vmaps them: one batched step for all (H200, mpm88 8k particles float32: 4.8x a single
   run's particle-steps/s at 256 members);
-* the CPU runs them one after another inside one program (``lax.map``), each member the single-run
-  step: a single run's speed per member (mpm88: 0.94-1.06x for 1-16 members, where vmap gave
-  0.49-0.94x).  Vmapped members on the CPU first lost the transfer layer's stage boundaries
+* the CPU runs them one after another, each member the single-run step (mpm88: 0.94-1.06x a single
+  run's speed for 1-16 members, where vmap gave 0.49-0.94x).  Outside a trace each member is a single
+  run (:func:`_one_by_one`): ``sim.run``'s compiled loop, whose frame and step counts are runtime
+  values, so an ensemble of another length, or of a model ``sim.run`` has run, compiles nothing
+  (1.0-1.6 s for the disks and mpm88 before); under ``jit``/``grad`` one program maps the members'
+  rollouts (``lax.map``).  Vmapped members on the CPU first lost the transfer layer's stage boundaries
   (a batched ``lax.cond`` becomes a ``select``; kept since by :mod:`jaxmpm.transfer.backend`), and
   still lose with the batch size: several members' per-slot buffers (about 1 MiB per mpm88
   member in float32) outgrow the per-core cache.  Small scenes are still vmapped on the CPU, in
@@ -29,11 +32,14 @@ import numpy as np
 from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from ..core.device import to_device
 from ..core.errors import check
 from ..core.params import _where, _with_owner, check_value, set_params
 from ..core.validate import POSITIVE, batch_members, positive_int
+from ..transfer.backend import RUNTIME_COUNTS, resolve
+from .driver import _frame_bytes, _is_traced, _run_at_once
 from .memory import budget_bytes, members_at_once, parse_memory
-from .progress import shown, shown_call
+from .progress import Stage, shown, shown_call
 
 
 def _batch_size(tree) -> int:
@@ -147,8 +153,9 @@ def ensemble(sim, state, dt, steps: int, save_every: int = 1, *, params: dict | 
             default): True when the call is interactive (stderr is a terminal, or a Jupyter
             kernel runs it).  Nothing is printed under ``jax.jit``/``grad``.
         strategy: how the members on a device run: ``"vmap"``: batched, one vmapped step for all
-            (``chunk`` at a time if given); ``"sequential"``: one after another (``lax.map``),
-            each with the single-run step (on the CPU as fast per member as a single run); or
+            (``chunk`` at a time if given); ``"sequential"``: one after another, each with the
+            single-run step (on the CPU as fast per member as a single run; there, outside a trace,
+            each member is a ``sim.run`` and a new length compiles nothing; else ``lax.map``); or
             ``"auto"`` (default): "vmap" on a GPU, on the CPU "sequential" but for small scenes,
             vmapped in chunks of about ``CPU_CHUNK_PARTICLES`` (512) particles (:func:`plan`).
         chunk: with ``strategy="vmap"``: members vmapped together, chunks one after another (fewer
@@ -189,10 +196,67 @@ def ensemble(sim, state, dt, steps: int, save_every: int = 1, *, params: dict | 
     if mesh is not None:
         inputs = _shard(inputs, mesh)
     how = plan(strategy, chunk, batch // used, int(state.x.shape[0]), devices[0].platform)
+    what = f"jaxmpm ensemble: {batch} members x {steps} steps"
+    if how[0] == "sequential" and mesh is None and _runs_one_by_one(sim, (state, *inputs)):
+        return _one_by_one(sim, state, dt, frames, save_every, save_particles, params or {}, states, batch, what,
+                           show)
     out = shown_call(_batched_rollout, (sim, state, dt, frames, save_every, save_particles, *how, mesh, memory,
-                                        *inputs),
-                     f"jaxmpm ensemble: {batch} members x {steps} steps", show)
+                                        *inputs), what, show)
     return _gathered(out) if mesh is not None and mesh.is_multi_process else out
+
+
+def _runs_one_by_one(sim, inputs) -> bool:
+    """Whether sequential members run as single runs, one call of the run loop each: outside any trace, where the
+    backend runs with runtime counts (``RUNTIME_COUNTS``, the CPU)."""
+    return not _is_traced((sim, inputs)) and RUNTIME_COUNTS[resolve(sim.backend)]
+
+
+def _one_by_one(sim, state, dt, frames: int, save_every: int, save_particles: bool, params: dict, states, batch: int,
+                what: str, show: bool):
+    """The members one after another, each a single run outside any trace (:func:`jaxmpm.run.driver._run_at_once`):
+    the compiled loop of ``sim.run``, whose frame and step counts are runtime values, so an ensemble of another
+    length compiles nothing, nor one of a model ``sim.run`` has run already; each member at a single run's speed,
+    the same numbers as :func:`_batched_rollout`'s ``lax.map`` bit for bit (tests/test_ensemble_strategies.py).
+    Returns what :func:`_batched_rollout` returns."""
+
+    sim = sim.in_precision(state.x.dtype)
+    for name in params:  # a term the model lacks added once (set_params's neutral default), not per member
+        sim = _with_owner(sim, name)
+    names = list(params)
+    wheres = [_where(sim, name) for name in names]
+    # every member's values on the device in one transfer, cast as set_params casts them (checked: _check_members)
+    host = [np.asarray(jax.device_get(params[name]), jnp.result_type(where(sim))) for name, where in
+            zip(names, wheres)]
+    values = jax.device_put([[a[i] for a in host] for i in range(batch)]) if names else None
+    host_states = None if states is None else jax.device_get(states)
+    first = state if host_states is None else jax.tree_util.tree_map(lambda a: a[0], host_states)  # on the host
+    frame_bytes = _frame_bytes(sim, first, save_particles)
+
+    def member(i):
+        """(the member's model, its initial state, whether the run may compute in place of that state)"""
+        member_sim = eqx.tree_at(lambda m: [where(m) for where in wheres], sim, values[i]) if names else sim
+        if host_states is None:
+            return member_sim, state, False
+        return member_sim, jax.tree_util.tree_map(lambda a: to_device(np.asarray(a[i])), host_states), True
+
+    if show:  # the loop compiled (or found compiled) by a run of no steps: the compilation timed apart
+        member_sim, member_state, _ = member(0)
+        with Stage(f"{what}: compiling", True):
+            jax.block_until_ready(_run_at_once(member_sim, member_state, dt, 0, save_every, save_particles, (), False,
+                                               frame_bytes))
+    finals, histories, failures = [], [], []
+    with Stage(f"{what}: running", show):
+        for i in range(batch):
+            member_sim, member_state, own = member(i)
+            final, history, failure = _run_at_once(member_sim, member_state, dt, frames, save_every, save_particles,
+                                                   (), own, frame_bytes, on_host=True)
+            finals.append(final)
+            histories.append(history)
+            failures.append(failure.step)
+        finals, histories, failures = jax.device_get((finals, histories, failures))
+    stacked = jax.tree_util.tree_map(lambda *a: np.stack(a), *finals), \
+        jax.tree_util.tree_map(lambda *a: np.stack(a), *histories), np.asarray(failures, np.int32)
+    return jax.tree_util.tree_map(to_device, stacked)
 
 
 @eqx.filter_jit

@@ -13,6 +13,9 @@ with one XLA thread so that other load on the machine stays out of the ratios,
     ... python benchmarks/gradient_cost.py --scenes mpm88 --schemes apic --checkpoint True False
     ... python benchmarks/gradient_cost.py --scenes mpm88 --particles 131072 --steps 20 --checkpoint auto
 
+``--reuse-host-memory`` has glibc keep the memory a call frees (``jm.reuse_host_memory``): a gradient whose
+temporaries exceed 32 MiB no longer pages them in at every call.
+
 Adding ``--xla_cpu_experimental_ynn_fusion_type=`` to XLA_FLAGS (jax 0.10) turns off the library
 kernels XLA:CPU uses for reductions, to see what they cost (see the benchmarks README).
 
@@ -101,8 +104,13 @@ def main():
     parser.add_argument("--derivative-chunk-particles", default="auto", type=lambda v: v if v == "auto" else int(v),
                         help="the steps' derivatives in chunks of this many particles (0: the whole step's; default "
                              "auto: the library's table)")
+    parser.add_argument("--reuse-host-memory", action="store_true",
+                        help="jm.reuse_host_memory() first: glibc keeps the memory the programs free, so a call "
+                             "does not page its temporaries in again (the same as JAXMPM_REUSE_HOST_MEMORY=1)")
     parser.add_argument("--csv", default=str(Path(__file__).resolve().parent / "results" / "gradient_cost.csv"))
     args = parser.parse_args()
+    if args.reuse_host_memory:  # before JAX starts its threads (nothing has run yet)
+        print(f"jm.reuse_host_memory(): {jm.reuse_host_memory()}")
     print("| scene | scheme | particles | steps | adjoint | checkpoint | forward (s) | gradient (s) | gradient / "
           "forward | floor: time / ops | compile forward / gradient (s) |")
     print("|---" * 11 + "|")

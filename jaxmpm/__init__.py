@@ -3,6 +3,7 @@
 FLIP, PIC and their blend, XPIC(m), FMPM(k), APIC and TPIC as pure, jit-able, differentiable steps.
 """
 
+from .core.host_memory import reuse_host_memory  # first: JAXMPM_REUSE_HOST_MEMORY=1 acts before JAX starts threads
 from .core.version import __version__  # noqa: F401
 from .core.docstrings import document_init as _document_init
 from .core.errors import InputError, InstabilityError, ParticlesLeftGrid
@@ -64,7 +65,7 @@ __all__ = [
     "register_scene", "scene", "stable_dt", "strain_energy", "with_fields", "with_scheme_state",
     "APIC", "RPIC", "TPIC", "with_velocity_gradient", "Wall", "NoStress", "VolumetricFluid",
     "Diffusion", "Dirichlet", "Heat", "Neumann", "Transport", "HypoElastic", "IncrementalElastic", "ParticleForce",
-    "Traction", "Reaction", "Mirror", "compilation_cache",
+    "Traction", "Reaction", "Mirror", "compilation_cache", "reuse_host_memory",
     "ElasticMaterial", "InelasticMaterial", "Increment", "ParticleDamping", "Contraction", "Weighted", "Gradient",
     "Divergence", "Affine", "Hoop", "PerSlot", "Kernel", "register_kernel", "series", "exchange_series",
     "grid_phases", "Mesh", "Polygon", "point_cloud", "animate", "plot_frames",

@@ -218,7 +218,6 @@ def _one_by_one(sim, state, dt, frames: int, save_every: int, save_particles: bo
     length compiles nothing, nor one of a model ``sim.run`` has run already; each member at a single run's speed,
     the same numbers as :func:`_batched_rollout`'s ``lax.map`` bit for bit (tests/test_ensemble_strategies.py).
     Returns what :func:`_batched_rollout` returns."""
-
     sim = sim.in_precision(state.x.dtype)
     for name in params:  # a term the model lacks added once (set_params's neutral default), not per member
         sim = _with_owner(sim, name)

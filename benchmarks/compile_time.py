@@ -336,6 +336,14 @@ def recompiles(steps: int) -> list[dict]:
            lambda: jm.ensemble(sim, state, dt, steps, save, params={"E": jnp.linspace(90, 110, 4)}))
     record("jm.ensemble again, other E values",
            lambda: jm.ensemble(sim, state, dt, steps, save, params={"E": jnp.linspace(80, 120, 4)}))
+    record(f"jm.ensemble, steps {steps} -> {2 * steps} (vmapped: static scans)",
+           lambda: jm.ensemble(sim, state, dt, 2 * steps, save, params={"E": jnp.linspace(80, 120, 4)}))
+    record("jm.ensemble(strategy='sequential') (single runs on the CPU)",
+           lambda: jm.ensemble(sim, state, dt, steps, save, params={"E": jnp.linspace(80, 120, 4)},
+                               strategy="sequential"))
+    record(f"the same, steps {steps} -> {2 * steps}",
+           lambda: jm.ensemble(sim, state, dt, 2 * steps, save, params={"E": jnp.linspace(80, 120, 4)},
+                               strategy="sequential"))
 
     def loss(p):
         return jnp.sum(jm.set_params(sim, **p).run(state, dt, steps, save)[1].v ** 2)

@@ -246,6 +246,22 @@ def test_an_ensemble_of_another_length_compiles_nothing():
     assert failed[0] == failed[1] == -1 and failed[2] > 0, failed
 
 
+def test_an_ensemble_runs_in_its_members_precision():
+    """Single-run members of float32 states from a float64 template state (the model and dt cast to the members'
+    precision, as Simulation.rollout casts them): float32 results, bit for bit the traced ensemble's."""
+    setup = jm.scene("bar", scheme="xpic:2", cells=8)
+    sim, state, dt = setup.sim, setup.state, setup.dt
+    states = jax.tree_util.tree_map(lambda a: jnp.stack([a, a]), jm.scenes.cast_state(state, jnp.float32))
+    states = eqx.tree_at(lambda s: s.v, states, states.v * jnp.asarray([1.0, 0.5], jnp.float32)[:, None, None])
+
+    def ensemble(batch):
+        return jm.ensemble(sim, state, dt, 12, 4, states=batch, strategy="sequential", progress=False)
+
+    got = ensemble(states)
+    assert got[0].x.dtype == got[1].time.dtype == jnp.float32
+    assert_same(got, jax.jit(ensemble)(states))
+
+
 def test_under_the_gpu_policy_a_run_keeps_static_scans():
     """backend.RUNTIME_COUNTS: under the GPU policy (traced here on the CPU) sim.run keeps the rollout's static scans
     (XLA:GPU would read a runtime trip count's predicate back to the host every step), so another length

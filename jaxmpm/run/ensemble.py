@@ -218,7 +218,11 @@ def _one_by_one(sim, state, dt, frames: int, save_every: int, save_particles: bo
     length compiles nothing, nor one of a model ``sim.run`` has run already; each member at a single run's speed,
     the same numbers as :func:`_batched_rollout`'s ``lax.map`` bit for bit (tests/test_ensemble_strategies.py).
     Returns what :func:`_batched_rollout` returns."""
-    sim = sim.in_precision(state.x.dtype)
+    host_states = None if states is None else jax.device_get(states)
+    first = state if host_states is None else jax.tree_util.tree_map(lambda a: a[0], host_states)  # on the host
+    dtype = first.x.dtype  # the members' precision (a model computes in its state's, as Simulation.rollout does)
+    sim = sim.in_precision(dtype)
+    dt = jax.device_put(np.asarray(jax.device_get(dt), dtype))
     for name in params:  # a term the model lacks added once (set_params's neutral default), not per member
         sim = _with_owner(sim, name)
     names = list(params)
@@ -227,8 +231,6 @@ def _one_by_one(sim, state, dt, frames: int, save_every: int, save_particles: bo
     host = [np.asarray(jax.device_get(params[name]), jnp.result_type(where(sim))) for name, where in
             zip(names, wheres)]
     values = jax.device_put([[a[i] for a in host] for i in range(batch)]) if names else None
-    host_states = None if states is None else jax.device_get(states)
-    first = state if host_states is None else jax.tree_util.tree_map(lambda a: a[0], host_states)  # on the host
     frame_bytes = _frame_bytes(sim, first, save_particles)
 
     def member(i):

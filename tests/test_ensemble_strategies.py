@@ -93,6 +93,24 @@ def test_strategy_and_chunk_checked():
         assert "\n" not in message and all(w in message for w in words), message
 
 
+def test_batches_checked_and_a_list_is_a_batch():
+    """An empty batch and one value where a batch belongs are InputErrors naming the fix (they were a
+    ZeroDivisionError and "got []"); a list of members' values runs as the array of them does."""
+    setup = jm.scene("bar", scheme=jm.XPIC(order=2))
+    run = lambda params, **kw: jm.ensemble(setup.sim, setup.state, setup.dt, 4, 2, params=params,  # noqa: E731
+                                           strategy="sequential", progress=False, **kw)
+    for params, kw, words in (({"beta": jnp.zeros((0,))}, {}, ("no members", "at least one")),
+                              ({"beta": 0.5}, {}, ("params['beta'] = 0.5 is one value", "jm.set_params(sim, beta=")),
+                              ({"beta": 0.5}, {"states": jax.tree_util.tree_map(lambda a: jnp.stack([a, a]),
+                                                                                setup.state)},
+                               ("one value per member",))):
+        with pytest.raises(jm.InputError) as error:
+            run(params, **kw)
+        message = str(error.value)
+        assert "\n" not in message and all(w in message for w in words), message
+    same(run({"beta": [0.1, 0.2]}), run({"beta": jnp.asarray([0.1, 0.2])}))
+
+
 # ------------------------------------------------------------------ gradients through an ensemble
 def test_gradient_through_the_ensemble_equals_the_members():
     """jax.grad of a loss of jm.ensemble's results equals the sum of each member's sim.run gradient, under

@@ -44,8 +44,12 @@ from .progress import Stage, shown, shown_call
 
 def _batch_size(tree) -> int:
     sizes = {np.shape(leaf)[0] for leaf in jax.tree_util.tree_leaves(tree) if np.ndim(leaf) > 0}
+    check(sizes, "ensemble: params and states need a leading (batch) axis, one entry per member; give each "
+                 "parameter an array of its members' values, e.g. params={'E': [1e5, 2e5]}")
     check(len(sizes) == 1, f"ensemble: every batched input needs the same leading (batch) size, got {sorted(sizes)}")
-    return sizes.pop()
+    size = sizes.pop()
+    check(size > 0, "ensemble: the batch has no members (a leading size of 0); give at least one")
+    return size
 
 
 def _check_members(sim, params: dict) -> None:
@@ -182,6 +186,13 @@ def ensemble(sim, state, dt, steps: int, save_every: int = 1, *, params: dict | 
                                   "strategy='vmap'")
         chunk = positive_int("ensemble", "chunk", chunk)
     _check_members(sim, params or {})
+    # a list of numbers is a batch too (its own leaves would be taken for members' scalars)
+    params = None if params is None else {name: np.asarray(values) if isinstance(values, (list, tuple)) else values
+                                          for name, values in params.items()}
+    for name, values in (params or {}).items():
+        check(np.ndim(values) > 0, f"ensemble: params[{name!r}] = {values!r} is one value; params hold one value per "
+                                   f"member (an array whose leading axis is the batch); to set {name} for every "
+                                   f"member, pass jm.set_params(sim, {name}=...) as the model")
     batch = _batch_size((params or {}, states))
     if steps % save_every:
         check(False, f"ensemble: steps = {steps} must be a multiple of save_every = {save_every}")

@@ -442,3 +442,29 @@ def test_fuzz_scene_builds(data):
     if setup is not None:
         assert math.isfinite(setup.dt) and setup.dt > 0 and setup.steps >= 1 and setup.save_every >= 1
         _finite_tree(setup.state)
+
+
+def test_run_and_ensemble_entry_points_name_a_bad_argument():
+    """Found by an ad hoc fuzz of the run and ensemble entry points (2026-11-29): each raised a raw exception, and a
+    negative frames_per_chunk ran chunks of negative frames until the process's memory ran out."""
+    setup = jm.scene("bar", cells=8)
+    sim, state, dt = setup.sim, setup.state, setup.dt
+    batch = {"E": [1.0, 2.0]}
+    cases = [
+        (lambda: sim.run(state, None, 4, 2), ("run: dt must be a number, got None", "setup.dt")),
+        (lambda: sim.run(state, np.ones((2, 2)), 4, 2), ("dt must be a single number",)),
+        (lambda: sim.run(state, dt, 4, 2, frames_per_chunk=-1, progress=True),
+         ("frames_per_chunk = -1 must be a positive integer",)),
+        (lambda: jm.ensemble(sim, state, np.zeros(0), 4, 2, params=batch), ("ensemble: dt must be a single number",)),
+        (lambda: jm.ensemble(sim, state, dt, 4, 2, params=batch, devices=[]), ("devices = []", "jax.devices()")),
+        (lambda: jm.ensemble(sim, state, dt, 4, 2, params=batch, devices="cpu"), ("devices = 'cpu'",)),
+        (lambda: jm.ensemble(sim, state, dt, 4, 2, params=batch, devices=3), ("devices = 3",)),
+        (lambda: jm.ensemble(sim, state, dt, 4, 2, states=[1, 2]), ("states = list", "leading batch axis")),
+        (lambda: jm.ensemble(sim, None, dt, 4, 2, params=batch), ("state = NoneType",)),
+        (lambda: jm.get_params(sim, None), ("None is not a parameter name",)),
+        (lambda: sim.with_chunks(np.zeros(0)), ("chunk_particles = array([], dtype=float64)", "'auto'")),
+        (lambda: jm.stable_dt(sim, state, 0.5), ("stable_dt: grid = Simulation", "sim.stable_dt(state)")),
+        (lambda: jm.stable_dt(sim.grid, state, state.v), ("stable_dt: material = State",)),
+    ]
+    for make, words in cases:
+        assert_input_error(make, *words)

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
+from .errors import check
+from .grid import Grid
 from .validate import POSITIVE, compiled_when_concrete
 
 
@@ -90,6 +92,10 @@ def stable_dt(grid, material, velocity, cfl: float = 1.0):
             unchecked).
     """
     POSITIVE.check("stable_dt", "cfl", cfl, fix="the Courant number, e.g. 0.5")
+    check(isinstance(grid, Grid), f"stable_dt: grid = {type(grid).__name__}; give the jm.Grid (a model's stable time "
+                                  "step with its terms' limits: sim.stable_dt(state))")
+    check(hasattr(material, "wave_speed"), f"stable_dt: material = {type(material).__name__}; give the jm.Material "
+                                           "whose wave speed bounds the time step (sim.material)")
     # concrete (a scene's dt): one compiled program instead of the eight small ones op by op
     return _cfl_limit(material, velocity, grid.dim, cfl * grid.h)
 

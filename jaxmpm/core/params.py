@@ -88,6 +88,8 @@ def get_params(sim, *names) -> dict:
     """
     out = {}
     for n in names:
+        check(isinstance(n, str), f"get_params: {n!r} is not a parameter name; name each as a string, e.g. "
+                                  "get_params(sim, 'E', 'beta') (jm.PARAMETERS lists them)")
         s = _with_owner(sim, n)
         out[n] = _where(s, n)(s)
     return out

@@ -920,10 +920,11 @@ def _checked_sort_every(every):
 
 def _auto_or_count(value, name: str, what: str, zero: str):
     """``value``: "auto" (the backend table's choice) or a non-negative integer (0 meaning ``zero``)."""
-    check(value == "auto" or (isinstance(value, (int, np.integer)) and not isinstance(value, bool) and value >= 0),
+    auto = isinstance(value, str) and value == "auto"  # an array compared with "auto" has no truth value
+    check(auto or (isinstance(value, (int, np.integer)) and not isinstance(value, bool) and value >= 0),
           f"Simulation: {name} = {value!r}; give {what} (a non-negative integer, 0 = {zero}) or 'auto' (the "
           "backend table's choice)")
-    return value if value == "auto" else int(value)
+    return value if auto else int(value)
 
 
 @compiled_when_concrete

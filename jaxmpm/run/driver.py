@@ -19,6 +19,7 @@ import numpy as np
 from ..core.errors import InstabilityError, ParticlesLeftGrid, check
 from ..core.limits import require_memory, require_steps
 from ..core.state import State
+from ..core.validate import POSITIVE, positive_int
 from ..core.warn import warn
 from ..transfer.backend import RUNTIME_COUNTS, resolve
 from .collector import with_fewer_collections
@@ -267,8 +268,12 @@ def run(
     check(isinstance(donate, bool),
           f"run: donate = {donate!r} must be True (the run may reuse the state's memory; the state is deleted) "
           "or False")
+    if frames_per_chunk is not None:  # a negative cap ran a chunk of negative frames until memory ran out
+        frames_per_chunk = positive_int("run", "frames_per_chunk", frames_per_chunk,
+                                        fix="give a positive number of frames, or None (chunks of about 2 s)")
     frames = steps // save_every
     parse_memory(memory)  # checked before anything runs
+    POSITIVE.real("run", "dt", dt, fix="the time step, e.g. a scene's setup.dt or sim.stable_dt(state)")
     check_state(state)
     check(start_step is None or writer is not None or progress,
           "run: start_step continues a chunked run; pass writer=... (see jaxmpm.resume)")

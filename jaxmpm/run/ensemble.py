@@ -35,6 +35,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from ..core.device import to_device
 from ..core.errors import check
 from ..core.params import _where, _with_owner, check_value, set_params
+from ..core.state import State
 from ..core.validate import POSITIVE, batch_members, positive_int
 from ..transfer.backend import RUNTIME_COUNTS, resolve
 from .driver import _frame_bytes, _is_traced, _run_at_once
@@ -178,7 +179,7 @@ def ensemble(sim, state, dt, steps: int, save_every: int = 1, *, params: dict | 
     check(params is None or isinstance(params, dict), "ensemble: params must be a dict {name: batch}")
     steps = positive_int("ensemble", "steps", steps, low=0)
     save_every = positive_int("ensemble", "save_every", save_every)
-    POSITIVE.check("ensemble", "dt", dt)
+    POSITIVE.real("ensemble", "dt", dt, fix="the time step, e.g. a scene's setup.dt")  # one number (traced: passes)
     show = shown(progress, "ensemble")
     check(strategy in STRATEGIES, f"ensemble: strategy = {strategy!r}; choose one of {', '.join(STRATEGIES)}")
     if chunk is not None:
@@ -193,6 +194,11 @@ def ensemble(sim, state, dt, steps: int, save_every: int = 1, *, params: dict | 
         check(np.ndim(values) > 0, f"ensemble: params[{name!r}] = {values!r} is one value; params hold one value per "
                                    f"member (an array whose leading axis is the batch); to set {name} for every "
                                    f"member, pass jm.set_params(sim, {name}=...) as the model")
+    check(isinstance(state, State), f"ensemble: state = {type(state).__name__}; give the members' initial jm.State "
+                                    "(the template of states=, when given)")
+    check(states is None or isinstance(states, State),
+          f"ensemble: states = {type(states).__name__}; give a jm.State whose arrays have a leading batch axis, "
+          "e.g. jax.tree_util.tree_map(lambda a: jnp.stack([a, a]), state)")
     batch = _batch_size((params or {}, states))
     if steps % save_every:
         check(False, f"ensemble: steps = {steps} must be a multiple of save_every = {save_every}")
@@ -200,7 +206,7 @@ def ensemble(sim, state, dt, steps: int, save_every: int = 1, *, params: dict | 
     parse_memory(memory)  # a bad budget is an error here, not inside the trace
 
     dt = jnp.asarray(dt, state.x.dtype)
-    devices = jax.devices() if devices is None else list(devices)
+    devices = jax.devices() if devices is None else _checked_devices(devices)
     used = max(d for d in range(1, len(devices) + 1) if batch % d == 0)
     inputs = (params or None, states)
     mesh = Mesh(np.asarray(devices[:used]), ("batch",)) if used > 1 else None
@@ -214,6 +220,18 @@ def ensemble(sim, state, dt, steps: int, save_every: int = 1, *, params: dict | 
     out = shown_call(_batched_rollout, (sim, state, dt, frames, save_every, save_particles, *how, mesh, memory,
                                         *inputs), what, show)
     return _gathered(out) if mesh is not None and mesh.is_multi_process else out
+
+
+def _checked_devices(devices) -> list:
+    """``devices`` as a list of JAX devices, at least one."""
+    fix = "give a list of JAX devices, e.g. jax.devices() or jax.devices()[:2], or None (all of them)"
+    try:
+        listed = list(devices)
+    except TypeError:
+        listed = None
+    check(listed is not None and not isinstance(devices, (str, bytes)) and len(listed) > 0
+          and all(isinstance(d, jax.Device) for d in listed), f"ensemble: devices = {devices!r}; {fix}")
+    return listed
 
 
 def _runs_one_by_one(sim, inputs) -> bool:

@@ -21,12 +21,14 @@ import shlex
 import h5py
 
 from .core.errors import InputError, check
+from .core.validate import file_path
 
 
 def run_info(path) -> dict:
     """The root attributes of a run's file that resuming needs (``dt``, ``command``, ``scene``)."""
     from .io.hdf5 import working_paths
 
+    path = file_path("resume", path, "give the path of a run's file (jaxmpm run ... --out FILE.h5, jm.H5Writer)")
     if not os.path.exists(path):
         started = any(os.path.exists(p) for p in working_paths(path))
         check(False, f"resume: {os.fspath(path)} does not exist" + (

@@ -468,3 +468,34 @@ def test_run_and_ensemble_entry_points_name_a_bad_argument():
     ]
     for make, words in cases:
         assert_input_error(make, *words)
+
+
+def test_io_calibrate_and_model_entry_points_name_a_bad_argument(tmp_path):
+    """The same fuzz over the files, the calibration and the model's own methods: each raised a raw exception (a
+    TypeError, an AttributeError, "The truth value of an empty array is ambiguous", an MLIRError for rollout's
+    frames = -1)."""
+    setup = jm.scene("bar", cells=8)
+    sim, state, dt = setup.sim, setup.state, setup.dt
+    cases = [
+        (lambda: jm.load_h5(None), ("load_h5: path = None is not a path",)),
+        (lambda: jm.resume(None), ("resume: path = None is not a path",)),
+        (lambda: jm.H5Writer(None, sim, state, dt), ("H5Writer: path = None is not a path",)),
+        (lambda: jm.H5Writer(tmp_path / "a.h5", sim, state, "x"), ("H5Writer: dt must be a number",)),
+        (lambda: jm.H5Writer(tmp_path / "a.h5", sim, state, dt, mode=np.zeros(0)), ("mode = array([]",)),
+        (lambda: jm.H5Writer(tmp_path / "a.h5", sim, state, dt, fields=np.zeros(0)), ("fields = array([]",)),
+        (lambda: jm.calibrate(None, {"E": 1.0}, steps=1), ("calibrate: loss = None is not a function",)),
+        (lambda: jm.calibrate(lambda p: p["E"], {"E": 1.0}, bounds=-1, steps=1), ("bounds = -1",)),
+        (lambda: jm.calibrate(lambda p: p["E"], {"E": 1.0}, tol="x", steps=1), ("calibrate: tol must be a number",)),
+        (lambda: jm.scene([]), ("unknown scene []",)),
+        (lambda: sim.rollout(state, dt, -1), ("rollout: frames = -1 must be a non-negative integer",)),
+        (lambda: sim.rollout(state, dt, 2, 0), ("rollout: save_every = 0 must be a positive integer",)),
+        (lambda: sim.diagnostics(None), ("diagnostics: state = NoneType",)),
+        (lambda: sim.stable_dt(state, []), ("stable_dt: cfl must be a single number",)),
+        (lambda: sim.with_backend(np.zeros(0)), ("backend = array([]",)),
+        (lambda: sim.with_adjoint(np.zeros(0)), ("adjoint = array([]",)),
+        (lambda: sim.with_particle_devices(np.zeros(0)), ("particle_devices = array([]",)),
+        (lambda: jm.compiler_options(np.zeros(0)), ("backend = array([]",)),
+        (lambda: sim.in_precision(-1), ("dtype = -1", "jnp.float32 or jnp.float64")),
+    ]
+    for make, words in cases:
+        assert_input_error(make, *words)

@@ -91,7 +91,7 @@ def stable_dt(grid, material, velocity, cfl: float = 1.0):
         cfl: the Courant number, a finite number > 0 (default 1.0; a traced one passes
             unchecked).
     """
-    POSITIVE.check("stable_dt", "cfl", cfl, fix="the Courant number, e.g. 0.5")
+    POSITIVE.real("stable_dt", "cfl", cfl, fix="the Courant number, e.g. 0.5")  # one number (a traced one passes)
     check(isinstance(grid, Grid), f"stable_dt: grid = {type(grid).__name__}; give the jm.Grid (a model's stable time "
                                   "step with its terms' limits: sim.stable_dt(state))")
     check(hasattr(material, "wave_speed"), f"stable_dt: material = {type(material).__name__}; give the jm.Material "

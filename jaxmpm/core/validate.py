@@ -256,6 +256,16 @@ def leaf(owner: str, name: str, value, *, low=None, high=None, low_open: bool = 
 
 
 # --------------------------------------------------------------------------- integers
+def file_path(owner: str, value, fix: str = "give a file's path, a str or pathlib.Path") -> str:
+    """``value`` as a path string (``os.fspath``): a str, bytes or path-like object; anything else is an InputError."""
+    import os
+
+    if not isinstance(value, (str, bytes, os.PathLike)):
+        fail(owner, f"path = {show(value)} is not a path", fix)
+    path = os.fspath(value)
+    return path.decode() if isinstance(path, bytes) else path
+
+
 def positive_int(owner: str, name: str, value, *, low: int = 1, fix: str | None = None) -> int:
     """``value`` as a Python int >= ``low`` (1: "a positive integer", 0: "a non-negative integer").
     Integral floats (4.0) are accepted; 2.5, True/False, nan, inf, strings and traced values are

@@ -245,7 +245,7 @@ class Simulation(eqx.Module):
               f"got {type(material).__name__}")
         check(update in UPDATES,
               f"Simulation: update = {update!r}; choose USF, USL (USL-), MUSL (USL+), USAVG- or USAVG+")
-        check(backend in POLICIES, f"Simulation: backend = {backend!r}; choose one of {', '.join(POLICIES)}")
+        check(_one_of(backend, POLICIES), f"Simulation: backend = {backend!r}; choose one of {', '.join(POLICIES)}")
         check(adjoint in ADJOINTS, f"Simulation: adjoint = {adjoint!r}; choose 'structured' (the transfer layer's "
                                    "derivative rules, the default) or 'autodiff' (JAX's own, the reference)")
         damping_given = damping is not None and damping is not False
@@ -294,7 +294,8 @@ class Simulation(eqx.Module):
         self.adjoint = adjoint
         self.conventions = conventions
         self.constrained_force = constrained_force
-        check(kernel in KERNEL_CHOICES, f"Simulation: kernel = {kernel!r}; choose one of {', '.join(KERNEL_CHOICES)}")
+        check(_one_of(kernel, KERNEL_CHOICES),
+              f"Simulation: kernel = {kernel!r}; choose one of {', '.join(KERNEL_CHOICES)}")
         self.kernel = kernel
         self.sort_every = _checked_sort_every(sort_every)
         self.chunk_particles = _checked_chunk_particles(chunk_particles)
@@ -340,17 +341,18 @@ class Simulation(eqx.Module):
 
     def with_backend(self, backend: str):
         """A copy traced under another fusion policy ("auto", "cpu", "gpu"; jaxmpm.transfer.backend)."""
-        check(backend in POLICIES, f"Simulation: backend = {backend!r}; choose one of {', '.join(POLICIES)}")
+        check(_one_of(backend, POLICIES), f"Simulation: backend = {backend!r}; choose one of {', '.join(POLICIES)}")
         return self._with_static(backend=backend)
 
     def with_adjoint(self, adjoint: str):
         """A copy differentiated with other derivative rules ("structured", "autodiff"; jaxmpm.transfer.backend)."""
-        check(adjoint in ADJOINTS, f"Simulation: adjoint = {adjoint!r}; choose one of {', '.join(ADJOINTS)}")
+        check(_one_of(adjoint, ADJOINTS), f"Simulation: adjoint = {adjoint!r}; choose one of {', '.join(ADJOINTS)}")
         return self._with_static(adjoint=adjoint)
 
     def with_kernel(self, kernel: str):
         """A copy whose transfers run on another kernel ("auto", "xla", "pallas"; :func:`backend_info`)."""
-        check(kernel in KERNEL_CHOICES, f"Simulation: kernel = {kernel!r}; choose one of {', '.join(KERNEL_CHOICES)}")
+        check(_one_of(kernel, KERNEL_CHOICES),
+              f"Simulation: kernel = {kernel!r}; choose one of {', '.join(KERNEL_CHOICES)}")
         return self._with_static(kernel=kernel)
 
     def with_sorting(self, every):
@@ -681,6 +683,11 @@ class Simulation(eqx.Module):
 
     def in_precision(self, dtype):
         """The model with its float leaves cast to ``dtype`` (itself if they already are)."""
+        try:
+            floating = jnp.issubdtype(jnp.dtype(dtype), jnp.floating)
+        except TypeError:
+            floating = False
+        check(floating, f"Simulation.in_precision: dtype = {dtype!r}; give a float dtype, jnp.float32 or jnp.float64")
         leaves = [leaf for leaf in jax.tree_util.tree_leaves(self) if isinstance(leaf, jax.Array)
                   and jnp.issubdtype(leaf.dtype, jnp.floating)]
         if all(leaf.dtype == dtype for leaf in leaves):
@@ -709,7 +716,7 @@ class Simulation(eqx.Module):
         (:meth:`jaxmpm.Material.time_step_limit`, named after its class: e.g. "newtonianfluid", the
         viscous limit); and one per term that limits it (e.g. "heat": h^2 / (2 D a),
         jaxmpm.physics.transport)."""
-        POSITIVE.check("stable_dt", "cfl", cfl, fix="the Courant number, e.g. 0.5")  # a traced one passes
+        POSITIVE.real("stable_dt", "cfl", cfl, fix="the Courant number, e.g. 0.5")  # a traced one passes
         # concrete (sim.run's check of dt): one compiled program, kept per model, instead of the limits'
         # small ones op by op on a first call
         limits = _time_step_limits(self, state, cfl)
@@ -771,6 +778,7 @@ class Simulation(eqx.Module):
         something; 0 without gravity, and a body force b(x, t) has none), the ``dissipated`` energy, the
         linear and angular ``momentum``.  K + U + V_g is what a run under gravity conserves.  The saved
         frames hold all but ``gravitational`` (:meth:`diagnostics_frame`)."""
+        check(isinstance(state, State), f"diagnostics: state = {type(state).__name__}; give a jm.State of this model")
         # concrete: one compiled program, kept per model, instead of some thirty small ones op by op
         return _diagnostics(self, state)
 
@@ -896,12 +904,17 @@ def backend_info(sim: Simulation, state: State, members: int = 1) -> dict:
     return info
 
 
+def _one_of(value, choices) -> bool:
+    """Whether ``value`` is one of the string ``choices`` (an array compared with a string has no truth value)."""
+    return isinstance(value, str) and value in choices
+
+
 def _checked_particle_devices(devices):
-    check(devices == "auto" or (isinstance(devices, (int, np.integer)) and not isinstance(devices, bool)
-                                and devices >= 1),
+    auto = _one_of(devices, ("auto",))
+    check(auto or (isinstance(devices, (int, np.integer)) and not isinstance(devices, bool) and devices >= 1),
           f"Simulation: particle_devices = {devices!r}; give how many of the process's devices a step shares its "
           "particles among (an integer >= 1, 1 = one device) or 'auto' (the backend table's choice)")
-    return devices if devices == "auto" else int(devices)
+    return devices if auto else int(devices)
 
 
 def _checked_chunk_particles(particles):
@@ -920,7 +933,7 @@ def _checked_sort_every(every):
 
 def _auto_or_count(value, name: str, what: str, zero: str):
     """``value``: "auto" (the backend table's choice) or a non-negative integer (0 meaning ``zero``)."""
-    auto = isinstance(value, str) and value == "auto"  # an array compared with "auto" has no truth value
+    auto = _one_of(value, ("auto",))
     check(auto or (isinstance(value, (int, np.integer)) and not isinstance(value, bool) and value >= 0),
           f"Simulation: {name} = {value!r}; give {what} (a non-negative integer, 0 = {zero}) or 'auto' (the "
           "backend table's choice)")

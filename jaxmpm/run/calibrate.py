@@ -26,6 +26,7 @@ import optax
 
 from ..core.errors import check
 from ..core.params import default_bounds
+from ..core.validate import FINITE
 from ..transfer.backend import compiler_options
 from .progress import AheadOfTime, bar, shown
 
@@ -223,7 +224,14 @@ def calibrate(
     Returns:
         A :class:`CalibrationResult`.
     """
+    check(callable(loss), f"calibrate: loss = {loss!r} is not a function; give loss(params) -> a scalar, params "
+                          "a dict like init")
     check(isinstance(init, dict) and init, "calibrate: init must be a non-empty dict {name: initial value}")
+    check(bounds is None or isinstance(bounds, dict),
+          f"calibrate: bounds = {bounds!r}; give a dict {{name: (low, high) or 'positive' or None}}, or None (each "
+          "parameter's registered range)")
+    if tol is not None:
+        FINITE.real("calibrate", "tol", tol, fix="the loss below which to stop, or None (run every step)")
     check(isinstance(steps, int) and steps >= 1, f"calibrate: steps = {steps!r} must be a positive integer")
     names = [free] if isinstance(free, str) else None if free is None else _names(free)
     check(names is None or (names and all(isinstance(n, str) and n in init for n in names)),

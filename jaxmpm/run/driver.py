@@ -150,6 +150,8 @@ def rollout(sim, state: State, dt, frames: int, save_every: int = 1, save_partic
     a loss of the final state alone then carries no pullback of the diagnostics, and no frame
     holds residuals.  The instability record is never differentiated (its outputs are integers).
     """
+    frames = positive_int("rollout", "frames", frames, low=0)  # a Python int: it fixes the scans' lengths
+    save_every = positive_int("rollout", "save_every", save_every)
     final, later, failure, frame = _later_frames(sim, state, dt, frames, save_every, save_particles, checkpoint,
                                                  history_gradients, fields, memory)
     history = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a[None], b]), frame(state), later)

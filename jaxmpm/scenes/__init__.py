@@ -87,7 +87,7 @@ def scene(name: str, **options) -> Setup:
 
 def unknown_scene(name) -> str:
     """The message for a scene name that is not registered (a failed entry point's own reason)."""
-    if name in ENTRY_POINT_ERRORS:
+    if isinstance(name, str) and name in ENTRY_POINT_ERRORS:
         return ENTRY_POINT_ERRORS[name]
     return f"unknown scene {name!r}; choose one of {', '.join(SCENES)}"
 

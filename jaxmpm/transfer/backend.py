@@ -71,7 +71,7 @@ _active = contextvars.ContextVar("jaxmpm_backend_policy", default="auto")
 
 def resolve(policy: str) -> str:
     """``"cpu"`` or ``"gpu"`` for a policy name (``"auto"``: from the default JAX backend)."""
-    check(policy in POLICIES, f"backend = {policy!r}; choose one of {', '.join(POLICIES)}")
+    check(isinstance(policy, str) and policy in POLICIES, f"backend = {policy!r}; choose one of {', '.join(POLICIES)}")
     if policy == "auto":
         return "cpu" if jax.default_backend() == "cpu" else "gpu"
     return policy

@@ -288,6 +288,7 @@ def recompiles(steps: int) -> list[dict]:
     jax.config.update("jax_enable_x64", True)
     import jaxmpm as jm
 
+    jm.compilation_cache(False)  # XLA's compile seconds, not programs read back from the persistent cache
     compiles = []
     jax.monitoring.register_event_duration_secs_listener(
         lambda event, secs, **kw: compiles.append((kw.get("fun_name", "?"), secs))

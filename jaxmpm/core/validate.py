@@ -256,6 +256,24 @@ def leaf(owner: str, name: str, value, *, low=None, high=None, low_open: bool = 
 
 
 # --------------------------------------------------------------------------- integers
+def one_of(value, choices) -> bool:
+    """Whether ``value`` is one of the string ``choices`` (``value in choices`` for an array compares it element
+    by element, and the result has no truth value)."""
+    return isinstance(value, str) and value in choices
+
+
+def device_list(owner: str, devices) -> list:
+    """``devices`` (an iterable of JAX devices, at least one) as a list; anything else is an InputError."""
+    try:
+        listed = None if isinstance(devices, (str, bytes)) else list(devices)
+    except TypeError:
+        listed = None
+    if not listed or not all(isinstance(d, jax.Device) for d in listed):
+        fail(owner, f"devices = {show(devices)}",
+             "give a list of JAX devices, e.g. jax.devices() or jax.devices()[:2], or None (all of them)")
+    return listed
+
+
 def file_path(owner: str, value, fix: str = "give a file's path, a str or pathlib.Path") -> str:
     """``value`` as a path string (``os.fspath``): a str, bytes or path-like object; anything else is an InputError."""
     import os

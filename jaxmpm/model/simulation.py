@@ -23,7 +23,7 @@ from ..core.linalg import det, identities
 from ..core.particles import Particles
 from ..core.registry import MATERIALS, SCHEMES, SHAPES, scheme_from_name, shape_from_name
 from ..core.state import State
-from ..core.validate import FINITE, POSITIVE, compiled_when_concrete, concrete, show, traced
+from ..core.validate import FINITE, POSITIVE, compiled_when_concrete, concrete, one_of, show, traced
 from ..core.warn import warn
 from ..materials.base import Material
 from ..physics.body_force import BodyForce
@@ -243,11 +243,12 @@ class Simulation(eqx.Module):
         check(isinstance(material, Material),
               f"Simulation: material must be a jm.Material ({', '.join(MATERIALS.names())}), "
               f"got {type(material).__name__}")
-        check(update in UPDATES,
+        check(one_of(update, UPDATES),
               f"Simulation: update = {update!r}; choose USF, USL (USL-), MUSL (USL+), USAVG- or USAVG+")
-        check(_one_of(backend, POLICIES), f"Simulation: backend = {backend!r}; choose one of {', '.join(POLICIES)}")
-        check(adjoint in ADJOINTS, f"Simulation: adjoint = {adjoint!r}; choose 'structured' (the transfer layer's "
-                                   "derivative rules, the default) or 'autodiff' (JAX's own, the reference)")
+        check(one_of(backend, POLICIES), f"Simulation: backend = {backend!r}; choose one of {', '.join(POLICIES)}")
+        check(one_of(adjoint, ADJOINTS),
+              f"Simulation: adjoint = {adjoint!r}; choose 'structured' (the transfer layer's derivative rules, the "
+              "default) or 'autodiff' (JAX's own, the reference)")
         damping_given = damping is not None and damping is not False
         # None: zero damping, still a differentiable parameter; False: no damping in the model at
         # all (nothing compiled for it -- "model no more than a scene needs")
@@ -294,7 +295,7 @@ class Simulation(eqx.Module):
         self.adjoint = adjoint
         self.conventions = conventions
         self.constrained_force = constrained_force
-        check(_one_of(kernel, KERNEL_CHOICES),
+        check(one_of(kernel, KERNEL_CHOICES),
               f"Simulation: kernel = {kernel!r}; choose one of {', '.join(KERNEL_CHOICES)}")
         self.kernel = kernel
         self.sort_every = _checked_sort_every(sort_every)
@@ -341,17 +342,17 @@ class Simulation(eqx.Module):
 
     def with_backend(self, backend: str):
         """A copy traced under another fusion policy ("auto", "cpu", "gpu"; jaxmpm.transfer.backend)."""
-        check(_one_of(backend, POLICIES), f"Simulation: backend = {backend!r}; choose one of {', '.join(POLICIES)}")
+        check(one_of(backend, POLICIES), f"Simulation: backend = {backend!r}; choose one of {', '.join(POLICIES)}")
         return self._with_static(backend=backend)
 
     def with_adjoint(self, adjoint: str):
         """A copy differentiated with other derivative rules ("structured", "autodiff"; jaxmpm.transfer.backend)."""
-        check(_one_of(adjoint, ADJOINTS), f"Simulation: adjoint = {adjoint!r}; choose one of {', '.join(ADJOINTS)}")
+        check(one_of(adjoint, ADJOINTS), f"Simulation: adjoint = {adjoint!r}; choose one of {', '.join(ADJOINTS)}")
         return self._with_static(adjoint=adjoint)
 
     def with_kernel(self, kernel: str):
         """A copy whose transfers run on another kernel ("auto", "xla", "pallas"; :func:`backend_info`)."""
-        check(_one_of(kernel, KERNEL_CHOICES),
+        check(one_of(kernel, KERNEL_CHOICES),
               f"Simulation: kernel = {kernel!r}; choose one of {', '.join(KERNEL_CHOICES)}")
         return self._with_static(kernel=kernel)
 
@@ -904,13 +905,8 @@ def backend_info(sim: Simulation, state: State, members: int = 1) -> dict:
     return info
 
 
-def _one_of(value, choices) -> bool:
-    """Whether ``value`` is one of the string ``choices`` (an array compared with a string has no truth value)."""
-    return isinstance(value, str) and value in choices
-
-
 def _checked_particle_devices(devices):
-    auto = _one_of(devices, ("auto",))
+    auto = one_of(devices, ("auto",))
     check(auto or (isinstance(devices, (int, np.integer)) and not isinstance(devices, bool) and devices >= 1),
           f"Simulation: particle_devices = {devices!r}; give how many of the process's devices a step shares its "
           "particles among (an integer >= 1, 1 = one device) or 'auto' (the backend table's choice)")
@@ -933,7 +929,7 @@ def _checked_sort_every(every):
 
 def _auto_or_count(value, name: str, what: str, zero: str):
     """``value``: "auto" (the backend table's choice) or a non-negative integer (0 meaning ``zero``)."""
-    auto = _one_of(value, ("auto",))
+    auto = one_of(value, ("auto",))
     check(auto or (isinstance(value, (int, np.integer)) and not isinstance(value, bool) and value >= 0),
           f"Simulation: {name} = {value!r}; give {what} (a non-negative integer, 0 = {zero}) or 'auto' (the "
           "backend table's choice)")

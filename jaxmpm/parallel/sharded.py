@@ -52,6 +52,7 @@ from jax.sharding import PartitionSpec as P
 from ..core.errors import check
 from ..core.limits import require_steps
 from ..core.state import State, per_particle
+from ..core.validate import device_list
 from ..physics.body_force import BodyForce
 from ..physics.collider import Collider
 from ..physics.conditions import Mirror
@@ -130,7 +131,7 @@ class ShardedSimulation:
     def __init__(self, sim, devices=None, halo: int | None = None, capacity: int | None = None,
                  exchange: int | None = None, axis_name: str = "slabs", rebalance_every: int | None = None,
                  max_cells: int | None = None):
-        devices = list(jax.devices() if devices is None else devices)
+        devices = jax.devices() if devices is None else device_list("ShardedSimulation", devices)
         unsupported = sorted({type(t).__name__ for t in sim.terms if not isinstance(t, SUPPORTED_TERMS)})
         check(not unsupported, f"ShardedSimulation: {', '.join(unsupported)} not supported on several devices yet "
               f"(supported terms: {', '.join(t.__name__ for t in SUPPORTED_TERMS)}); run this model on one device")

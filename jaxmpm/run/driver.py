@@ -670,12 +670,12 @@ def _run_chunked(sim, state, dt, frames, save_every, save_particles, check_stabi
     if writer is not None:
         state_bytes = tree_bytes(state)
         publisher = _Publisher(writer, dict(start_step=start_step, steps=total, save_every=save_every), state_bytes)
-    none = Failure(*(jax.device_put(np.int32(i)) for i in (-1, 0, -1)))  # device_put: nothing compiled
+    none = Failure(*_device_ints(-1, 0, -1))  # device_put: nothing compiled
 
     def advance(s, n_frames, per_frame):
         """``n_frames`` frames of ``per_frame`` steps from ``s``: one call of the compiled loop, which
         computes the new state in place of ``s`` (``s`` is deleted)."""
-        counts = jax.device_put(np.int32(n_frames)), jax.device_put(np.int32(per_frame))
+        counts = _device_ints(n_frames, per_frame)
         return _advance_in_place((sim, none, dt, *counts, buffer_frames, save_particles, check_stability, fields,
                                   counts[1]), s)
 

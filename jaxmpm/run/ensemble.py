@@ -36,7 +36,7 @@ from ..core.device import to_device
 from ..core.errors import check
 from ..core.params import _where, _with_owner, check_value, set_params
 from ..core.state import State
-from ..core.validate import POSITIVE, batch_members, positive_int
+from ..core.validate import POSITIVE, batch_members, device_list, positive_int
 from ..transfer.backend import RUNTIME_COUNTS, resolve
 from .driver import _frame_bytes, _is_traced, _run_at_once
 from .memory import budget_bytes, members_at_once, parse_memory
@@ -206,7 +206,7 @@ def ensemble(sim, state, dt, steps: int, save_every: int = 1, *, params: dict | 
     parse_memory(memory)  # a bad budget is an error here, not inside the trace
 
     dt = jnp.asarray(dt, state.x.dtype)
-    devices = jax.devices() if devices is None else _checked_devices(devices)
+    devices = jax.devices() if devices is None else device_list("ensemble", devices)
     used = max(d for d in range(1, len(devices) + 1) if batch % d == 0)
     inputs = (params or None, states)
     mesh = Mesh(np.asarray(devices[:used]), ("batch",)) if used > 1 else None
@@ -220,18 +220,6 @@ def ensemble(sim, state, dt, steps: int, save_every: int = 1, *, params: dict | 
     out = shown_call(_batched_rollout, (sim, state, dt, frames, save_every, save_particles, *how, mesh, memory,
                                         *inputs), what, show)
     return _gathered(out) if mesh is not None and mesh.is_multi_process else out
-
-
-def _checked_devices(devices) -> list:
-    """``devices`` as a list of JAX devices, at least one."""
-    fix = "give a list of JAX devices, e.g. jax.devices() or jax.devices()[:2], or None (all of them)"
-    try:
-        listed = list(devices)
-    except TypeError:
-        listed = None
-    check(listed is not None and not isinstance(devices, (str, bytes)) and len(listed) > 0
-          and all(isinstance(d, jax.Device) for d in listed), f"ensemble: devices = {devices!r}; {fix}")
-    return listed
 
 
 def _runs_one_by_one(sim, inputs) -> bool:

@@ -58,6 +58,7 @@ from jax.extend.core import jaxpr_as_fun
 
 from ..core.errors import check
 from ..core.limits import size_text
+from ..core.validate import one_of
 
 try:  # whether no trace is active: code runs op by op (see _eager)
     from jax._src.core import trace_state_clean as _trace_state_clean
@@ -71,7 +72,7 @@ _active = contextvars.ContextVar("jaxmpm_backend_policy", default="auto")
 
 def resolve(policy: str) -> str:
     """``"cpu"`` or ``"gpu"`` for a policy name (``"auto"``: from the default JAX backend)."""
-    check(isinstance(policy, str) and policy in POLICIES, f"backend = {policy!r}; choose one of {', '.join(POLICIES)}")
+    check(one_of(policy, POLICIES), f"backend = {policy!r}; choose one of {', '.join(POLICIES)}")
     if policy == "auto":
         return "cpu" if jax.default_backend() == "cpu" else "gpu"
     return policy
@@ -365,7 +366,7 @@ _adjoint = contextvars.ContextVar("jaxmpm_adjoint", default="structured")
 @contextlib.contextmanager
 def use_adjoint(adjoint: str):
     """Trace the enclosed code with the derivative rules of ``adjoint`` (see the module docstring)."""
-    check(adjoint in ADJOINTS, f"adjoint = {adjoint!r}; choose one of {', '.join(ADJOINTS)}")
+    check(one_of(adjoint, ADJOINTS), f"adjoint = {adjoint!r}; choose one of {', '.join(ADJOINTS)}")
     token = _adjoint.set(adjoint)
     try:
         yield
@@ -791,7 +792,8 @@ _kernel = contextvars.ContextVar("jaxmpm_transfer_kernel", default=None)
 def use_kernel(name, options=None):
     """Trace the enclosed transfers with kernel ``name`` ("xla" or "pallas", with ``options`` for
     it); None: the kernel registered for the policy (``jaxmpm.transfer.kernels.register_kernel``)."""
-    check(name is None or name in KERNEL_CHOICES[1:], f"kernel = {name!r}; choose one of {', '.join(KERNEL_CHOICES)}")
+    check(name is None or one_of(name, KERNEL_CHOICES[1:]),
+          f"kernel = {name!r}; choose one of {', '.join(KERNEL_CHOICES)}")
     token = _kernel.set(None if name is None else (name, tuple(sorted((options or {}).items()))))
     try:
         yield

@@ -26,6 +26,7 @@ import equinox as eqx
 import jax
 
 from ...core.errors import check
+from ...core.validate import one_of
 from ..backend import POLICIES, active, kernel_in_force
 from ..shapes import of_trace
 
@@ -123,7 +124,7 @@ def register_kernel(policy: str, kernel: Kernel) -> Kernel:
     Returns:
         ``kernel``.
     """
-    check(policy in POLICIES and policy != "auto",
+    check(one_of(policy, POLICIES) and policy != "auto",
           f"register_kernel: policy = {policy!r}; choose 'cpu' or 'gpu' (jaxmpm.transfer.backend)")
     check(isinstance(kernel, Kernel), f"register_kernel: {kernel!r} is not a jaxmpm Kernel")
     if _KERNELS.get(policy) is not kernel:

@@ -337,7 +337,7 @@ def recompiles(steps: int) -> list[dict]:
            lambda: jm.ensemble(sim, state, dt, steps, save, params={"E": jnp.linspace(90, 110, 4)}))
     record("jm.ensemble again, other E values",
            lambda: jm.ensemble(sim, state, dt, steps, save, params={"E": jnp.linspace(80, 120, 4)}))
-    record(f"jm.ensemble, steps {steps} -> {2 * steps} (vmapped: static scans)",
+    record(f"jm.ensemble, steps {steps} -> {2 * steps} (vmapped)",
            lambda: jm.ensemble(sim, state, dt, 2 * steps, save, params={"E": jnp.linspace(80, 120, 4)}))
     record("jm.ensemble(strategy='sequential') (single runs on the CPU)",
            lambda: jm.ensemble(sim, state, dt, steps, save, params={"E": jnp.linspace(80, 120, 4)},

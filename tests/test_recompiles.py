@@ -246,6 +246,45 @@ def test_an_ensemble_of_another_length_compiles_nothing():
     assert failed[0] == failed[1] == -1 and failed[2] > 0, failed
 
 
+def test_a_vmapped_ensemble_of_another_length_compiles_nothing():
+    """Vmapped members outside a trace on the CPU (what "auto" picks for scenes under 257 particles) run in one
+    compiled loop whose frame and step counts are runtime values (jaxmpm.run.ensemble._vmapped_at_once): after a
+    first ensemble, one of another length or save_every, or in chunks of members, compiles no run.  Each equals
+    single runs of its members (the sequential strategy's) and the traced ensemble (static scans, what jax.grad
+    differentiates) to round-off: a frame's sums over the particles may add in another order (2e-16 of the bar's
+    momentum against the traced ensemble)."""
+    setup = jm.scene("bar", scheme="xpic:2", cells=8)
+    sim, state, dt = setup.sim, setup.state, setup.dt
+    E = float(jm.get_params(sim, "E")["E"])
+    values = jnp.asarray([E, 2.0 * E, 1e4 * E])  # the last member fails, and the others go on
+    states = jax.tree_util.tree_map(lambda a: jnp.stack([a, a, a]), state)
+    states = eqx.tree_at(lambda s: s.v, states, states.v * jnp.asarray([1.0, 0.5, 0.25])[:, None, None])
+
+    def ensemble(steps, every, strategy="vmap", **batch):
+        return jm.ensemble(sim, state, dt, steps, every, strategy=strategy, progress=False, **batch)
+
+    traced = jax.jit(ensemble, static_argnums=(0, 1, 2))
+    compiled_by(lambda: ensemble(40, 4, params={"E": values}))  # its loop, unless a test before compiled it
+    for steps, every, batch in ((40, 4, {"params": {"E": values}}), (12, 3, {"params": {"E": values}}),
+                                (90, 45, {"params": {"E": values}}), (0, 1, {"params": {"E": values}})):
+        got, names = compiled_by(lambda: ensemble(steps, every, **batch))  # noqa: B023
+        assert not any(a_run(n) for n in names), (steps, every, names)
+        assert got[1].time.shape == (3, steps // every + 1)
+        for want in (traced(steps, every, "vmap", **batch), ensemble(steps, every, "sequential", **batch)):
+            np.testing.assert_array_equal(got[2], want[2])
+            for g, w in zip(jax.tree_util.tree_leaves(got[:2]), jax.tree_util.tree_leaves(want[:2]), strict=True):
+                np.testing.assert_allclose(g, w, rtol=1e-13, atol=1e-300)
+    compiled_by(lambda: ensemble(8, 2, states=states, params={"E": values}))
+    got, names = compiled_by(lambda: ensemble(20, 5, states=states, params={"E": values}))
+    assert not any(a_run(n) for n in names), names
+    assert not any(a.is_deleted() for a in jax.tree_util.tree_leaves(states))  # the loop computed in a copy
+    want = traced(20, 5, "vmap", states=states, params={"E": values})
+    for g, w in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want), strict=True):
+        np.testing.assert_allclose(g, w, rtol=1e-13, atol=1e-300)
+    failed = np.asarray(ensemble(40, 4, params={"E": values})[2])
+    assert failed[0] == failed[1] == -1 and failed[2] > 0, failed
+
+
 def test_an_ensemble_runs_in_its_members_precision():
     """Single-run members of float32 states from a float64 template state (the model and dt cast to the members'
     precision, as Simulation.rollout casts them): float32 results, bit for bit the traced ensemble's."""

@@ -771,7 +771,12 @@ class Simulation(eqx.Module):
         inside = self.shape.inside(self.grid, state.x)
         code = jnp.where(~jnp.all(finite), 1, jnp.where(~jnp.all(positive), 2, jnp.where(~jnp.all(inside), 3, 0)))
         bad = jnp.where(code == 1, ~finite, jnp.where(code == 2, ~positive, ~inside))
-        return code.astype(jnp.int32), jnp.argmax(bad).astype(jnp.int32)
+        # the first bad particle (0 when none), as jnp.argmax(bad) finds it, but as a plain min-reduction of int32:
+        # argmax is a reduction of (value, index) pairs that XLA:CPU does not vectorise, and a run's loop evaluates
+        # it every step (64 vmapped members of the bar, 2000 steps in the runtime-count loop: 136 -> 107 ms)
+        count = bad.shape[0]
+        first = jnp.min(jnp.where(bad, jnp.arange(count, dtype=jnp.int32), count))
+        return code.astype(jnp.int32), jnp.where(first == count, 0, first)
 
     def diagnostics(self, state: State) -> dict:
         """The energies and momenta of ``state``: ``kinetic`` K, ``strain`` U, ``gravitational`` V_g =

@@ -364,9 +364,7 @@ def _run_at_once(sim, state, dt, frames, save_every, save_particles, fields, don
     the bytes of a frame (:func:`_frame_bytes`); ``on_host``: a history joined on the host is handed back there,
     as NumPy arrays (an ensemble stacks its members' histories there)."""
     capacity = _buffer_frames(frame_bytes)
-    # frames of each call: the first call's first frame is the initial one (a frame of no steps)
-    counts = [min(capacity, frames + 1 - done) for done in range(0, frames + 1, capacity)]
-    no_steps, per_frame, *counts = _device_ints(0, save_every, *counts)
+    no_steps, per_frame, *counts = _device_ints(0, save_every, *_frames_per_call(frames, capacity))
     failure = Failure(*_device_ints(-1, 0, -1))
     working = state if donate else _copied(state)
     buffers = []
@@ -382,6 +380,12 @@ def _run_at_once(sim, state, dt, frames, save_every, save_particles, fields, don
     else:  # a large history stays on the device: one small program per length
         history = _jit_history(tuple(buffers), frames)
     return working, history, failure
+
+
+def _frames_per_call(frames: int, capacity: int) -> list[int]:
+    """The frames each call of a run's loop fills, ``capacity`` at most: a run's ``frames + 1``, the first call's
+    first frame the initial one (a frame of no steps)."""
+    return [min(capacity, frames + 1 - done) for done in range(0, frames + 1, capacity)]
 
 
 @functools.lru_cache(maxsize=1024)

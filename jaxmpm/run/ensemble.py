@@ -15,15 +15,22 @@ backend (:func:`plan`; benchmarks/ensemble_throughput.py):
   still lose with the batch size: several members' per-slot buffers (about 1 MiB per mpm88
   member in float32) outgrow the per-core cache.  Small scenes are still vmapped on the CPU, in
   chunks of about :data:`CPU_CHUNK_PARTICLES` particles, where batching amortises the cost per
-  operation (the 32-particle bar: 1.8-2.8x a single run).
+  operation (the 32-particle bar: 1.6-2.7x a single run).  Outside a trace they too run in a loop of
+  runtime counts (:func:`_vmapped_at_once`: ``sim.run``'s loop, vmapped), so another length compiles nothing
+  there either (0.7 s of XLA compilation for the bar's before), at 0.87-0.95x the static scans' speed on the
+  bar, whose vmapped step takes 5-55 us (a while loop tests its condition every step), and the same speed on
+  the disks and mpm88; ``jax.jit`` of the call keeps the static scans.
 
-Every strategy gives the same numbers (on the CPU bit for bit; tests/test_ensemble_strategies.py).
+Every strategy gives the same numbers to round-off (rtol 1e-13, tests/test_ensemble_strategies.py): a frame's
+sums over the particles may add in another order.
 With several devices, each runs its share of the members (``shard_map``) by the same strategy -- the
 devices of every process too, after ``jax.distributed.initialize``: the members spread over all of them
 and every process gets every member's results back (tests/test_parallel_slabs.py, 2 processes x 2 CPU
 devices: bit for bit one device's)."""
 
 from __future__ import annotations
+
+import functools
 
 import equinox as eqx
 import jax
@@ -38,7 +45,16 @@ from ..core.params import _where, _with_owner, check_value, set_params
 from ..core.state import State
 from ..core.validate import POSITIVE, batch_members, device_list, positive_int
 from ..transfer.backend import RUNTIME_COUNTS, resolve
-from .driver import _frame_bytes, _is_traced, _run_at_once
+from .driver import (
+    Failure,
+    _advance,
+    _buffer_frames,
+    _device_ints,
+    _frame_bytes,
+    _frames_per_call,
+    _is_traced,
+    _run_at_once,
+)
 from .memory import budget_bytes, members_at_once, parse_memory
 from .progress import Stage, shown, shown_call
 
@@ -158,7 +174,8 @@ def ensemble(sim, state, dt, steps: int, save_every: int = 1, *, params: dict | 
             default): True when the call is interactive (stderr is a terminal, or a Jupyter
             kernel runs it).  Nothing is printed under ``jax.jit``/``grad``.
         strategy: how the members on a device run: ``"vmap"``: batched, one vmapped step for all
-            (``chunk`` at a time if given); ``"sequential"``: one after another, each with the
+            (``chunk`` at a time if given; on the CPU outside a trace in ``sim.run``'s loop, vmapped, so
+            that a new length compiles nothing); ``"sequential"``: one after another, each with the
             single-run step (on the CPU as fast per member as a single run; there, outside a trace,
             each member is a ``sim.run`` and a new length compiles nothing; else ``lax.map``); or
             ``"auto"`` (default): "vmap" on a GPU, on the CPU "sequential" but for small scenes,
@@ -214,17 +231,21 @@ def ensemble(sim, state, dt, steps: int, save_every: int = 1, *, params: dict | 
         inputs = _shard(inputs, mesh)
     how = plan(strategy, chunk, batch // used, int(state.x.shape[0]), devices[0].platform)
     what = f"jaxmpm ensemble: {batch} members x {steps} steps"
-    if how[0] == "sequential" and mesh is None and _runs_one_by_one(sim, (state, *inputs)):
-        return _one_by_one(sim, state, dt, frames, save_every, save_particles, params or {}, states, batch, what,
-                           show)
+    if mesh is None and _runtime_counts(sim, (state, *inputs)):  # one compiled loop for any length
+        if how[0] == "sequential":
+            return _one_by_one(sim, state, dt, frames, save_every, save_particles, params or {}, states, batch, what,
+                               show)
+        return _vmapped_at_once(sim, state, dt, frames, save_every, save_particles, how[1], *inputs, batch, what,
+                                show)
     out = shown_call(_batched_rollout, (sim, state, dt, frames, save_every, save_particles, *how, mesh, memory,
                                         *inputs), what, show)
     return _gathered(out) if mesh is not None and mesh.is_multi_process else out
 
 
-def _runs_one_by_one(sim, inputs) -> bool:
-    """Whether sequential members run as single runs, one call of the run loop each: outside any trace, where the
-    backend runs with runtime counts (``RUNTIME_COUNTS``, the CPU)."""
+def _runtime_counts(sim, inputs) -> bool:
+    """Whether the members run in a compiled loop whose frame and step counts are runtime values (sequential
+    members: one call of ``sim.run``'s loop each, :func:`_one_by_one`; vmapped ones: :func:`_vmapped_at_once`):
+    outside any trace, where the backend runs with runtime counts (``RUNTIME_COUNTS``, the CPU)."""
     return not _is_traced((sim, inputs)) and RUNTIME_COUNTS[resolve(sim.backend)]
 
 
@@ -275,6 +296,75 @@ def _one_by_one(sim, state, dt, frames: int, save_every: int, save_particles: bo
     stacked = jax.tree_util.tree_map(lambda *a: np.stack(a), *finals), \
         jax.tree_util.tree_map(lambda *a: np.stack(a), *histories), np.asarray(failures, np.int32)
     return jax.tree_util.tree_map(to_device, stacked)
+
+
+def _vmapped_at_once(sim, state, dt, frames: int, save_every: int, save_particles: bool, chunk, params, states,
+                     batch: int, what: str, show: bool):
+    """Vmapped members outside any trace, in :func:`_advance_members`' compiled loop: the run loop of ``sim.run``
+    (:func:`jaxmpm.run.driver._run_at_once`) over all members at once (``chunk`` at a time, if given), its frame
+    and step counts runtime values, so that an ensemble of another length or ``save_every`` compiles nothing
+    (the static scans of :func:`_batched_rollout` compiled 0.7 s again for the bar's).  The arithmetic is
+    :func:`_batched_rollout`'s, and so is what it returns; the frames' sums over the particles may add in another
+    order (the bar's momentum: 2e-16 apart; tests/test_recompiles.py)."""
+    dtype = state.x.dtype if states is None else states.x.dtype
+    sim = sim.in_precision(dtype)  # the model computes in its members' precision, as Simulation.rollout does
+    first = state if states is None else jax.tree_util.tree_map(lambda a: a[0], states)
+    with members_at_once(chunk or batch):  # a frame's shapes, traced as its members' steps will be
+        capacity = _buffer_frames(batch * _frame_bytes(sim, first, save_particles))
+    counts = _frames_per_call(frames, capacity)
+    no_steps, per_frame, *calls = _device_ints(0, save_every, *counts)
+    moving = _members_start(state, states, batch)
+    options = lambda call, count: (sim, params, dt, count, per_frame, capacity, save_particles,  # noqa: E731
+                                   no_steps if call == 0 else per_frame, chunk)
+    if show:  # compiled ahead of the run (a run of no steps), the compilation timed apart
+        with Stage(f"{what}: compiling", True):
+            _advance_members.lower(options(0, calls[0]), moving).compile()
+    buffers = []
+    with Stage(f"{what}: running", show):
+        for call, count in enumerate(calls):
+            moving, buffer = _advance_members(options(call, count), moving)
+            buffers.append(buffer)
+        # every call's frames (the last one's as many as are left), joined on the host along each member's frame
+        # axis (on the device each new length would compile its slices)
+        histories = jax.tree_util.tree_map(lambda *b: np.concatenate([a[:, :n] for a, n in zip(b, counts)], axis=1),
+                                           *jax.device_get(buffers))
+        finals, failed = jax.block_until_ready(moving)
+    return finals, jax.device_put(histories), failed
+
+
+@eqx.filter_jit
+def _members_start(state, states, batch: int):
+    """The members' initial states and first unstable steps (none yet: -1), stacked: ``states``, or ``batch``
+    copies of ``state``."""
+    if states is None:
+        states = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (batch,) + a.shape), state)
+    else:  # a copy, never the caller's arrays passed through: the run loop computes in place of these (donated)
+        states = jax.tree_util.tree_map(jnp.copy, states)
+    return states, jnp.full((batch,), -1, jnp.int32)
+
+
+@functools.partial(eqx.filter_jit, donate="all-except-first")
+def _advance_members(options, moving):
+    """:func:`jaxmpm.run.driver._advance` of every member, vmapped (``chunk`` members at a time, else all): the
+    members' states and first unstable steps ``moving`` (donated: computed in place) advanced by ``n_frames`` frames,
+    and a buffer of ``capacity`` frames per member (leading axis: the members)."""
+    sim, params, dt, n_frames, per_frame, capacity, save_particles, first_steps, chunk = options
+    states, failed = moving
+
+    def member(p, s, failed):
+        member_sim = (set_params(sim, **p) if p else sim).in_precision(s.x.dtype)
+        # the first unstable step alone is carried and returned, as _batched_rollout returns it: XLA then drops
+        # the cause and the particle, which cost the bar's members a third of their step
+        failure = Failure(failed, jnp.zeros_like(failed), jnp.full_like(failed, -1))
+        s, failure, buffer = _advance(member_sim, s, failure, dt, n_frames, per_frame, capacity, save_particles,
+                                      False, (), first_steps)
+        return (s, failure.step), buffer
+
+    batch = int(states.x.shape[0])
+    with members_at_once(chunk or batch):  # the members stepped at once share the device's memory
+        if chunk is None:
+            return jax.vmap(member, in_axes=(0 if params else None, 0, 0))(params, states, failed)
+        return jax.lax.map(lambda a: member(*a), (params, states, failed), batch_size=chunk)
 
 
 @eqx.filter_jit

@@ -496,6 +496,7 @@ def test_io_calibrate_and_model_entry_points_name_a_bad_argument(tmp_path):
         (lambda: sim.with_particle_devices(np.zeros(0)), ("particle_devices = array([]",)),
         (lambda: jm.compiler_options(np.zeros(0)), ("backend = array([]",)),
         (lambda: sim.in_precision(-1), ("dtype = -1", "jnp.float32 or jnp.float64")),
+        (lambda: sim.in_precision(None), ("dtype = None", "jnp.float32 or jnp.float64")),
     ]
     for make, words in cases:
         assert_input_error(make, *words)

@@ -50,6 +50,8 @@ def chosen(sim, state, fields, where: str = "fields") -> tuple:
     """``fields`` checked (names of :func:`available`, each once, none a term's saved field) as a
     tuple in the order of :func:`available` (stress, pressure, J, F, the material's: one order for
     every file, whatever order they were named in); ``where`` names the argument in the messages."""
+    if isinstance(fields, (tuple, list)) and not fields:  # none chosen (every run's default): nothing to check
+        return ()
     choices = available(sim, state)
     listed = ", ".join(choices)
     check(isinstance(fields, (tuple, list)) and all(isinstance(name, str) for name in fields),

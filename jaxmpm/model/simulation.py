@@ -684,8 +684,8 @@ class Simulation(eqx.Module):
 
     def in_precision(self, dtype):
         """The model with its float leaves cast to ``dtype`` (itself if they already are)."""
-        try:
-            floating = jnp.issubdtype(jnp.dtype(dtype), jnp.floating)
+        try:  # None is no dtype here (jnp.dtype(None) is the default float, which would pass silently)
+            floating = dtype is not None and jnp.issubdtype(jnp.dtype(dtype), jnp.floating)
         except TypeError:
             floating = False
         check(floating, f"Simulation.in_precision: dtype = {dtype!r}; give a float dtype, jnp.float32 or jnp.float64")

@@ -104,6 +104,9 @@ def _is_traced(tree) -> bool:
 def check_state(state) -> None:
     """A state whose float arrays mix precisions is rejected with the dtypes and the fix (a model
     of another precision than its state is cast on entry: ``Simulation.step``)."""
+    floats = {jnp.result_type(leaf) for leaf in jax.tree_util.tree_leaves(state)}
+    if len({t for t in floats if jnp.issubdtype(t, jnp.floating)}) == 1:  # one precision: nothing to name
+        return
     dtypes = {}
     for path, leaf in jax.tree_util.tree_flatten_with_path(state)[0]:  # the core, scheme, material, fields
         if jnp.issubdtype(jnp.result_type(leaf), jnp.floating):

@@ -142,6 +142,29 @@ def test_init_rejects_particles_outside_the_grid(shape, x):
     assert "outside the grid" in str(info.value) and "particle 1" in str(info.value)
 
 
+def test_instability_names_the_first_bad_particle_of_the_first_cause():
+    """Simulation.instability: the cause (1 NaN/Inf, 2 J <= 0, 3 outside the grid, in that order of precedence) and
+    the first particle with it, as jnp.argmax over the bad mask finds it (a min-reduction of indices since
+    2026-11-29), 0 when nothing is wrong; under jit too."""
+    import jax
+
+    sim = small_simulation()
+    n = 12
+    particles = jm.Particles(x=jnp.linspace(2.0, 14.0, n)[:, None], v=jnp.zeros((n, 1)), volume=jnp.ones(n), ppc=1)
+    state = sim.init(particles)
+    nan_at, flat_at, out_at = [9, 5], [3, 10], [7, 11]
+    x = state.x.at[jnp.asarray(out_at), 0].set(40.0)
+    F = state.F.at[jnp.asarray(flat_at)].set(0.0)
+    v = state.v.at[jnp.asarray(nan_at), 0].set(jnp.nan)
+    cases = [(state, (0, 0)), (eqx.tree_at(lambda s: s.x, state, x), (3, 7)),
+             (eqx.tree_at(lambda s: (s.x, s.F), state, (x, F)), (2, 3)),
+             (eqx.tree_at(lambda s: (s.x, s.F, s.v), state, (x, F, v)), (1, 5))]
+    for bad, (code, particle) in cases:
+        for instability in (sim.instability, jax.jit(lambda s: sim.instability(s))):
+            got = tuple(int(a) for a in instability(bad))
+            assert got == (code, particle), (got, code, particle)
+
+
 # ----------------------------------------------------------------- run arguments
 STEPS = 4  # every run below has 4 frames of 1 step, so the rollout compiles once
 

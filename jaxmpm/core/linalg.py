@@ -39,3 +39,17 @@ def det(a):
     return (a[0][0] * a[1][1] * a[2][2] + a[0][1] * a[1][2] * a[2][0]
             + a[0][2] * a[1][0] * a[2][1] - a[0][2] * a[1][1] * a[2][0]
             - a[0][0] * a[1][2] * a[2][1] - a[0][1] * a[1][0] * a[2][2])
+
+
+def matmul(a, b):
+    """A B of two stacks of small matrices (..., D, D) @ (..., D, E), D <= 3, as sums of elementwise products
+    (k = 0, 1, ... in order); larger matrices go to ``@``.  XLA:CPU runs a batched ``@`` of 2x2 or 3x3 matrices
+    as a batched dot on one thread (F <- dF F over 131k particles in float64: 36 us a call of 16k particles),
+    where this is a loop fusion that runs on every core and may fuse with the matrices' producers."""
+    d = a.shape[-1]
+    if d > 3 or a.ndim < 2 or b.ndim < 2:
+        return a @ b
+    out = a[..., :, 0, None] * b[..., None, 0, :]
+    for k in range(1, d):
+        out = out + a[..., :, k, None] * b[..., None, k, :]
+    return out

@@ -39,6 +39,7 @@ import jax.numpy as jnp
 
 from ..core.errors import check
 from ..core.fields import GridFields, GridSolution
+from ..core.linalg import matmul
 from ..materials.base import Increment
 from ..physics.term import overrides
 from ..schemes.base import combine_damping
@@ -89,7 +90,7 @@ def deformation_increment(grad_v, dt, kinematics: str = "linear"):
 
 def update_deformation(F, grad_v, dt, kinematics: str = "linear"):
     """F <- dF F with dF of :func:`deformation_increment`."""
-    return deformation_increment(grad_v, dt, kinematics) @ F
+    return matmul(deformation_increment(grad_v, dt, kinematics), F)
 
 
 def strain_rate(sim, transfer: Transfer, v):
@@ -394,7 +395,7 @@ def step(sim, state, dt):
         v0, dv = lumped_velocity(sim, fields, fields.momentum, constraint, dt, state.time)
         v_strain = strain_velocity(sim, v0, transfer, constraint, dv)
         dF = deformation_increment(strain_rate(sim, transfer, v_strain), strain_dt(sim, dt), sim.kinematics)
-        F = dF @ state.F
+        F = matmul(dF, state.F)  # F <- dF F
         moved = eqx.tree_at(lambda s: s.F, state, F)
         material_state = material_update(sim, F, dF, state.material_state, state, state, strain_dt(sim, dt))
         state = eqx.tree_at(lambda s: s.material_state, moved, material_state, is_leaf=lambda x: x is None)
@@ -451,7 +452,7 @@ def _g2p(sim, state, transfer: Transfer, constraint, grid: GridSolution, dt, fie
         v_strain = strain_velocity(sim, v_new, transfer, constraint, dv)
         dF = deformation_increment(strain_rate(sim, transfer, v_strain), strain_dt(sim, dt), sim.kinematics)
     if dF is not None:
-        F = dF @ F
+        F = matmul(dF, F)  # F <- dF F
     new = eqx.tree_at(
         lambda s: (s.x, s.v, s.F, s.time, s.step, s.dissipated, s.scheme_state),
         state,

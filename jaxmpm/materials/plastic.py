@@ -37,7 +37,7 @@ import abc
 
 import jax.numpy as jnp
 
-from ..core.linalg import identities
+from ..core.linalg import identities, matmul
 from .base import Increment, InelasticMaterial, lame
 from .principal import principal_map, principal_stress
 
@@ -136,11 +136,11 @@ class HenckyPlastic(InelasticMaterial):
         return {k: v for k, v in state.items() if k not in ("Fe", OUT_OF_PLANE, DISSIPATION, STRESS)}
 
     def update_state(self, increment: Increment, state):
-        trial = increment.dF @ state["Fe"]
+        trial = matmul(increment.dF, state["Fe"])
         out = state.get(OUT_OF_PLANE)
         (Fe, G), (plastic, out, dissipated) = principal_map(_returned, trial, (self, out, self._plastic(state)))
         new = dict(state, Fe=Fe, **plastic)
-        new[STRESS] = G @ jnp.swapaxes(Fe, -1, -2)
+        new[STRESS] = matmul(G, jnp.swapaxes(Fe, -1, -2))
         new[DISSIPATION] = state[DISSIPATION] + dissipated
         if out is not None:
             new[OUT_OF_PLANE] = out

@@ -33,6 +33,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..core.linalg import matmul
+
 
 def svd(F):
     """(U, sigma, V) with F = U diag(sigma) V^T, sigma >= 0, for a batch (..., D, D).
@@ -124,7 +126,7 @@ def principal_map(fn, F, args):
 
 
 def _compose(U, g, V):
-    return U @ (g[..., :, None] * jnp.swapaxes(V, -1, -2))
+    return matmul(U, g[..., :, None] * jnp.swapaxes(V, -1, -2))
 
 
 @principal_map.defjvp
@@ -132,7 +134,7 @@ def _principal_map_jvp(fn, primals, tangents):
     F, args = primals
     dF, dargs = tangents
     U, sigma, V = svd(F)
-    dF_hat = jnp.swapaxes(U, -1, -2) @ dF @ V
+    dF_hat = matmul(matmul(jnp.swapaxes(U, -1, -2), dF), V)
     d_sigma = jnp.diagonal(dF_hat, axis1=-2, axis2=-1)
     (g, aux), (dg, daux) = jax.jvp(fn, (sigma, args), (d_sigma, dargs))
 
@@ -156,7 +158,7 @@ def _principal_map_jvp(fn, primals, tangents):
         stretch = jnp.where(equal, limit, (g_i - g_j) / jnp.where(equal, 1.0, gap))
         spin = jnp.where(total > 0, (g_i + g_j) / jnp.where(total > 0, total, 1.0), 0.0)
         dG_hat = (1.0 - diagonal) * (stretch * sym + spin * skew) + dg[..., :, None] * diagonal
-        return U @ dG_hat @ jnp.swapaxes(V, -1, -2)
+        return matmul(matmul(U, dG_hat), jnp.swapaxes(V, -1, -2))
 
     if isinstance(g, tuple):
         jacs = [jnp.stack([c[k] for c in columns], axis=-1) for k in range(len(g))]
@@ -171,7 +173,7 @@ def principal_stress(fn, F, args):
     G(F) F^T with G = U diag(t / sigma) V^T, so that :func:`principal_map`'s derivative serves it.
     ``fn`` follows :func:`principal_map`'s rules; sigma must be positive (J > 0)."""
     G, aux = _principal_stress_map(fn, F, args)
-    return G @ jnp.swapaxes(F, -1, -2), aux
+    return matmul(G, jnp.swapaxes(F, -1, -2)), aux
 
 
 def _principal_stress_map(fn, F, args):

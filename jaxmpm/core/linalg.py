@@ -45,7 +45,9 @@ def matmul(a, b):
     """A B of two stacks of small matrices (..., D, D) @ (..., D, E), D <= 3, as sums of elementwise products
     (k = 0, 1, ... in order); larger matrices go to ``@``.  XLA:CPU runs a batched ``@`` of 2x2 or 3x3 matrices
     as a batched dot on one thread (F <- dF F over 131k particles in float64: 36 us a call of 16k particles),
-    where this is a loop fusion that runs on every core and may fuse with the matrices' producers."""
+    where this is a loop fusion that runs on every core and may fuse with the matrices' producers.  Not for a
+    product whose entries feed a long elementwise chain: XLA may then fuse the product into each of its uses
+    (the Jacobi SVD of jaxmpm.materials.principal keeps ``@``; elementwise, the 3x3 Taylor bar ran 2.5x slower)."""
     d = a.shape[-1]
     if d > 3 or a.ndim < 2 or b.ndim < 2:
         return a @ b

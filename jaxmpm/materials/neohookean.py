@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from ..core.linalg import det
+from ..core.linalg import det, matmul
 from ..core.registry import register_material
 from ..core.validate import POISSON, POSITIVE
 from .base import ElasticMaterial, identity, lame
@@ -39,7 +39,7 @@ class NeoHookean(ElasticMaterial):
 
     def kirchhoff_stress(self, F):
         lam, mu = lame(self.E, self.nu)
-        b = F @ jnp.swapaxes(F, -1, -2)
+        b = matmul(F, jnp.swapaxes(F, -1, -2))  # b = F F^T
         return mu * (b - identity(F)) + lam * log_det(F)[..., None, None] * identity(F)
 
     def energy_density(self, F):

@@ -46,3 +46,5 @@ def test_small_matmul_is_the_matrix_product(d):
         np.testing.assert_allclose(g, w, rtol=1e-13, atol=1e-14)
     hlo = jax.jit(matmul).lower(a, b).compile().as_text()
     assert ("dot(" in hlo) == (d > 3), d
+    with pytest.raises(TypeError):  # mismatched inner dimensions: @'s error, not a silent broadcast
+        matmul(a, b[..., :1, :] if d > 1 else jnp.ones((7, 2, 2)))

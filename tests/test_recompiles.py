@@ -285,16 +285,18 @@ def test_a_vmapped_ensemble_of_another_length_compiles_nothing():
     assert failed[0] == failed[1] == -1 and failed[2] > 0, failed
 
 
-def test_an_ensemble_runs_in_its_members_precision():
-    """Single-run members of float32 states from a float64 template state (the model and dt cast to the members'
-    precision, as Simulation.rollout casts them): float32 results, bit for bit the traced ensemble's."""
+@pytest.mark.parametrize("strategy", ["sequential", "vmap"])
+def test_an_ensemble_runs_in_its_members_precision(strategy):
+    """Members (single runs, or the run loop vmapped) of float32 states from a float64 template state (the model and
+    dt cast to the members' precision, as Simulation.rollout casts them): float32 results, bit for bit the traced
+    ensemble's."""
     setup = jm.scene("bar", scheme="xpic:2", cells=8)
     sim, state, dt = setup.sim, setup.state, setup.dt
     states = jax.tree_util.tree_map(lambda a: jnp.stack([a, a]), jm.scenes.cast_state(state, jnp.float32))
     states = eqx.tree_at(lambda s: s.v, states, states.v * jnp.asarray([1.0, 0.5], jnp.float32)[:, None, None])
 
     def ensemble(batch):
-        return jm.ensemble(sim, state, dt, 12, 4, states=batch, strategy="sequential", progress=False)
+        return jm.ensemble(sim, state, dt, 12, 4, states=batch, strategy=strategy, progress=False)
 
     got = ensemble(states)
     assert got[0].x.dtype == got[1].time.dtype == jnp.float32

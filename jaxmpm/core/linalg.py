@@ -49,7 +49,7 @@ def matmul(a, b):
     product whose entries feed a long elementwise chain: XLA may then fuse the product into each of its uses
     (the Jacobi SVD of jaxmpm.materials.principal keeps ``@``; elementwise, the 3x3 Taylor bar ran 2.5x slower)."""
     d = a.shape[-1]
-    if d > 3 or a.ndim < 2 or b.ndim < 2:
+    if d > 3 or a.ndim < 2 or b.ndim < 2 or b.shape[-2] != d:  # @ itself (or its error for mismatched shapes)
         return a @ b
     out = a[..., :, 0, None] * b[..., None, 0, :]
     for k in range(1, d):

@@ -308,6 +308,7 @@ def _vmapped_at_once(sim, state, dt, frames: int, save_every: int, save_particle
     order (the bar's momentum: 2e-16 apart; tests/test_recompiles.py)."""
     dtype = state.x.dtype if states is None else states.x.dtype
     sim = sim.in_precision(dtype)  # the model computes in its members' precision, as Simulation.rollout does
+    dt = jnp.asarray(dt, dtype)
     first = state if states is None else jax.tree_util.tree_map(lambda a: a[0], states)
     with members_at_once(chunk or batch):  # a frame's shapes, traced as its members' steps will be
         capacity = _buffer_frames(batch * _frame_bytes(sim, first, save_particles))
@@ -353,8 +354,8 @@ def _advance_members(options, moving):
 
     def member(p, s, failed):
         member_sim = (set_params(sim, **p) if p else sim).in_precision(s.x.dtype)
-        # the first unstable step alone is carried and returned, as _batched_rollout returns it: XLA then drops
-        # the cause and the particle, which cost the bar's members a third of their step
+        # the first unstable step is what the members return (as _batched_rollout's do), and all a call needs from
+        # the call before: a failure's cause and particle start anew each call
         failure = Failure(failed, jnp.zeros_like(failed), jnp.full_like(failed, -1))
         s, failure, buffer = _advance(member_sim, s, failure, dt, n_frames, per_frame, capacity, save_particles,
                                       False, (), first_steps)

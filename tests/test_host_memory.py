@@ -1,7 +1,8 @@
 """jm.reuse_host_memory (jaxmpm/core/host_memory.py): with it, glibc keeps the memory an XLA:CPU program frees, so a
-program whose temporaries exceed 32 MiB takes no fresh pages from the kernel at its next call; without it every call
-page-faults its temporaries in again.  Counted with the process's minor page faults (getrusage), not timed: speed
-lives in benchmarks/gradient_cost.py (--reuse-host-memory)."""
+program whose temporaries exceed 32 MiB takes no fresh pages from the kernel at its later calls (once the heap has
+settled, after a call or two); without it every call page-faults its temporaries in again.  Counted with the
+process's minor page faults (getrusage), not timed: speed lives in benchmarks/gradient_cost.py
+(--reuse-host-memory)."""
 
 import os
 import platform

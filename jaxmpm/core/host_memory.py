@@ -9,7 +9,8 @@ temporaries (under 32 MiB they come from glibc's heap, and the next call reuses 
 many steps, and gain nothing.
 
 :func:`reuse_host_memory` has glibc serve every allocation from its heap and keep what is freed there, so that the
-next call finds the same pages in memory (benchmarks/README.md, "Reusing the host's memory"):
+next call finds the same pages in memory, once the heap has settled after a call or two (benchmarks/README.md,
+"Reusing the host's memory"):
 
 * ``M_MMAP_MAX = 0``: no allocation is mapped on its own;
 * ``M_TRIM_THRESHOLD = 1 GiB``: up to 1 GiB freed at the top of the heap stays with the process;

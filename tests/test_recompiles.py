@@ -283,6 +283,13 @@ def test_a_vmapped_ensemble_of_another_length_compiles_nothing():
         np.testing.assert_allclose(g, w, rtol=1e-13, atol=1e-300)
     failed = np.asarray(ensemble(40, 4, params={"E": values})[2])
     assert failed[0] == failed[1] == -1 and failed[2] > 0, failed
+    in_chunks = {"params": {"E": values}, "chunk": 2}  # lax.map over chunks of 2 members (the last one of 1)
+    compiled_by(lambda: ensemble(8, 2, **in_chunks))
+    got, names = compiled_by(lambda: ensemble(24, 6, **in_chunks))
+    assert not any(a_run(n) for n in names), names
+    want = jax.jit(lambda: ensemble(24, 6, **in_chunks))()  # chunk, a Python int, closed over
+    for g, w in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want), strict=True):
+        np.testing.assert_allclose(g, w, rtol=1e-13, atol=1e-300)
 
 
 @pytest.mark.parametrize("strategy", ["sequential", "vmap"])

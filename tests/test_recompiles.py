@@ -337,6 +337,26 @@ def test_a_long_run_in_memory_fills_its_buffers_in_order(monkeypatch):
         assert_same(run_in_place(lambda start: sim.run(start, dt, 60, 3, donate=True), state), want)
 
 
+def test_a_vmapped_ensemble_fills_its_buffers_in_order(monkeypatch):
+    """Vmapped members' frames in buffers of 3 frames (a small _CHUNK_BYTES: 11 frames in 4 calls), joined on the
+    host along each member's frame axis (driver._joined, axis 1): the traced ensemble's history to round-off."""
+    from jaxmpm.run import driver
+
+    setup = jm.scene("bar", scheme="xpic:2", cells=8)
+    sim, state, dt = setup.sim, setup.state, setup.dt
+
+    def ensemble():
+        return jm.ensemble(sim, state, dt, 40, 4, params={"beta": jnp.asarray([0.1, 0.5, 0.9])}, strategy="vmap",
+                           save_particles=True, progress=False)
+
+    want = jax.jit(ensemble)()
+    monkeypatch.setattr(driver, "_CHUNK_BYTES", 3 * 3 * driver._frame_bytes(sim, state, True))
+    got = ensemble()
+    assert got[1].time.shape == (3, 11)
+    for g, w in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want), strict=True):
+        np.testing.assert_allclose(g, w, rtol=1e-13, atol=1e-300)
+
+
 def test_the_stable_time_step_is_one_program_for_any_cfl():
     """sim.stable_dt (a scene's dt) and sim.time_step_limits (sim.run's check of dt) on concrete inputs
     compile one program, the same for both, and jm.stable_dt one, where op by op they compiled one

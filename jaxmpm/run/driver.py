@@ -404,12 +404,12 @@ def _device_ints(*values: int) -> list:
     return [_device_int(int(v), jax.config.jax_default_device) for v in values]
 
 
-def _joined(xnp, buffers, frames: int):
-    """The run's ``frames + 1`` frames, from the buffers of :func:`_run_at_once`: every buffer's frames, the last
-    one's only as many as are left."""
-    capacity = buffers[0].shape[0]
-    last = frames + 1 - capacity * (len(buffers) - 1)
-    return xnp.concatenate([*buffers[:-1], buffers[-1][:last]]) if len(buffers) > 1 else buffers[0][:last]
+def _joined(xnp, buffers, frames: int, axis: int = 0):
+    """The run's ``frames + 1`` frames, from the buffers of :func:`_run_at_once` (their frame axis ``axis``; 1 for a
+    vmapped ensemble's members): every buffer's frames, the last one's only as many as are left."""
+    capacity = buffers[0].shape[axis]
+    last = buffers[-1][(slice(None),) * axis + (slice(0, frames + 1 - capacity * (len(buffers) - 1)),)]
+    return xnp.concatenate([*buffers[:-1], last], axis=axis) if len(buffers) > 1 else last
 
 
 def _chosen_fields(sim, state, fields, save_particles) -> tuple:

@@ -53,6 +53,7 @@ from .driver import (
     _frame_bytes,
     _frames_per_call,
     _is_traced,
+    _joined,
     _run_at_once,
 )
 from .memory import budget_bytes, members_at_once, parse_memory
@@ -312,8 +313,7 @@ def _vmapped_at_once(sim, state, dt, frames: int, save_every: int, save_particle
     first = state if states is None else jax.tree_util.tree_map(lambda a: a[0], states)
     with members_at_once(chunk or batch):  # a frame's shapes, traced as its members' steps will be
         capacity = _buffer_frames(batch * _frame_bytes(sim, first, save_particles))
-    counts = _frames_per_call(frames, capacity)
-    no_steps, per_frame, *calls = _device_ints(0, save_every, *counts)
+    no_steps, per_frame, *calls = _device_ints(0, save_every, *_frames_per_call(frames, capacity))
     moving = _members_start(state, states, batch)
     options = lambda call, count: (sim, params, dt, count, per_frame, capacity, save_particles,  # noqa: E731
                                    no_steps if call == 0 else per_frame, chunk)
@@ -325,10 +325,8 @@ def _vmapped_at_once(sim, state, dt, frames: int, save_every: int, save_particle
         for call, count in enumerate(calls):
             moving, buffer = _advance_members(options(call, count), moving)
             buffers.append(buffer)
-        # every call's frames (the last one's as many as are left), joined on the host along each member's frame
-        # axis (on the device each new length would compile its slices)
-        histories = jax.tree_util.tree_map(lambda *b: np.concatenate([a[:, :n] for a, n in zip(b, counts)], axis=1),
-                                           *jax.device_get(buffers))
+        # joined on the host along each member's frame axis (on the device each new length would compile its slices)
+        histories = jax.tree_util.tree_map(lambda *b: _joined(np, b, frames, axis=1), *jax.device_get(buffers))
         finals, failed = jax.block_until_ready(moving)
     return finals, jax.device_put(histories), failed
 

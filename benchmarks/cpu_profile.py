@@ -4,6 +4,7 @@ with its source line, and how much faster it runs with more threads.
     python benchmarks/cpu_profile.py                              # mpm88 131k float64: one core against all
     python benchmarks/cpu_profile.py --particles 8192 --dtype f32 --steps 50
     python benchmarks/cpu_profile.py --top 60 --markdown profile.md
+    python benchmarks/cpu_profile.py --program gradient --particles 8192   # a rollout gradient's kernels
 
 Each setting runs in its own process (XLA sizes its thread pool, and the compiler its parallel partitions, from
 the CPUs a process may use): first pinned to one CPU through its affinity mask (Linux), then on all of them.
@@ -18,6 +19,10 @@ kernels' durations by name.  A kernel is one XLA fusion (or a scatter, a copy, a
   on one thread: scatters, in-place dynamic-update-slices, batched dots);
 * the Python line that produced it, read from the compiled program's stack frames (the innermost jaxmpm
   frames).
+
+``--program gradient`` profiles ``gradient_cost.py``'s gradient instead (the final sum(v^2) + sum(x^2) with
+respect to the initial velocities, through ``sim.run``'s ``--steps`` steps, ``checkpoint="auto"``), compiled as
+``jm.calibrate`` compiles it: its forward pass, the steps recomputed and their transposes, per step.
 
 The summary adds the wall time per step of each setting (from the loop's own timing, outside the profiler), the
 kernels launched per step, and the totals of the partitioned and the unpartitioned kernels.  Nested executors
@@ -50,6 +55,10 @@ def parse_args(argv=None):
     p.add_argument("--steps", type=int, default=20, help="steps per compiled call (default 20)")
     p.add_argument("--top", type=int, default=40, help="kernels listed, the costliest on one core first")
     p.add_argument("--markdown", type=Path, default=None, help="also write the table to this file")
+    p.add_argument("--program", choices=("step", "gradient"), default="step",
+                   help="step: --steps steps of sim.step; gradient: the gradient of gradient_cost.py's loss (the "
+                        "final sum(v^2) + sum(x^2) with respect to the initial velocities) through sim.run's "
+                        "--steps steps, checkpoint 'auto' (default step)")
     p.add_argument("--worker", choices=("one", "all"), default=None, help=argparse.SUPPRESS)
     p.add_argument("--out", type=Path, default=None, help=argparse.SUPPRESS)
     return p.parse_args(argv)
@@ -138,7 +147,18 @@ def worker(args) -> None:
     setup = jm.scene("mpm88", n_particles=args.particles, dtype=args.dtype)
     sim, state, dt = setup.sim, setup.state, setup.dt
     steps = args.steps
-    call = jax.jit(lambda s: jax.lax.fori_loop(0, steps, lambda i, s: sim.step(s, dt), s))
+    if args.program == "gradient":  # gradient_cost.py's loss: the per-step figures are the gradient's per step
+        import equinox as eqx
+        import jax.numpy as jnp
+
+        def loss(v0):
+            final, _ = sim.run(eqx.tree_at(lambda s: s.v, state, v0), dt, steps, steps, save_particles=False)
+            return jnp.sum(final.v ** 2) + jnp.sum(final.x ** 2)
+
+        grad = jax.grad(loss)
+        call = jax.jit(lambda s: grad(s.v), compiler_options=jm.compiler_options())
+    else:
+        call = jax.jit(lambda s: jax.lax.fori_loop(0, steps, lambda i, s: sim.step(s, dt), s))
     compiled = call.lower(state).compile()
     jax.block_until_ready(compiled(state))
     best = float("inf")
@@ -172,7 +192,7 @@ def worker(args) -> None:
 def run_worker(setting: str, args, folder: Path) -> dict:
     out = folder / f"{setting}.json"
     cmd = [sys.executable, __file__, "--worker", setting, "--out", str(out), "--particles", str(args.particles),
-           "--dtype", args.dtype, "--steps", str(args.steps)]
+           "--dtype", args.dtype, "--steps", str(args.steps), "--program", args.program]
     env = {**os.environ, "JAX_PLATFORMS": "cpu", "JAXMPM_CACHE": "0"}  # each setting compiles its own program
     subprocess.run(cmd, check=True, env=env)
     return json.loads(out.read_text())
@@ -224,7 +244,8 @@ def main(argv=None) -> int:
     finally:
         shutil.rmtree(folder, ignore_errors=True)
     rows, summary = table(one, every, args.top)
-    head = f"mpm88, {args.particles} particles, {args.dtype}, {args.steps} steps per call"
+    program = "" if args.program == "step" else f" {args.program}"
+    head = f"mpm88{program}, {args.particles} particles, {args.dtype}, {args.steps} steps per call"
     print(head)
     print("\n".join(summary))
     print("\n".join(rows))

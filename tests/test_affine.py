@@ -23,6 +23,7 @@ All in float64, 2D and 3D, to 1e-12 relative to the sum of the magnitudes involv
 import math
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -93,6 +94,29 @@ def test_inertia_tensor_is_closed_form_for_b_splines(shape_name, dim):
     for stencil in (transfer.stencil, transfer.stencil.explicit()):
         D = inertia_tensor(stencil)
         np.testing.assert_allclose(np.asarray(D), np.broadcast_to(expected, D.shape), rtol=0, atol=TOL * expected.max())
+
+
+@pytest.mark.parametrize("shape_name", list(FOUR_SHAPES))
+@pytest.mark.parametrize("dim", list(AFFINE_GRIDS))
+def test_inertia_tensor_is_a_constant_to_differentiation_only_where_it_is_one(shape_name, dim):
+    """002 eq. (3): for the B-splines D_p = c h^2 I at every position, so its derivative is zero. The stencil
+    then says so (``constant_inertia``) and D_p's JVP in the particle positions is exactly zero, while the
+    derivative of the sum over nodes as written (the explicit stencil, differentiated) is round-off. uGIMP's D_p
+    depends on the position, and its derivative is kept."""
+    shape, grid = FOUR_SHAPES[shape_name], AFFINE_GRIDS[dim]
+    x = jnp.asarray(random_particles(shape, grid, np.random.default_rng(3 + dim), N_PARTICLES)[0])
+    dx = jnp.asarray(np.random.default_rng(4).normal(size=x.shape))
+    constant = shape.inertia_factor() is not None
+    assert shape.stencil(grid, x).constant_inertia is constant
+    factors = jax.jvp(lambda y: inertia_tensor(shape.stencil(grid, y)), (x,), (dx,))[1]
+    written = jax.jvp(lambda y: inertia_tensor(shape.stencil(grid, y).explicit()), (x,), (dx,))[1]
+    scale = float(np.max(grid.spacing)) * float(jnp.max(jnp.abs(dx)))  # dD/dx ~ h: a relative measure
+    if constant:
+        assert float(jnp.max(jnp.abs(factors))) == 0.0
+        assert float(jnp.max(jnp.abs(written))) < 1e-12 * scale
+    elif shape_name == "ugimp":
+        assert float(jnp.max(jnp.abs(factors))) > 1e-3 * scale
+        np.testing.assert_allclose(np.asarray(factors), np.asarray(written), rtol=0, atol=1e-12 * scale)
 
 
 @pytest.mark.parametrize("shape_name", list(FOUR_SHAPES))

@@ -36,3 +36,16 @@ def test_one_core_against_all(profile, tmp_path):
     assert len(rows) == 8
     assert any("transfer/kernels/xla.py:" in row for row in rows)  # P2G's and G2P's kernels, by their lines
     assert all(float(row.split("|")[2]) > 0 for row in rows)  # each kernel's time on one core
+
+
+@pytest.mark.slow
+def test_a_gradients_kernels(profile, tmp_path):
+    out = tmp_path / "gradient.md"
+    assert profile.main(["--program", "gradient", "--particles", "1024", "--steps", "2", "--top", "200",
+                         "--markdown", str(out)]) == 0
+    text = out.read_text()
+    assert text.startswith("# mpm88 gradient, 1024 particles, f64, 2 steps per call")
+    rows = [line for line in text.splitlines() if line.startswith("| ") and not line.startswith("| kernel")]
+    # the forward pass, the recomputed step and its transpose: more kernels than a step's, P2G's among them
+    assert len(rows) > 60
+    assert any("transfer/kernels/xla.py:" in row for row in rows)

@@ -165,12 +165,16 @@ class TensorStencil(StencilBase):
         w: (D, K1, N) the 1D shape function N(r) per axis.
         dw: (D, K1, N) its derivative dN/dx per axis (1/h included).
         dx: (D, K1, N) x_i - X_p per axis.
+        constant_inertia: whether APIC's D_p (:meth:`inertia`) is the same for every particle position, as it is
+            for the B-splines (002: h^2/4 I quadratic, h^2/3 I cubic): then it is a constant to differentiation.
+            Default False.
     """
 
     index: jnp.ndarray
     w: jnp.ndarray
     dw: jnp.ndarray
     dx: jnp.ndarray
+    constant_inertia: bool = eqx.field(static=True, default=False, kw_only=True)
 
     @property
     def num_particles(self) -> int:
@@ -194,13 +198,19 @@ class TensorStencil(StencilBase):
 
     def inertia(self):
         """D_p from the per-axis factors: with sum_i w_a,i = 1 per axis, D_aa = sum_i w_a,i dx_a,i^2
-        and D_ab = (sum_i w_a,i dx_a,i)(sum_j w_b,j dx_b,j) for a != b (zero for B-splines)."""
+        and D_ab = (sum_i w_a,i dx_a,i)(sum_j w_b,j dx_b,j) for a != b (zero for B-splines).
+
+        Where D_p does not depend on the position (``constant_inertia``: the B-splines, 002), its derivative is
+        zero, and differentiation treats it as the constant it is (``stop_gradient``): the values are the same,
+        and reverse mode no longer transposes the sums, nor APIC's D_p^-1, for a cotangent that would only be
+        round-off (mpm88's gradient, APIC, 8k particles: 2-3% faster, benchmarks/README.md)."""
         wdx = self.w * self.dx
         wdx_k, dx_k = rows(jnp.moveaxis(wdx, 1, 0)), rows(jnp.moveaxis(self.dx, 1, 0))
         m1 = rows(sum(wdx_k))  # (D, N) per axis; unrolled: fuses on CPU
         m2 = rows(sum(a * b for a, b in zip(wdx_k, dx_k)))
         d = self.dim
-        return jnp.stack([jnp.stack([m2[a] if a == b else m1[a] * m1[b] for b in range(d)]) for a in range(d)])
+        D = jnp.stack([jnp.stack([m2[a] if a == b else m1[a] * m1[b] for b in range(d)]) for a in range(d)])
+        return jax.lax.stop_gradient(D) if self.constant_inertia else D
 
     def _once(self, key, compute):
         """``compute()``, kept on this stencil for the trace its factors belong to (see :func:`_kept`)."""
@@ -289,6 +299,11 @@ class ShapeFunction(eqx.Module):
         default the whole kernel."""
         return self._kernel(r)
 
+    def inertia_factor(self) -> float | None:
+        """c in APIC's D_p = c h^2 I (002, per axis h_a) where D_p is the same at every position (the B-splines);
+        None where it depends on the position (uGIMP) or is singular on grid lines (:class:`Linear`)."""
+        return None
+
     def grid_basis(self) -> "ShapeFunction":
         """The grid basis N_i(x) itself, evaluated at a point (001 eq. 21's int N_i T dS): the
         shape function for point particles; the tent (:class:`Linear`) for uGIMP."""
@@ -337,7 +352,8 @@ class ShapeFunction(eqx.Module):
         index = _tensor(nodes_per_axis, jnp.add)
         if grid.axisymmetric:
             return AxisymmetricStencil(index, jnp.stack(ws), jnp.stack(dws), jnp.stack(dxs), t_r)
-        return TensorStencil(index, jnp.stack(ws), jnp.stack(dws), jnp.stack(dxs))
+        return TensorStencil(index, jnp.stack(ws), jnp.stack(dws), jnp.stack(dxs),
+                             constant_inertia=self.inertia_factor() is not None)
 
     def _cells(self, grid, xp):
         """(xi, first): the planar positions ``xp`` (D, N) in cells from the grid's lower corner, and each

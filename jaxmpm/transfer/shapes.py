@@ -261,6 +261,8 @@ class AxisymmetricStencil(TensorStencil):
         dw: (2, K1, N) their derivatives, the radial one r-weighted (001 eq. 115).
         dx: (2, K1, N) x_i - X_p per axis.
         t_r: (K1, N) the radial factor of the hoop shape function, T_ip = t_r * w_z (001 eq. 116).
+        constant_inertia: as for :class:`TensorStencil`; False (the default) here, since the r-weighted radial
+            factors make D_p depend on the position.
     """
 
     t_r: jnp.ndarray

@@ -20,6 +20,7 @@ All in float64, 2D and 3D, to 1e-12 relative to the sum of the magnitudes involv
 """
 
 
+import dataclasses
 import math
 
 import equinox as eqx
@@ -33,7 +34,7 @@ import jaxmpm as jm
 from jaxmpm.core.fields import GridSolution
 from jaxmpm.physics.conditions import Constraint
 from jaxmpm.schemes.affine import affine_angular_momentum, affine_weights, inertia_tensor
-from jaxmpm.transfer.operators import Transfer
+from jaxmpm.transfer.operators import Transfer, p2g
 
 TOL = 1e-12
 N_PARTICLES = 40
@@ -98,25 +99,46 @@ def test_inertia_tensor_is_closed_form_for_b_splines(shape_name, dim):
 
 @pytest.mark.parametrize("shape_name", list(FOUR_SHAPES))
 @pytest.mark.parametrize("dim", list(AFFINE_GRIDS))
-def test_inertia_tensor_is_a_constant_to_differentiation_only_where_it_is_one(shape_name, dim):
-    """002 eq. (3): for the B-splines D_p = c h^2 I at every position, so its derivative is zero. The stencil
-    then says so (``constant_inertia``) and D_p's JVP in the particle positions is exactly zero, while the
-    derivative of the sum over nodes as written (the explicit stencil, differentiated) is round-off. uGIMP's D_p
-    depends on the position, and its derivative is kept."""
+def test_inertia_tensor_is_the_constant_only_where_it_is_one(shape_name, dim):
+    """002 eq. (3): for the B-splines D_p = c h^2 I at every position, so its derivative is zero. Their stencil
+    carries that constant (``inertia_diagonal``), and D_p's JVP in the particle positions is exactly zero, while
+    the derivative of the sum over nodes as written (the explicit stencil, differentiated) is round-off. uGIMP's
+    D_p depends on the position: it is summed, and its derivative is kept."""
     shape, grid = FOUR_SHAPES[shape_name], AFFINE_GRIDS[dim]
     x = jnp.asarray(random_particles(shape, grid, np.random.default_rng(3 + dim), N_PARTICLES)[0])
     dx = jnp.asarray(np.random.default_rng(4).normal(size=x.shape))
-    constant = shape.inertia_factor() is not None
-    assert shape.stencil(grid, x).constant_inertia is constant
+    diagonal = shape.stencil(grid, x).inertia_diagonal
+    if shape.inertia_factor() is None:
+        assert diagonal is None
+    else:
+        assert diagonal == tuple(shape.inertia_factor() * h**2 for h in grid.spacing)
     factors = jax.jvp(lambda y: inertia_tensor(shape.stencil(grid, y)), (x,), (dx,))[1]
     written = jax.jvp(lambda y: inertia_tensor(shape.stencil(grid, y).explicit()), (x,), (dx,))[1]
     scale = float(np.max(grid.spacing)) * float(jnp.max(jnp.abs(dx)))  # dD/dx ~ h: a relative measure
-    if constant:
+    if diagonal is not None:
         assert float(jnp.max(jnp.abs(factors))) == 0.0
         assert float(jnp.max(jnp.abs(written))) < 1e-12 * scale
     elif shape_name == "ugimp":
         assert float(jnp.max(jnp.abs(factors))) > 1e-3 * scale
         np.testing.assert_allclose(np.asarray(factors), np.asarray(written), rtol=0, atol=1e-12 * scale)
+
+
+@pytest.mark.parametrize("scheme_name", list(SCHEMES))
+@pytest.mark.parametrize("shape_name, dim", SPLINES)
+def test_constant_inertia_gives_the_summed_inertias_transfers(scheme_name, shape_name, dim):
+    """The B-splines' P2G with D_p^-1 = diag(1 / (c h_a^2)) (what the step uses) against the same P2G with D_p
+    summed from the stencil as 002 eq. (3) writes it (the stencil without its ``inertia_diagonal``): equal to
+    round-off, for APIC's affine part and the affine weights."""
+    scheme, shape, grid, transfer, state, _ = setup(scheme_name, shape_name, dim)
+    stencil = transfer.stencil
+    summed = dataclasses.replace(stencil, inertia_diagonal=None)
+    assert stencil.inertia_diagonal is not None and summed.inertia_diagonal is None
+    a, b = affine_weights(stencil), affine_weights(summed)
+    np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=TOL * float(jnp.max(jnp.abs(b))))
+    constant, by_sums = (np.asarray(p2g(s, {"momentum": scheme.momentum_contributions(s, state)},
+                                        grid.num_nodes)["momentum"]) for s in (stencil, summed))
+    assert np.max(np.abs(by_sums)) > 0
+    np.testing.assert_allclose(constant, by_sums, rtol=0, atol=TOL * np.max(np.abs(by_sums)))
 
 
 @pytest.mark.parametrize("shape_name", list(FOUR_SHAPES))

@@ -10,12 +10,14 @@ field around each particle on the grid:
                   V_p = sum_i S_pi v~_i,  grad v_p = sum_i v~_i (x) G_pi
 * both            X_p += V_p dt
 
-D_p = sum_i S_pi (x_i - X_p)(x_i - X_p)^T (002 eq. 3) is computed from the stencil.  For the
-quadratic and cubic B-splines it equals h^2/4 I and h^2/3 I (``shape.inertia_factor()``) to
-round-off; for uGIMP it depends on the position but stays positive definite (>= l_p h^2/2 per
-axis).  For multilinear (``Linear``) shape functions D_p = diag(r_a (1 - r_a) h_a^2), with r_a the
-particle's fractional cell position, is singular when a particle lies on a grid line; there the
-identity S_pi D_p^-1 (x_i - X_p) = G_pi (exact for tensor-product tent functions: per axis
+D_p = sum_i S_pi (x_i - X_p)(x_i - X_p)^T (002 eq. 3).  For the quadratic and cubic B-splines it is
+h^2/4 I and h^2/3 I at every position (``shape.inertia_factor()``; the sum equals it to round-off), and
+the stencil carries that constant (``TensorStencil.inertia_diagonal``): B_p D_p^-1 divides B_p's columns
+by c h_a^2, with no sums, no inverse and nothing to differentiate.  For uGIMP it is summed from the
+stencil: it depends on the position but stays positive definite (>= l_p h^2/2 per axis).  For
+multilinear (``Linear``) shape functions D_p = diag(r_a (1 - r_a) h_a^2), with r_a the particle's
+fractional cell position, is singular when a particle lies on a grid line; there the identity
+S_pi D_p^-1 (x_i - X_p) = G_pi (exact for tensor-product tent functions: per axis
 r (1 - r) h^2 N'(r)/h = N(r) (x_i - X_p)) is used instead, which is the same number away from grid
 lines and finite on them (tests/test_affine.py checks the identity).
 
@@ -87,6 +89,12 @@ def _inertia_planar(stencil):
     return stencil.inertia()
 
 
+def _inertia_diagonal(stencil):
+    """(c h_a^2 per axis) where the stencil's D_p is that constant at every position (the B-splines, 002 eq. 3:
+    ``TensorStencil.inertia_diagonal``), else None."""
+    return getattr(stencil, "inertia_diagonal", None)
+
+
 def inertia_tensor(stencil):
     """D_p = sum_i S_pi (x_i - X_p)(x_i - X_p)^T, shape (N, D, D)  (002 eq. 3)."""
     return from_planar(_inertia_planar(stencil))
@@ -105,6 +113,9 @@ def affine_weights(stencil):
     0/0 when a particle sits on a grid line (see the module docstring)."""
     if stencil.nodes_per_axis == 2:
         return stencil.gradient
+    diagonal = _inertia_diagonal(stencil)
+    if diagonal is not None:  # D_p^-1 (x_i - X_p) = (x_i - X_p)_a / (c h_a^2)
+        return per_slot(stencil.weight, stencil.offset / jnp.asarray(diagonal, stencil.dtype)[:, None, None])
     return per_slot(stencil.weight, _planar_matvec(_planar_inverse(_inertia_planar(stencil)), stencil.offset))
 
 
@@ -114,7 +125,11 @@ def apic_affine_part(stencil, mass, B):
     ``Divergence(M B)`` by the identity S_pi D_p^-1 (x_i - X_p) = G_pi (module docstring)."""
     if stencil.nodes_per_axis == 2:
         return Divergence(mass[:, None, None] * B)
-    C = materialise(_planar_matmul(to_planar(B), _planar_inverse(_inertia_planar(stencil))))  # B_p D_p^-1, once
+    diagonal = _inertia_diagonal(stencil)
+    if diagonal is not None:  # B-splines: D_p = diag(c h_a^2), so B_p D_p^-1 divides B_p's columns
+        C = materialise(to_planar(B) / jnp.asarray(diagonal, B.dtype)[None, :, None])
+    else:
+        C = materialise(_planar_matmul(to_planar(B), _planar_inverse(_inertia_planar(stencil))))  # B_p D_p^-1, once
     return Affine(from_planar(mass[None, None, :] * C))  # M_p B_p D_p^-1, formed planar
 
 

@@ -165,16 +165,17 @@ class TensorStencil(StencilBase):
         w: (D, K1, N) the 1D shape function N(r) per axis.
         dw: (D, K1, N) its derivative dN/dx per axis (1/h included).
         dx: (D, K1, N) x_i - X_p per axis.
-        constant_inertia: whether APIC's D_p (:meth:`inertia`) is the same for every particle position, as it is
-            for the B-splines (002: h^2/4 I quadratic, h^2/3 I cubic): then it is a constant to differentiation.
-            Default False.
+        inertia_diagonal: APIC's D_p = diag(c h_a^2) (:meth:`inertia`) where it is the same at every particle
+            position, as for the B-splines (002 eq. 3: c = 1/4 quadratic, 1/3 cubic; ``shape.inertia_factor()``),
+            one number per axis; None (the default) where D_p depends on the position and is summed from the
+            factors.
     """
 
     index: jnp.ndarray
     w: jnp.ndarray
     dw: jnp.ndarray
     dx: jnp.ndarray
-    constant_inertia: bool = eqx.field(static=True, default=False, kw_only=True)
+    inertia_diagonal: tuple | None = eqx.field(static=True, default=None, kw_only=True)
 
     @property
     def num_particles(self) -> int:
@@ -200,17 +201,18 @@ class TensorStencil(StencilBase):
         """D_p from the per-axis factors: with sum_i w_a,i = 1 per axis, D_aa = sum_i w_a,i dx_a,i^2
         and D_ab = (sum_i w_a,i dx_a,i)(sum_j w_b,j dx_b,j) for a != b (zero for B-splines).
 
-        Where D_p does not depend on the position (``constant_inertia``: the B-splines, 002), its derivative is
-        zero, and differentiation treats it as the constant it is (``stop_gradient``): the values are the same,
-        and reverse mode no longer transposes the sums, nor APIC's D_p^-1, for a cotangent that would only be
-        round-off (mpm88's gradient, APIC, 8k particles: 2-3% faster, benchmarks/README.md)."""
+        Where D_p is the same at every position (``inertia_diagonal``: the B-splines, 002 eq. 3), it is that
+        constant, diag(c h_a^2), which the sums equal to round-off: no sums are formed, and differentiation
+        sees the constant it is (the sums' derivative is round-off, tests/test_affine.py)."""
+        d = self.dim
+        if self.inertia_diagonal is not None:
+            diagonal = jnp.diag(jnp.asarray(self.inertia_diagonal, self.dtype))[:, :, None]
+            return jnp.broadcast_to(diagonal, (d, d, self.num_particles))
         wdx = self.w * self.dx
         wdx_k, dx_k = rows(jnp.moveaxis(wdx, 1, 0)), rows(jnp.moveaxis(self.dx, 1, 0))
         m1 = rows(sum(wdx_k))  # (D, N) per axis; unrolled: fuses on CPU
         m2 = rows(sum(a * b for a, b in zip(wdx_k, dx_k)))
-        d = self.dim
-        D = jnp.stack([jnp.stack([m2[a] if a == b else m1[a] * m1[b] for b in range(d)]) for a in range(d)])
-        return jax.lax.stop_gradient(D) if self.constant_inertia else D
+        return jnp.stack([jnp.stack([m2[a] if a == b else m1[a] * m1[b] for b in range(d)]) for a in range(d)])
 
     def _once(self, key, compute):
         """``compute()``, kept on this stencil for the trace its factors belong to (see :func:`_kept`)."""
@@ -261,7 +263,7 @@ class AxisymmetricStencil(TensorStencil):
         dw: (2, K1, N) their derivatives, the radial one r-weighted (001 eq. 115).
         dx: (2, K1, N) x_i - X_p per axis.
         t_r: (K1, N) the radial factor of the hoop shape function, T_ip = t_r * w_z (001 eq. 116).
-        constant_inertia: as for :class:`TensorStencil`; False (the default) here, since the r-weighted radial
+        inertia_diagonal: as for :class:`TensorStencil`; None (the default) here, since the r-weighted radial
             factors make D_p depend on the position.
     """
 
@@ -354,8 +356,9 @@ class ShapeFunction(eqx.Module):
         index = _tensor(nodes_per_axis, jnp.add)
         if grid.axisymmetric:
             return AxisymmetricStencil(index, jnp.stack(ws), jnp.stack(dws), jnp.stack(dxs), t_r)
-        return TensorStencil(index, jnp.stack(ws), jnp.stack(dws), jnp.stack(dxs),
-                             constant_inertia=self.inertia_factor() is not None)
+        factor = self.inertia_factor()  # D_p = diag(c h_a^2) at every position (B-splines), else None
+        diagonal = None if factor is None else tuple(factor * float(h) ** 2 for h in grid.spacing)
+        return TensorStencil(index, jnp.stack(ws), jnp.stack(dws), jnp.stack(dxs), inertia_diagonal=diagonal)
 
     def _cells(self, grid, xp):
         """(xi, first): the planar positions ``xp`` (D, N) in cells from the grid's lower corner, and each

@@ -91,8 +91,10 @@ def test_inertia_tensor_is_closed_form_for_b_splines(shape_name, dim):
     """002 eq. (3): D_p = c h^2 I with c = 1/4 (quadratic), 1/3 (cubic), per axis h_a."""
     _, shape, grid, transfer, _, _ = setup("apic", shape_name, dim)
     expected = np.diag(shape.inertia_factor() * np.array(grid.spacing) ** 2)
-    # from the per-axis factors (what the step uses) and from the definition's sum over all nodes
-    for stencil in (transfer.stencil, transfer.stencil.explicit()):
+    # the constant the stencil carries (what the step uses), the per-axis sums of its factors (without the
+    # constant) and the definition's sum over all nodes
+    summed = dataclasses.replace(transfer.stencil, inertia_diagonal=None)
+    for stencil in (transfer.stencil, summed, transfer.stencil.explicit()):
         D = inertia_tensor(stencil)
         np.testing.assert_allclose(np.asarray(D), np.broadcast_to(expected, D.shape), rtol=0, atol=TOL * expected.max())
 
@@ -145,9 +147,11 @@ def test_constant_inertia_gives_the_summed_inertias_transfers(scheme_name, shape
 @pytest.mark.parametrize("dim", list(AFFINE_GRIDS))
 def test_inertia_tensor_from_axis_factors_is_the_sum_over_nodes(shape_name, dim):
     """D_p = sum_i S_pi (x_i - X_p)(x_i - X_p)^T (002 eq. 3) as the tensor stencil forms it from
-    per-axis sums equals the sum over all K nodes, for every shape (uGIMP's D_p varies)."""
+    per-axis sums equals the sum over all K nodes, for every shape (uGIMP's D_p varies); the B-splines'
+    stencils, which carry the constant instead, are summed here without it."""
     _, _, _, transfer, _, _ = setup("apic", shape_name, dim)
-    factored, summed = inertia_tensor(transfer.stencil), inertia_tensor(transfer.stencil.explicit())
+    by_factors = dataclasses.replace(transfer.stencil, inertia_diagonal=None)
+    factored, summed = inertia_tensor(by_factors), inertia_tensor(transfer.stencil.explicit())
     scale = float(np.max(np.abs(np.asarray(summed))))
     np.testing.assert_allclose(np.asarray(factored), np.asarray(summed), rtol=0, atol=TOL * scale)
 

@@ -6,8 +6,9 @@ The loss is sum(v^2) + sum(x^2) of the final state of ``sim.run`` (frames of a t
 no particle frames), differentiated with respect to the initial velocities.  For each
 (scene, scheme, adjoint, checkpoint) it reports the forward run time, the gradient run time
 (best of ``--repeat`` calls after a warm-up) and their ratio, and the compile times of both
-apart.  Times are CPU seconds of this process (``time.process_time``): run it pinned to one core
-with one XLA thread so that other load on the machine stays out of the ratios,
+apart (with the persistent compilation cache off, so that they are XLA's, not programs read back
+from disk).  Times are CPU seconds of this process (``time.process_time``): run it pinned to one
+core with one XLA thread so that other load on the machine stays out of the ratios,
 
     XLA_FLAGS=--xla_cpu_multi_thread_eigen=false taskset -c 0 python benchmarks/gradient_cost.py
     ... python benchmarks/gradient_cost.py --scenes mpm88 --schemes apic --checkpoint True False
@@ -111,6 +112,7 @@ def main():
     args = parser.parse_args()
     if args.reuse_host_memory:  # before JAX starts its threads (nothing has run yet)
         print(f"jm.reuse_host_memory(): {jm.reuse_host_memory()}")
+    jm.compilation_cache(False)  # the compile columns are XLA's compile seconds, not programs read back from disk
     print("| scene | scheme | particles | steps | adjoint | checkpoint | forward (s) | gradient (s) | gradient / "
           "forward | floor: time / ops | compile forward / gradient (s) |")
     print("|---" * 11 + "|")

@@ -148,14 +148,9 @@ def worker(args) -> None:
     sim, state, dt = setup.sim, setup.state, setup.dt
     steps = args.steps
     if args.program == "gradient":  # gradient_cost.py's loss: the per-step figures are the gradient's per step
-        import equinox as eqx
-        import jax.numpy as jnp
+        from gradient_cost import final_state_loss  # this script's folder, first on the worker's path
 
-        def loss(v0):
-            final, _ = sim.run(eqx.tree_at(lambda s: s.v, state, v0), dt, steps, steps, save_particles=False)
-            return jnp.sum(final.v ** 2) + jnp.sum(final.x ** 2)
-
-        grad = jax.grad(loss)
+        grad = jax.grad(final_state_loss(sim, state, dt, steps))
         call = jax.jit(lambda s: grad(s.v), compiler_options=jm.compiler_options())
     else:
         call = jax.jit(lambda s: jax.lax.fori_loop(0, steps, lambda i, s: sim.step(s, dt), s))

@@ -62,6 +62,18 @@ def compiled(fn, *args, donate=()):
 FLOORS = {}  # (scene, scheme, adjoint) -> step_adjoint.floor_numbers
 
 
+def final_state_loss(sim, state, dt, steps: int, checkpoint="auto"):
+    """This script's loss as a function of the initial velocities: sum(v^2) + sum(x^2) of the final state of
+    ``sim.run`` from ``state`` (``steps`` steps, a frame every tenth of them, no particle frames)."""
+
+    def loss(v0):
+        start = eqx.tree_at(lambda s: s.v, state, v0)
+        final, _ = sim.run(start, dt, steps, max(1, steps // 10), save_particles=False, checkpoint=checkpoint)
+        return jnp.sum(final.v ** 2) + jnp.sum(final.x ** 2)
+
+    return loss
+
+
 def measure(scene, scheme, adjoint, checkpoint, repeat, particles=None, steps=None, derivative_chunks="auto"):
     """One row; ``particles`` (mpm88's ``n_particles``) and ``steps`` replace the scene's defaults where given;
     ``derivative_chunks``: the model's ``with_derivative_chunks``."""
@@ -72,11 +84,7 @@ def measure(scene, scheme, adjoint, checkpoint, repeat, particles=None, steps=No
     setup = jm.scene(scene, scheme=SCHEMES[scheme], **options)
     sim, state, dt = setup.sim.with_adjoint(adjoint).with_derivative_chunks(derivative_chunks), setup.state, setup.dt
 
-    def loss(v0):
-        start = eqx.tree_at(lambda s: s.v, state, v0)
-        final, _ = sim.run(start, dt, steps, steps // 10, save_particles=False, checkpoint=checkpoint)
-        return jnp.sum(final.v ** 2) + jnp.sum(final.x ** 2)
-
+    loss = final_state_loss(sim, state, dt, steps, checkpoint)
     if (scene, scheme, adjoint) not in FLOORS:  # 2 + this step's transpose alone / its forward
         FLOORS[scene, scheme, adjoint] = floor_numbers(sim, state, dt, max(repeat, 5))
     floor = FLOORS[scene, scheme, adjoint]

@@ -355,3 +355,53 @@ def test_registered_parameters():
     """set_params knows the friction angle and the cohesion (calibration), with their ranges."""
     assert {"friction_angle", "dilatancy_angle", "cohesion"} <= {p.name for p in
                                                                  MATERIALS["drucker_prager"].parameters}
+
+
+@pytest.mark.parametrize("values, words", [
+    (dict(dilatancy_angle=40.0), "set_params: dilatancy_angle = 40 must be <= friction_angle = 30"),
+    (dict(friction_angle=5.0), "set_params: dilatancy_angle = 10 must be <= friction_angle = 5"),
+    (dict(friction_angle=20.0, dilatancy_angle=25.0), "dilatancy_angle = 25 must be <= friction_angle = 20"),
+])
+def test_set_params_and_ensembles_keep_psi_below_phi(values, words):
+    """set_params and jm.ensemble checked each value's own range only, so psi > phi passed, and with it a
+    negative plastic dissipation (the audit of 2026-11-29: min -5.0 at psi = 60 > phi = 20 on one step)."""
+    grid = jm.Grid((0.0, 0.0), (1.0, 1.0), (4, 4))
+    sim = jm.Simulation(grid, "linear", material(30.0, 10.0, 1.0), "flip")
+    with pytest.raises(jm.InputError, match=words):
+        jm.set_params(sim, **values)
+    jm.set_params(sim, dilatancy_angle=25.0, friction_angle=28.0)  # both at once, still psi <= phi
+    state = sim.init(jm.fill(grid, jm.Box((0.25, 0.25), (0.75, 0.75))))
+    with pytest.raises(jm.InputError, match="ensemble member 1: dilatancy_angle = 35 must be <= friction_angle = 30"):
+        jm.ensemble(sim, state, 1e-4, 1, 1, params={"dilatancy_angle": [5.0, 35.0]})
+
+
+def test_per_particle_angles_name_the_first_particle_that_breaks_the_condition():
+    phi = np.array([30.0, 20.0, 30.0])
+    with pytest.raises(jm.InputError, match=r"dilatancy_angle = 25 must be <= friction_angle = 20 \(first at index 1"):
+        jm.DruckerPrager(E=1e5, friction_angle=phi, dilatancy_angle=25.0)
+
+
+@pytest.mark.parametrize("softened", [False, True], ids=["phi=0", "phi softened to 0"])
+def test_frictionless_cohesionless_sand_keeps_its_pressure(softened):
+    """phi = 0, c = 0: the cone is a cylinder, with no apex.  The return keeps the mean stress and removes the
+    deviator.  The apex test mu d_gamma > sqrt(J2) was a tie there, decided by the last bit: 22 of 1000 particles
+    under compression and shear went to an apex that is not there, losing their pressure (the audit of
+    2026-11-29).  Softened: friction_angle 30 with friction_hardening -30 reaches phi = 0 exactly (expm1 rounds
+    to -1 beyond alpha/alpha_ref ~ 37)."""
+    m = (material(30.0, 0.0, 0.0, friction_hardening=-30.0, hardening_strain=0.1) if softened
+         else material(0.0, 0.0, 0.0))
+    rng = np.random.default_rng(7)
+    n = 1000
+    shear = np.zeros((n, 2, 2))
+    shear[:, 0, 1], shear[:, 1, 0] = rng.normal(scale=0.02, size=(2, n))
+    dF = jnp.asarray(0.98 * np.eye(2) + shear)  # 2% compression and a random shear, in plane strain
+    state = m.initial_state(_Points(n, 2))
+    if softened:
+        state = dict(state, plastic_strain=jnp.full((n,), 5.0))
+        assert float(jnp.rad2deg(m.friction_angle_at(5.0))) == 0.0
+    after = _step(m, state, dF)
+    sqrt_j2, p = invariants(m.principal_kirchhoff_stress(after))
+    trial_p = K * np.log(np.linalg.det(np.asarray(dF)))  # K tr(ln V): the trial's mean stress (F_zz = 1)
+    np.testing.assert_allclose(p, trial_p, rtol=1e-12)  # every particle keeps its mean stress
+    np.testing.assert_allclose(sqrt_j2, 0.0, atol=1e-9 * np.abs(trial_p).max())  # and loses its deviator
+    np.testing.assert_allclose(after["volumetric_plastic_strain"], 0.0, atol=1e-15)  # psi = 0: isochoric flow

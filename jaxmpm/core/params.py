@@ -127,7 +127,16 @@ def set_params(sim, **values):
         check_value(sim, name, value)
         old = where(sim)
         sim = eqx.tree_at(where, sim, jnp.asarray(value, dtype=jnp.result_type(old)))
+    check_material(sim, "set_params")
     return sim
+
+
+def check_material(sim, owner: str) -> None:
+    """The conditions the material's parameters must meet together (``Material.check_parameters``: e.g.
+    Drucker-Prager's dilatancy angle <= friction angle), checked where they are concrete."""
+    checker = getattr(sim.material, "check_parameters", None)
+    if checker is not None:
+        checker(owner)
 
 
 def default_bounds(name, sim=None):

@@ -57,6 +57,7 @@ from __future__ import annotations
 import math
 
 import jax.numpy as jnp
+import numpy as np
 
 from ..core.registry import Parameter, register_material
 from ..core.safe import safe_norm
@@ -150,20 +151,28 @@ class DruckerPrager(HenckyPlastic):
             fix="the change of the friction angle in degrees (0: no hardening)")
         self.hardening_strain = POSITIVE.leaf(owner, "hardening_strain", hardening_strain,
                                               fix="the equivalent plastic strain scale of the hardening, e.g. 0.1")
-        self._check_angles(owner)
+        self.check_parameters(owner)
 
-    def _check_angles(self, owner):
-        """psi <= phi, and the hardened angle phi + d_phi in [psi, 90) (concrete values only)."""
+    def check_parameters(self, owner: str) -> None:
+        """psi <= phi, and the hardened angle phi + d_phi in [psi, 90) (concrete values only; per particle where
+        they are arrays, naming the first particle that breaks it)."""
         phi, psi, dphi = (concrete(v) for v in (self.friction_angle, self.dilatancy_angle, self.friction_hardening))
         if phi is None or psi is None or dphi is None:
             return
-        if (psi > phi).any():
-            fail(owner, f"dilatancy_angle = {float(psi.max()):g} must be <= friction_angle = {float(phi.min()):g}",
+        phi, psi, dphi = np.broadcast_arrays(np.asarray(phi), np.asarray(psi), np.asarray(dphi))
+        at = "" if phi.ndim == 0 else " (first at index {})"
+        wrong = psi > phi
+        if wrong.any():
+            i = np.unravel_index(np.argmax(wrong), wrong.shape)
+            fail(owner, f"dilatancy_angle = {float(psi[i]):g} must be <= friction_angle = {float(phi[i]):g}"
+                        + at.format(i[0] if len(i) == 1 else i),
                  "psi <= phi: psi = 0 is isochoric flow (Klar et al. 2016), psi = phi associated flow")
         final = phi + dphi
-        if ((final < psi) | (final >= 90.0)).any():
-            fail(owner, f"friction_hardening = {float(dphi.flat[0]):g} takes the friction angle to "
-                        f"{float(final.flat[0]):g} degrees; it must stay in [dilatancy_angle, 90)",
+        wrong = (final < psi) | (final >= 90.0)
+        if wrong.any():
+            i = np.unravel_index(np.argmax(wrong), wrong.shape)
+            fail(owner, f"friction_hardening = {float(dphi[i]):g} takes the friction angle to {float(final[i]):g} "
+                        "degrees; it must stay in [dilatancy_angle, 90)" + at.format(i[0] if len(i) == 1 else i),
                  "choose friction_hardening with dilatancy_angle <= friction_angle + friction_hardening < 90")
 
     def initial_plastic_state(self, n, dtype):
@@ -204,9 +213,11 @@ class DruckerPrager(HenckyPlastic):
         sqrt_j2 = SQRT2 * mu * dev_norm  # sqrt(J2) = |2 mu dev eps| / sqrt(2)
         f_trial = sqrt_j2 + eta * K * 3.0 * mean - xi * self.cohesion
         d_gamma = jnp.maximum(f_trial, 0.0) / (mu + K * eta * eta_bar)  # de Souza Neto et al. 2008 ch. 8
-        # beyond the apex: the return would carry the deviator through zero (Klar: "project to the tip")
-        beyond = mu * d_gamma > sqrt_j2
+        # beyond the apex: the return would carry the deviator through zero (Klar: "project to the tip").  A cone
+        # of eta = 0 (phi = 0) is a cylinder with no apex: there, with c = 0, mu d_gamma = sqrt(J2) exactly, and a
+        # comparison of the two decided by the last bit sent particles to a tip that is not there (pressure lost)
         positive = eta > 0
+        beyond = positive & (mu * d_gamma > sqrt_j2)
         apex_volume = jnp.where(positive, xi * self.cohesion / (K * jnp.where(positive, eta, 1.0)), 0.0)
         # eps = eps* - d_gamma (n / sqrt(2) + eta_bar / 3 (1, 1, 1)) on the cone, the apex beyond it:
         # a new mean strain and the deviator scaled, eps = mean + shrink dev eps* (0 at the apex)

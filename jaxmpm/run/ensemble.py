@@ -41,9 +41,10 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from ..core.device import to_device
 from ..core.errors import check
-from ..core.params import _where, _with_owner, check_value, set_params
+from ..core.params import _where, _with_owner, check_material, check_value, set_params
 from ..core.state import State
-from ..core.validate import POSITIVE, batch_members, device_list, positive_int
+from ..core.validate import POSITIVE, batch_members, concrete, device_list, positive_int
+from ..materials.base import Material
 from ..transfer.backend import RUNTIME_COUNTS, resolve
 from .driver import (
     Failure,
@@ -79,6 +80,22 @@ def _check_members(sim, params: dict) -> None:
         batch_members("ensemble", f"params[{name!r}]", batch,
                       lambda i, member, s=owned, n=name: check_value(
                           s, n, member, "ensemble" if i is None else f"ensemble member {i}"))
+    # the conditions the material's parameters meet together (Material.check_parameters), member by member
+    if getattr(type(sim.material), "check_parameters", None) in (None, Material.check_parameters):
+        return  # a law without such conditions (every built-in one but Drucker-Prager)
+    hosted = {name: concrete(batch) for name, batch in params.items()}
+    if any(value is None for value in hosted.values()):
+        return  # traced members: unchecked, as set_params leaves a traced value
+    owned = sim
+    for name in hosted:
+        owned = _with_owner(owned, name)
+    sizes = [np.shape(batch)[0] for batch in hosted.values() if np.ndim(batch) > 0]
+    for i in range(max(sizes, default=1)):
+        member = owned
+        for name, batch in hosted.items():
+            value = np.asarray(batch)[i] if np.ndim(batch) > 0 else batch
+            member = eqx.tree_at(_where(member, name), member, jnp.asarray(value))
+        check_material(member, f"ensemble member {i}")
 
 
 def _shard(tree, mesh):

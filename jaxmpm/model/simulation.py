@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import equinox as eqx
 import jax
@@ -653,6 +653,36 @@ class Simulation(eqx.Module):
             fields=values,
         )
 
+    def check_state(self, state, where: str = "run") -> None:
+        """That ``state`` is a :class:`State` this model can step: the per-particle state of its scheme
+        (APIC's B_p, ...), of its material (a plastic law's F_e and plastic strain, ...) and its terms'
+        fields, with the shapes this model's :meth:`init` gives them.  A state made for another model
+        (another scheme, material or set of terms) is an InputError naming the part that differs;
+        ``where`` names the caller.  Only shapes are compared: it costs a trace, not a computation, and
+        holds under ``jit`` and ``vmap``."""
+        if isinstance(state, Particles):
+            check(False, f"{where}: state is a jm.Particles; make the state first: state = sim.init(particles)")
+        check(isinstance(state, State), f"{where}: state = {show(state)} must be a jm.State, the one "
+                                        "sim.init(particles) returns")
+        def initial(x):  # what init would give particles at x (the laws read their count, dimension and dtype)
+            like = _ParticlesLike(x=x, v=x, volume=x[:, 0], mass=x[:, 0], axisymmetric=self.grid.axisymmetric)
+            return self.scheme.initial_state(like), self.material.initial_state(like)
+
+        expected = jax.eval_shape(initial, state.x)
+        for part, owner, have, want in (
+                ("scheme_state", type(self.scheme).__name__, state.scheme_state, expected[0]),
+                ("material_state", type(self.material).__name__, state.material_state, expected[1])):
+            check(_layout(have) == _layout(want),
+                  f"{where}: the state was made for another model: its {part} holds {_layout_text(have)}, but this "
+                  f"model's {owner} needs {_layout_text(want)}; make the state with this model, state = "
+                  "sim.init(particles)")
+        declared = sorted(f.name for f in self.particle_fields())
+        have = sorted(state.fields)
+        check(have == declared,
+              f"{where}: the state was made for another model: it carries "
+              f"{f'the fields {have}' if have else 'no fields'}, but this model's terms declare "
+              f"{declared if declared else 'none'}; make the state with this model, state = sim.init(particles)")
+
     # ------------------------------------------------------------------- step
     def step(self, state: State, dt) -> State:
         """Advance one time step (pure).  The model computes in its state's precision: float
@@ -853,6 +883,34 @@ class Simulation(eqx.Module):
     @property
     def dim(self) -> int:
         return self.grid.dim
+
+
+class _ParticlesLike(NamedTuple):
+    """What a scheme's or material's ``initial_state`` reads of :class:`Particles` (Simulation.check_state)."""
+
+    x: jax.Array
+    v: jax.Array
+    volume: jax.Array
+    mass: jax.Array
+    axisymmetric: bool
+    ppc: int = 1
+
+
+def _layout(tree) -> tuple:
+    """A pytree's structure and its leaves' shapes."""
+    leaves, structure = jax.tree_util.tree_flatten(tree)
+    return structure, tuple(tuple(jnp.shape(leaf)) for leaf in leaves)
+
+
+def _layout_text(tree) -> str:
+    """How :meth:`Simulation.check_state` names a part of a state: none, a shape, or {name: shape}."""
+    if tree is None:
+        return "nothing"
+    if isinstance(tree, dict):
+        return "{" + ", ".join(f"{k}: {tuple(jnp.shape(v))}" for k, v in sorted(tree.items())) + "}"
+    if hasattr(tree, "shape"):
+        return f"an array of shape {tuple(tree.shape)}"
+    return show(tree)
 
 
 def backend_info(sim: Simulation, state: State, members: int = 1) -> dict:

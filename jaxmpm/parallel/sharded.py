@@ -443,6 +443,7 @@ class ShardedSimulation:
         check(writer is None or jax.process_index() == 0,
               f"ShardedSimulation.run: a writer on process {jax.process_index()}; open the H5Writer on process 0 "
               "only (jax.process_index() == 0) and pass writer=None on the others: one process writes the file")
+        self.sim.check_state(state, "ShardedSimulation.run")  # a jm.State, made for this model
         check_state(state)
         sim = self.sim.in_precision(state.x.dtype)  # the model computes in its state's precision
         chosen = _chosen_fields(sim, state, () if fields is None else fields, save_particles)

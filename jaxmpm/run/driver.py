@@ -246,10 +246,11 @@ def run(
     ``start_step`` (resume) is the step of the run's first frame when ``state`` is part-way
     through it.  Before anything runs, the step count and the memory the saved frames need are
     checked (:mod:`jaxmpm.core.limits`).  A chunked run compiles its loop before the first step
-    (the progress bar says "compiling" meanwhile, so that its rate and ETA are the steps' alone),
-    fills ``timings`` (a dict, if given) with the seconds spent compiling (``compile``) and running
-    (``run``) and the ``steps`` run, and, when the rest of the run will take more than
-    :data:`LONG_RUN_SECONDS`, prints one line to stderr saying how long.
+    (the progress bar says "compiling" meanwhile, so that its rate and ETA are the steps' alone)
+    and, when the rest of the run will take more than :data:`LONG_RUN_SECONDS`, prints one line to
+    stderr saying how long.  Every run outside a trace fills ``timings`` (a dict, if given) with the
+    seconds spent compiling (``compile``; in a run of one call, what JAX reports compiling during it:
+    0 when its program was compiled before) and running (``run``), and the ``steps`` run.
 
     ``fields``: the per-particle fields each frame holds besides x, v and the terms' fields,
     by name (``("stress", "pressure", "J", "F")``, :mod:`jaxmpm.model.frame_fields`; only
@@ -279,6 +280,7 @@ def run(
     frames = steps // save_every
     parse_memory(memory)  # checked before anything runs
     POSITIVE.real("run", "dt", dt, fix="the time step, e.g. a scene's setup.dt or sim.stable_dt(state)")
+    sim.check_state(state, "run")  # a jm.State, made for this model
     check_state(state)
     check(start_step is None or writer is not None or progress,
           "run: start_step continues a chunked run; pass writer=... (see jaxmpm.resume)")
@@ -319,25 +321,71 @@ def run(
                                          history_gradients, fields, memory)
         return final, history
     if writer is None and not progress:
-        start = _start_of(state)  # read before the run deletes the state (donation)
-        if RUNTIME_COUNTS[resolve(sim.backend)]:  # one compiled loop for any length (backend tuning)
-            if not is_schedule(checkpoint, "auto"):
-                _segment_length(save_every, checkpoint, frames)  # validated; a run outside a trace is forward only
-            final, history, failure = _run_at_once(sim, state, dt, frames, save_every, save_particles, fields,
-                                                   donate, frame_bytes)
-        elif not donate:
-            final, history, failure = _jit_rollout(sim, state, dt, frames, save_every, save_particles, checkpoint,
-                                                   history_gradients, fields, memory)
-        else:  # the initial frame first, in a program of its own (_later_frames)
-            first = _jit_first_frame(sim, state, save_particles, fields)
-            final, later, failure = _jit_rollout_in_place(
-                (sim, dt, frames, save_every, save_particles, checkpoint, history_gradients, fields, memory), state)
-            history = _jit_joined(first, later)
-        if check_stability:
-            _raise_if_failed(failure, dt, start, None, sim.grid)
+        with _plain_timings(timings, steps) as timed:
+            final, history = _run_plain(sim, state, dt, frames, save_every, save_particles, checkpoint,
+                                        history_gradients, fields, memory, donate, frame_bytes, check_stability)
+            timed((final, history))
         return final, history
     return _run_chunked(sim, state, dt, frames, save_every, save_particles, check_stability,
                         progress, writer, frames_per_chunk, checkpoint, start_step, fields, timings, donate)
+
+
+def _run_plain(sim, state, dt, frames, save_every, save_particles, checkpoint, history_gradients, fields, memory,
+               donate, frame_bytes, check_stability):
+    """A run in one call (no writer, no progress bar): :func:`run`'s path outside a trace."""
+    start = _start_of(state)  # read before the run deletes the state (donation)
+    if RUNTIME_COUNTS[resolve(sim.backend)]:  # one compiled loop for any length (backend tuning)
+        if not is_schedule(checkpoint, "auto"):
+            _segment_length(save_every, checkpoint, frames)  # validated; a run outside a trace is forward only
+        final, history, failure = _run_at_once(sim, state, dt, frames, save_every, save_particles, fields,
+                                               donate, frame_bytes)
+    elif not donate:
+        final, history, failure = _jit_rollout(sim, state, dt, frames, save_every, save_particles, checkpoint,
+                                               history_gradients, fields, memory)
+    else:  # the initial frame first, in a program of its own (_later_frames)
+        first = _jit_first_frame(sim, state, save_particles, fields)
+        final, later, failure = _jit_rollout_in_place(
+            (sim, dt, frames, save_every, save_particles, checkpoint, history_gradients, fields, memory), state)
+        history = _jit_joined(first, later)
+    if check_stability:
+        _raise_if_failed(failure, dt, start, None, sim.grid)
+    return final, history
+
+
+#: the events in which JAX reports the seconds a compilation took: tracing, lowering, XLA (jax.monitoring)
+_COMPILE_EVENTS = ("/jax/core/compile/jaxpr_trace_duration", "/jax/core/compile/jaxpr_to_mlir_module_duration",
+                   "/jax/core/compile/backend_compile_duration")
+
+
+@contextlib.contextmanager
+def _plain_timings(timings: dict | None, steps: int):
+    """For a run in one call, fill ``timings`` (if a dict) as a chunked run does: ``compile``, the seconds
+    JAX reported compiling in the call (``jax.monitoring``'s compile events; 0 when the program was
+    compiled before), ``run`` the rest of the call's wall time, and ``steps``.  Yields a function to call
+    with the results, which waits for them."""
+    import time
+
+    if timings is None:
+        yield lambda results: None
+        return
+    compiled = []
+
+    def listen(event: str, seconds: float, **_) -> None:
+        if event in _COMPILE_EVENTS:
+            compiled.append(seconds)
+
+    def timed(results) -> None:
+        jax.block_until_ready(results)
+        wall = time.perf_counter() - tic
+        compile_s = min(float(sum(compiled)), wall)
+        timings.update(compile=compile_s, run=wall - compile_s, steps=steps)
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    tic = time.perf_counter()
+    try:
+        yield timed
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
 
 
 #: Frames a run's compiled loop (:func:`_advance`) fills per call, at most (fewer where they would take more than

@@ -45,6 +45,15 @@ class _OneLineErrors(argparse.ArgumentParser):
         fail(f"{message} (see `{self.prog} --help`)")
 
 
+#: what an option means for one scene, where the option's help names several scenes' meanings (``jaxmpm run
+#: SCENE --help`` prints this instead)
+SCENE_HELP = {
+    ("bar", "--v0"): "amplitude v0 of the initial velocity v0 sin(beta1 x)",
+    ("bars_impact", "--v0"): "speed v0 at which each bar meets the other",
+    ("taylor_bar", "--v0"): "impact speed v0 of the rod, m/s",
+}
+
+
 def _scene_defaults() -> dict:
     """{scene: {keyword: default}} from the builders' signatures and the scenes' part defaults."""
     from jaxmpm.scenes import SCENES
@@ -101,7 +110,9 @@ def option_default(scene: str, option: str, defaults: dict) -> str | None:
 
 
 def _show(value) -> str:
-    """A default as the option is spelled: 0.1, 1e+08, flip, 0,-9.8 (a vector)."""
+    """A default as the option is spelled: 0.1, 1e+08, flip, 0,-9.8 (a vector), off (a flag)."""
+    if isinstance(value, bool):  # a flag (--stress)
+        return "on" if value else "off"
     if isinstance(value, (tuple, list)):
         return ",".join(_show(v) for v in value)
     return f"{value:g}" if isinstance(value, float) else str(value)
@@ -232,13 +243,16 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--geometry", default=None, choices=["axisymmetric", "3d"],
                      help="the Taylor bar's model: an r-z grid or a 3D quarter rod " + _defaults("geometry"))
     run.add_argument("--v0", type=float, default=None, metavar="V",
-                     help="impact speed of the Taylor bar, m/s " + _defaults("v0"))
+                     help="initial speed v0: bar's velocity amplitude, the two bars' and the Taylor bar's impact "
+                          "speed (m/s) " + _defaults("v0"))
     run.add_argument("--yield-stress", type=float, default=None, metavar="SY",
                      help="von Mises yield stress sigma_y > 0 of the Taylor bar, Pa " + _defaults("yield_stress"))
     run.add_argument("--hardening", type=float, default=None, metavar="H",
                      help="linear hardening modulus H >= 0 of the Taylor bar, Pa " + _defaults("hardening"))
     run.add_argument("--viscosity", type=float, default=None, metavar="ETA",
                      help="dynamic viscosity eta >= 0 of a viscous fluid, Pa s " + _defaults("viscosity"))
+    run.add_argument("--stress", action="store_const", const=True, default=None,
+                     help="spin: a neo-Hookean disk (--E, --nu) instead of a stress-free one " + _defaults("stress"))
     run.add_argument("--conventions", default=None, choices=["jaxmpm", "nairnmpm"],
                      help="whose rules where MPM codes differ: jaxmpm (default) or nairnmpm (NairnMPM 19.0: "
                           "the reaction force on fixed nodes, XPIC's series start, the XPIC/PIC position update, "
@@ -291,7 +305,23 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     """Entry point of the ``jaxmpm`` console script; returns 0, or exits with status 2 on an error
-    (130/143 when a signal interrupts a run)."""
+    (130/143 when a signal interrupts a run).  Warnings print as one line each, ``jaxmpm: warning: ...``."""
+    import warnings
+
+    shown = warnings.formatwarning
+    warnings.formatwarning = _warning_line
+    try:
+        return _main(argv)
+    finally:
+        warnings.formatwarning = shown
+
+
+def _warning_line(message, category, filename, lineno, line=None) -> str:
+    """A warning as the command line prints it: one line, like its errors (not Python's file and source line)."""
+    return f"jaxmpm: warning: {message}\n"
+
+
+def _main(argv) -> int:
     argv = _negative_values_joined(sys.argv[1:] if argv is None else list(argv))
     if argv[:1] in (["scenes"], ["run"]):  # the scenes of installed packages, which these list
         from .scenes import load_scene_entry_points
@@ -409,7 +439,7 @@ def scene_help(parser, scene: str) -> int:
             action.help = argparse.SUPPRESS  # an option another scene takes
             continue
         text = option_default(scene, option, defaults)
-        action.help = action.help or ""
+        action.help = SCENE_HELP.get((scene, option), action.help or "")
         cut = action.help.rfind(" (default")
         if (text is not None or keyword not in keywords) and cut >= 0 and action.help.endswith(")"):
             action.help = action.help[:cut]  # the defaults of every scene
@@ -459,6 +489,9 @@ def run_scene(args) -> int:
     from jaxmpm.core.errors import check
     from jaxmpm.io.xdmf import xdmf_paths
 
+    if not args.out.strip() or os.path.isdir(args.out):
+        fail(f"--out {args.out!r} is {'a folder' if args.out.strip() else 'empty'}; give the run's file, e.g. "
+             f"{os.path.join(args.out, 'run.h5') if args.out.strip() else 'run.h5'}")
     if os.path.exists(args.out) and not args.force:
         saved = saved_state(args.out)
         unfinished = (f" (it holds an unfinished run, continued by `jaxmpm resume {args.out}`)"

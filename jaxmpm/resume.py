@@ -21,14 +21,14 @@ import shlex
 import h5py
 
 from .core.errors import InputError, check
-from .core.validate import file_path
+from .core.validate import input_file
 
 
 def run_info(path) -> dict:
     """The root attributes of a run's file that resuming needs (``dt``, ``command``, ``scene``)."""
     from .io.hdf5 import working_paths
 
-    path = file_path("resume", path, "give the path of a run's file (jaxmpm run ... --out FILE.h5, jm.H5Writer)")
+    path = input_file("resume", path, "give the path of a run's file (jaxmpm run ... --out FILE.h5, jm.H5Writer)")
     if not os.path.exists(path):
         started = any(os.path.exists(p) for p in working_paths(path))
         check(False, f"resume: {os.fspath(path)} does not exist" + (
@@ -38,7 +38,8 @@ def run_info(path) -> dict:
         with h5py.File(path, "r") as f:
             return {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
     except OSError as err:
-        raise InputError(f"resume: cannot read {os.fspath(path)} as a jaxmpm HDF5 file ({err})") from None
+        reason = " ".join(str(err).split())  # h5py's messages span lines
+        raise InputError(f"resume: cannot read {os.fspath(path)} as a jaxmpm HDF5 file ({reason})") from None
 
 
 def restart_command(info: dict, path) -> str:

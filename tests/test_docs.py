@@ -122,3 +122,19 @@ def test_the_api_reference_builds(tmp_path):
     assert done.returncode == 0, done.stdout[-4000:] + done.stderr[-4000:]
     page = (site / "api" / "simulation" / "index.html").read_text()
     assert 'id="jaxmpm.Simulation"' in page and "kinematics" in page
+
+
+def test_running_md_names_every_command_line_option():
+    """docs/running.md is the command line's full reference (README, "Documentation"): every option of every
+    subcommand appears in it, spelled as the parser takes it."""
+    from jaxmpm.cli import _subparser, build_parser
+
+    text = (ROOT / "docs" / "running.md").read_text()
+    parser = build_parser()
+    missing = []
+    for command in ("run", "resume", "plot", "animate", "scenes"):
+        for action in _subparser(parser, command)._actions:
+            for option in action.option_strings:
+                if option.startswith("--") and option != "--help" and not re.search(re.escape(option) + r"\b", text):
+                    missing.append(f"{command} {option}")
+    assert not missing, f"docs/running.md does not name: {', '.join(missing)}"

@@ -5,6 +5,7 @@ options)."""
 
 from __future__ import annotations
 
+import math
 import os
 
 from .errors import InputError
@@ -16,9 +17,16 @@ MAX_STEPS = 2**31 - 1
 def available_bytes() -> int:
     """Memory a run may use: MemAvailable of /proc/meminfo (Linux), else the physical memory;
     ``JAXMPM_MEMORY_BYTES`` overrides both (tests, shared machines)."""
-    override = os.environ.get("JAXMPM_MEMORY_BYTES")
+    override = os.environ.get("JAXMPM_MEMORY_BYTES", "").strip()
     if override:
-        return int(float(override))
+        try:
+            value = float(override)
+        except ValueError:
+            value = math.nan
+        if not (math.isfinite(value) and value > 0):
+            raise InputError(f"JAXMPM_MEMORY_BYTES = {override!r} must be a positive number of bytes, e.g. 8e9; "
+                             "unset it to use the memory available")
+        return int(value)
     try:
         with open("/proc/meminfo") as f:
             for line in f:

@@ -284,6 +284,33 @@ def file_path(owner: str, value, fix: str = "give a file's path, a str or pathli
     return path.decode() if isinstance(path, bytes) else path
 
 
+def output_file(owner: str, value, fix: str = "give a file's path, a str or pathlib.Path") -> str:
+    """:func:`file_path` of a file to be written: a name that is not empty and not a folder, in a folder that
+    exists (an InputError otherwise, before anything is written)."""
+    import os
+
+    path = file_path(owner, value, fix)
+    if not path.strip():
+        raise InputError(f"{owner}: path = {path!r} is empty; {fix}")
+    if os.path.isdir(path) or path.endswith(("/", os.sep)):
+        raise InputError(f"{owner}: {path} is a folder; give a file in it, e.g. {os.path.join(path, 'run.h5')}")
+    folder = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(folder):
+        raise InputError(f"{owner}: the folder {folder} does not exist; create it first, or {fix}")
+    return path
+
+
+def input_file(owner: str, value, fix: str = "give a file's path, a str or pathlib.Path") -> str:
+    """:func:`file_path` of a file to be read: a folder is an InputError (a missing file is the caller's to
+    name, with what it means there)."""
+    import os
+
+    path = file_path(owner, value, fix)
+    if os.path.isdir(path):
+        raise InputError(f"{owner}: {path} is a folder, not a file; {fix}")
+    return path
+
+
 def positive_int(owner: str, name: str, value, *, low: int = 1, fix: str | None = None) -> int:
     """``value`` as a Python int >= ``low`` (1: "a positive integer", 0: "a non-negative integer").
     Integral floats (4.0) are accepted; 2.5, True/False, nan, inf, strings and traced values are

@@ -38,7 +38,7 @@ import os
 import h5py
 import numpy as np
 
-from ..core.validate import POSITIVE, file_path
+from ..core.validate import POSITIVE, input_file, output_file
 from .xdmf import (
     copy_into_place,
     link_into_place,
@@ -154,7 +154,7 @@ class H5Writer:
                  overwrite: bool = False):
         from ..core.errors import check
 
-        path = file_path("H5Writer", path, "give the run's file, e.g. 'run.h5'")
+        path = output_file("H5Writer", path, "give the run's file, e.g. 'run.h5'")
         check(isinstance(mode, str) and mode in ("w", "a"), f"H5Writer: mode = {mode!r}; use 'w' (create) or 'a' "
                                                             "(append)")
         check(fields is None or isinstance(fields, (tuple, list)),
@@ -640,7 +640,7 @@ def load_h5(path) -> Results:
     from ..core.errors import check
 
     out = Results()
-    path = file_path("load_h5", path, "give the path of a jaxmpm HDF5 file")
+    path = input_file("load_h5", path, "give the path of a jaxmpm HDF5 file")
     check(os.path.isfile(path), f"load_h5: {os.fspath(path)!r} does not exist (or is not a file); give the path of a "
                                 "jaxmpm HDF5 file (`jaxmpm run ... --out FILE.h5`, jm.save_h5, jm.H5Writer)")
     try:

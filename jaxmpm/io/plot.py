@@ -308,10 +308,10 @@ def _matplotlib(cli: bool):
 
 def _plane(run: _Run, axes) -> tuple[int, ...]:
     """The plotted axes: (0,) in 1D, (0, 1) in 2D, the two chosen ones in 3D."""
-    if run.dim == 1:
-        return (0,)
-    if run.dim == 2:
-        return (0, 1)
+    if run.dim < 3:  # the default "xy" is the only projection of a 1D or 2D run
+        check(axes == "xy", f"{_say('axes', axes, run.cli)}: a {run.dim}D run has one view; leave axes out (xz and "
+                            "yz are views of a 3D run)")
+        return (0,) if run.dim == 1 else (0, 1)
     ok = isinstance(axes, str) and len(axes) == 2 and set(axes) <= set("xyz") and axes[0] != axes[1]
     check(ok, f"{_say('axes', axes, run.cli)}: give two of x, y, z for the projection of a 3D run (xy, xz or yz)")
     return tuple(_AXIS_NAMES.index(a) for a in axes)
@@ -414,6 +414,11 @@ class _Panel:
         self.points.set_sizes([max(diameter, least) ** 2])
 
 
+#: the largest image a figure may make: Agg's limit on a side, and 1e8 pixels in all (400 MB of RGBA)
+MAX_SIDE_PIXELS = 2**16
+MAX_PIXELS = 1e8
+
+
 def _figure(run: _Run, count: int, plane, figsize, dpi, cli: bool):
     Figure, FigureCanvasAgg = _matplotlib(cli)
     check(isinstance(dpi, (int, float, np.integer, np.floating)) and not isinstance(dpi, bool) and dpi > 0,
@@ -431,6 +436,11 @@ def _figure(run: _Run, count: int, plane, figsize, dpi, cli: bool):
     ok = (isinstance(figsize, (tuple, list)) and len(figsize) == 2
           and all(isinstance(s, (int, float)) and not isinstance(s, bool) and s > 0 for s in figsize))
     check(ok, f"{_say('figsize', figsize, cli)} must be (width, height) in inches, both positive")
+    width_px, height_px = (float(s) * float(dpi) for s in figsize)
+    check(max(width_px, height_px) < MAX_SIDE_PIXELS and width_px * height_px <= MAX_PIXELS,
+          f"{_say('dpi', dpi, cli)} with figsize {float(figsize[0]):g} x {float(figsize[1]):g} in makes an image of "
+          f"{width_px:.4g} x {height_px:.4g} pixels; the most is {MAX_SIDE_PIXELS - 1} a side and {MAX_PIXELS:.0e} "
+          "in all: lower dpi (e.g. 100) or figsize")
     fig = Figure(figsize=tuple(float(s) for s in figsize), dpi=float(dpi), layout="constrained")
     FigureCanvasAgg(fig)
     axes = fig.subplots(nrows, ncols, squeeze=False).ravel()
@@ -587,6 +597,9 @@ def _animate(path_or_result, out, field, fps, every, axes, figsize, dpi, cmap, c
     check(isinstance(fps, (int, float, np.integer, np.floating)) and not isinstance(fps, bool)
           and math.isfinite(fps) and fps > 0, f"{_say('fps', fps, _cli)} must be a positive number of frames "
                                               "per second")
+    check(mp4 or fps >= GIF_MIN_FPS,  # a GIF keeps each frame's delay in hundredths of a second, in 16 bits
+          f"{_say('fps', fps, _cli)}: a GIF shows a frame for at most 655.35 s, fps >= {GIF_MIN_FPS:.4g}; "
+          "give a larger fps")
     check(isinstance(every, (int, np.integer)) and not isinstance(every, bool) and every >= 1,
           f"{_say('every', every, _cli)} must be a positive integer (1: every frame)")
     _refuse_overwrite(out, overwrite, _cli)
@@ -598,11 +611,23 @@ def _animate(path_or_result, out, field, fps, every, axes, figsize, dpi, cmap, c
         fig, (panel,) = _draw(run, chosen[:1], field, plane, figsize, dpi, cmap, clim, range(run.frames), title,
                               marker_scale)
         images = _frames_of(fig, panel, chosen, progress)
-        if mp4:
-            _write_mp4(out, images, fps)
-        else:
-            _write_gif(out, list(images), fps)
+        root, extension = os.path.splitext(out)
+        partial = f"{root}.partial{extension}"  # the animation appears under its name only once whole (the
+        # extension kept: ffmpeg chooses the container by it)
+        try:
+            if mp4:
+                _write_mp4(partial, images, fps)
+            else:
+                _write_gif(partial, list(images), fps)
+            os.replace(partial, out)
+        finally:
+            if os.path.exists(partial):
+                os.remove(partial)
     return out, len(chosen)
+
+
+#: the fewest frames per second a GIF can show: its frame delays are hundredths of a second, 16 bits
+GIF_MIN_FPS = 100.0 / 65535
 
 
 def _frames_of(fig, panel: _Panel, chosen, progress: bool):

@@ -20,7 +20,9 @@ float64.  A frame holds each as ``History.fields[name]`` (N, ...), written to HD
 * ``J``        det F (N,), the volume ratio V / V0.
 * ``F``        the deformation gradient (N, d, d).
 * the material's saved state: the entries of ``State.material_state`` its
-  :attr:`Material.saved_state` names (none for the built-in laws; e.g. a plastic strain).
+  :attr:`Material.saved_state` names: ``plastic_strain`` (VonMises, DruckerPrager, CamClay),
+  ``volumetric_plastic_strain`` (DruckerPrager, CamClay), ``preconsolidation_pressure`` (CamClay),
+  ``viscous_dissipation`` (NewtonianFluid); none for the elastic laws.
 """
 
 from __future__ import annotations

@@ -270,6 +270,16 @@ def _integral(rate, t):
     return 0.5 * t * jnp.tensordot(jnp.asarray(_GAUSS_WEIGHTS, t.dtype), values, axes=1)
 
 
+def _size_of_rate(rate) -> int | None:
+    """How many numbers a callable rate ``rate(t)`` returns, from its shape at a traced t (no computation); None
+    where it cannot be traced (the run then meets the callable's own error)."""
+    try:
+        out = jax.eval_shape(rate, jax.ShapeDtypeStruct((), jnp.result_type(float)))
+    except Exception:  # noqa: BLE001 - a callable of host code: its error is the run's to report
+        return None
+    return int(np.prod(out.shape)) if hasattr(out, "shape") else None
+
+
 def _at(rate, t):
     """The rate at time t (a constant: itself)."""
     return jnp.asarray(rate(t) if callable(rate) else rate, t.dtype)
@@ -364,12 +374,20 @@ class Collider(Term):
         if self.velocity is not None and not callable(self.velocity):
             check(self.velocity.shape == (dim,), f"Collider: velocity has {self.velocity.size} components; give "
                                                  f"{dim}, the solid's translation velocity")
+        elif self.velocity is not None:
+            size = _size_of_rate(self.velocity)
+            check(size in (None, dim), f"Collider: velocity(t) returns {size} components; return {dim}, the solid's "
+                                       "translation velocity at time t")
         if self.angular_velocity is not None:
             check(dim in (2, 3), f"Collider: angular_velocity in {dim}D; a solid turns in 2D or 3D only")
             want = 1 if dim == 2 else 3
             if not callable(self.angular_velocity):
                 check(self.angular_velocity.shape == (want,),
                       f"Collider: angular_velocity has {self.angular_velocity.size} components; give {want} in {dim}D")
+            else:
+                size = _size_of_rate(self.angular_velocity)
+                check(size in (None, want), f"Collider: angular_velocity(t) returns {size} components; return {want} "
+                                            f"in {dim}D")
         if self.center is not None:
             check(len(self.center) == dim, f"Collider: center has {len(self.center)} coordinates; give {dim}")
 

@@ -253,6 +253,11 @@ def calibrate(
     def constrained(r):
         return {k: transforms[k][0](r[k]) for k in r}
 
+    check(optimizer is None or all(callable(getattr(optimizer, method, None)) for method in ("init", "update")),
+          f"calibrate: optimizer = {optimizer!r} is not an optax optimizer; give one, e.g. optimizer=optax.adam(0.05) "
+          "(import optax), or None for that default")
+    check(callback is None or callable(callback),
+          f"calibrate: callback = {callback!r} is not a function; give callback(iteration, loss, params), or None")
     optimizer = _ADAM if optimizer is None else optimizer
     opt_state = optimizer.init(raw)
     # strong types: optax.lbfgs starts with a weakly typed counter that its update makes strong, which

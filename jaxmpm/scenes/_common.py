@@ -75,7 +75,7 @@ PART_DEFAULTS = {
 #: "from cfl" everywhere, and a damping left out "0" (``alpha_g``/``alpha_p``: the damping's rates,
 #: --alpha-g and --alpha-p); tests/test_cli_scenes.py checks the numbers against the built scenes
 DERIVED_DEFAULTS = {
-    "spin": {"t_end": "1 (with stress: one turn 2 pi/omega)"},
+    "spin": {"t_end": "1 (with stress: one turn 2 pi/omega)", "E": "100 (with --stress)", "nu": "0.3 (with --stress)"},
     "mms": {"t_end": "one period 2/c"},
     "vortex": {"t_end": "one period"},
     "bars_impact": {"t_end": "4 L/c (twice the contact time)"},
@@ -102,6 +102,7 @@ FIELD_DEFAULTS = {
     "vortex": ("stress",),
     "bars_impact": ("stress",),
     "slide": ("stress",),
+    "incline": ("stress",),
     "thermal_bar": ("stress", "J"),
     "cylinder": ("stress",),
     "dam_break": ("pressure",),

@@ -204,6 +204,11 @@ def checked_options(builder, name: str | None = None):
             if contact != "coulomb" and mu is not None and np.any(mu != 0):
                 fail(scene, f"friction = {show(given['friction'])} applies only to contact='coulomb', "
                             f"not contact={contact!r}", "pass contact='coulomb', or leave friction out")
+        if given.get("separation") is not None and "contact" in signature.parameters:
+            if given.get("contact", signature.parameters["contact"].default) == "none":
+                fail(scene, f"separation = {show(given['separation'])} is the contact law's separation criterion, "
+                            "and contact='none' has no law", "pass a contact law ('frictionless', 'coulomb' or "
+                                                             "'stick'), or leave separation out")
         if given.get("normal") is not None and "contact" in signature.parameters:
             if given.get("contact", signature.parameters["contact"].default) == "none":
                 fail(scene, f"normal = {show(given['normal'])} applies only to a contact law, not contact='none'",

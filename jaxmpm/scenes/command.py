@@ -60,6 +60,7 @@ SCENE_OPTIONS = {
     "--v0": "v0",
     "--yield-stress": "yield_stress",
     "--hardening": "hardening",
+    "--stress": "stress",
 }
 
 #: the function of a scene file that builds the scene
@@ -93,6 +94,7 @@ def load_scene_file(path, sha256: str | None = None) -> SceneFile:
 
     path = os.path.abspath(os.fspath(path))
     resuming = "" if sha256 is None else "; the run being resumed was started from it: restore it to resume the run"
+    check(not os.path.isdir(path), f"scene file {path} is a folder; give a Python file in it that defines scene()")
     check(os.path.isfile(path), f"scene file {path} does not exist{resuming}")
     try:
         with open(path, "rb") as f:

@@ -41,8 +41,8 @@ def spin(
     radius: float = 0.3,
     omega: float = 1.0,
     stress: bool = False,
-    E: float = 100.0,
-    nu: float = 0.3,
+    E: float | None = None,
+    nu: float | None = None,
     density: float = 1.0,
     cfl: float = 0.25,
     dt: float | None = None,
@@ -53,7 +53,14 @@ def spin(
     frames: int = 200,
     affine_start: bool = True,
 ) -> Setup:
-    """The spinning disk; dt = cfl * h / (c + omega R) unless ``dt`` is given (c = 0 without stress)."""
+    """The spinning disk; dt = cfl * h / (c + omega R) unless ``dt`` is given (c = 0 without stress).  ``E``
+    (default 100) and ``nu`` (default 0.3) are the neo-Hookean disk's with ``stress=True``; without stress
+    they are an error."""
+    check(stress or (E is None and nu is None),
+          "spin: E and nu are the neo-Hookean disk's; give stress=True (jaxmpm run spin --stress) with them, or "
+          "leave them out: without stress the disk is stress-free (NoStress)")
+    E = 100.0 if E is None else E
+    nu = 0.3 if nu is None else nu
     dtype = resolve_dtype(dtype)
     scheme = FLIP() if scheme is None else scheme
     shape = QuadraticBSpline() if shape is None else shape

@@ -26,6 +26,7 @@ import math
 
 import numpy as np
 
+from ..core.errors import check
 from ..core.grid import Grid
 from ..core.particles import Box, fill
 from ..materials import LinearElastic, NoStress
@@ -59,6 +60,9 @@ class SineProfile:
 
 def _conduction(name, grid, shape, particles, term, cfl, t_end, frames, dtype, params, reference):
     """A pure-conduction Setup: NoStress particles at rest, dt = cfl times the conduction limit."""
+    option = "diffusivity" if name == "diffusion2d" else "conductivity"
+    check(params["conductivity"] > 0, f"{name}: {option} = 0 carries nothing, and the time step (cfl times the limit "
+                                      f"h^2 / (2 D a), a = 0) is infinite; give {option} > 0")
     sim = Simulation(grid=grid, shape=shape, material=NoStress(density=params["density"]), scheme=FLIP(),
                      terms=(term,), damping=False)
     state = cast_state(sim.init(particles), dtype)

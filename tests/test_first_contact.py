@@ -1,0 +1,252 @@
+"""Inputs that escaped as raw exceptions or misleading messages (an audit of the documentation against the
+code, 2026-11-29), each now a one-line jm.InputError naming the parameter and the fix, or exit status 2 on the
+command line; and the documented behaviours that did not happen (``timings`` of a plain run, a scene's
+default fields, spin's stiffness)."""
+
+from __future__ import annotations
+
+import os
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from cases import run_cli
+
+import jaxmpm as jm
+
+GRID = jm.Grid((0.0, 0.0), (1.0, 1.0), (8, 8))
+
+
+def _particles():
+    return jm.fill(GRID, jm.Box((0.3, 0.2), (0.7, 0.5)), ppc=2)
+
+
+def _model(scheme="flip", material=None, terms=()):
+    return jm.Simulation(GRID, "quadratic", material or jm.NeoHookean(E=1e3), scheme, boundary=jm.Fixed("y-"),
+                         terms=terms)
+
+
+# ----------------------------------------------------------------- a state for this model
+
+
+@pytest.mark.parametrize("made, runs, words", [
+    (_model("apic"), _model("flip"), ["scheme_state", "FLIP needs nothing"]),
+    (_model("flip"), _model("apic"), ["scheme_state holds nothing", "APIC needs an array of shape"]),
+    (_model(), _model(material=jm.VonMises(E=1e3, nu=0.3, yield_stress=10.0)),
+     ["material_state holds nothing", "VonMises needs {Fe"]),
+    (_model(material=jm.VonMises(E=1e3, nu=0.3, yield_stress=10.0)), _model(), ["NeoHookean needs nothing"]),
+    (_model(), _model(terms=[jm.Reaction()]), ["carries no fields", "['reaction_force']"]),
+    (_model(terms=[jm.Reaction()]), _model(), ["the fields ['reaction_force']", "declare none"]),
+], ids=["apic->flip", "flip->apic", "elastic->plastic", "plastic->elastic", "term added", "term removed"])
+def test_a_state_made_for_another_model_is_named(made, runs, words):
+    """It had raised KeyError, AttributeError or TypeError from inside the step, or run on silently."""
+    state = made.init(_particles())
+    with pytest.raises(jm.InputError) as err:
+        runs.run(state, 1e-4, 2, 1)
+    text = str(err.value)
+    assert text.startswith("run: the state was made for another model") and "sim.init(particles)" in text
+    for word in words:
+        assert word in text, (word, text)
+
+
+def test_a_state_of_this_model_runs_also_under_jit_and_vmap():
+    """The check compares shapes only: it passes inside jit and vmap (an ensemble's members)."""
+    sim = _model("apic", terms=[jm.Reaction()])
+    state = sim.init(_particles())
+    final, _ = sim.run(state, 1e-4, 2, 1)
+    assert int(final.step) == 2
+    out = jm.ensemble(sim, state, 1e-4, 2, 1, params={"E": jnp.array([1e3, 2e3])})
+    assert np.asarray(out[0].step).tolist() == [2, 2]
+
+
+@pytest.mark.parametrize("state, words", [(_particles(), "state is a jm.Particles; make the state first"),
+                                          (None, "state = None must be a jm.State")])
+def test_run_of_something_not_a_state(state, words):
+    with pytest.raises(jm.InputError, match=words):
+        _model().run(state, 1e-4, 2, 1)
+
+
+# ----------------------------------------------------------------- timings of a plain run
+
+
+def test_a_plain_run_fills_timings():
+    """docs/running.md: ``timings={}`` receives compile, run and steps; a plain run (no writer, no progress)
+    had left it empty.  Its compile seconds are JAX's compile events: none when the program was compiled."""
+    sim, state = _model(), _model().init(_particles())
+    first, second = {}, {}
+    sim.run(state, 1e-4, 4, 2, timings=first)
+    sim.run(state, 1e-4, 4, 2, timings=second)  # the same program again
+    for timings in (first, second):
+        assert set(timings) == {"compile", "run", "steps"} and timings["steps"] == 4
+        assert timings["run"] > 0 and timings["compile"] >= 0
+    assert second["compile"] == 0.0
+
+
+# ----------------------------------------------------------------- calibrate, colliders, memory
+
+
+def test_calibrate_names_an_optimizer_or_callback_of_the_wrong_kind():
+    sim, state = _model(), _model().init(_particles())
+
+    def loss(p):
+        return jnp.sum(jm.set_params(sim, **p).run(state, 1e-4, 2, 1)[1].kinetic)
+
+    with pytest.raises(jm.InputError, match="optimizer = 'adam' is not an optax optimizer"):
+        jm.calibrate(loss, {"E": 1e3}, steps=1, progress=False, optimizer="adam")
+    with pytest.raises(jm.InputError, match="callback = 3 is not a function"):
+        jm.calibrate(loss, {"E": 1e3}, steps=1, progress=False, callback=3)
+
+
+def test_a_collider_velocity_function_of_the_wrong_length():
+    """A constant velocity of the wrong length was an InputError already; a function's raised TypeError."""
+    with pytest.raises(jm.InputError, match=r"velocity\(t\) returns 3 components; return 2"):
+        jm.Simulation(GRID, "linear", jm.NeoHookean(E=1e3), "flip",
+                      terms=[jm.Collider(jm.HalfSpace((0.0, 0.1), (0.0, 1.0)),
+                                         velocity=lambda t: jnp.array([0.0, 0.0, t]))])
+    with pytest.raises(jm.InputError, match=r"angular_velocity\(t\) returns 2 components; return 1"):
+        jm.Simulation(GRID, "linear", jm.NeoHookean(E=1e3), "flip",
+                      terms=[jm.Collider(jm.Ball((0.5, 0.5), 0.1), angular_velocity=lambda t: jnp.array([t, t]),
+                                         center=(0.5, 0.5))])
+    for velocity in (lambda t: jnp.array([0.0, t]), lambda t: [0.0, float(t)]):  # the right length; host code
+        jm.Simulation(GRID, "linear", jm.NeoHookean(E=1e3), "flip",
+                      terms=[jm.Collider(jm.HalfSpace((0.0, 0.1), (0.0, 1.0)), velocity=velocity)])
+
+
+@pytest.mark.parametrize("value", ["abc", "-1", "nan"])
+def test_a_bad_memory_override_is_named(monkeypatch, value):
+    from jaxmpm.core.limits import available_bytes
+
+    monkeypatch.setenv("JAXMPM_MEMORY_BYTES", value)
+    with pytest.raises(jm.InputError, match="JAXMPM_MEMORY_BYTES = .* must be a positive number of bytes"):
+        available_bytes()
+    monkeypatch.setenv("JAXMPM_MEMORY_BYTES", "8e9")
+    assert available_bytes() == 8_000_000_000
+
+
+# ----------------------------------------------------------------- files
+
+
+@pytest.mark.parametrize("kind", ["folder", "empty", "missing folder"])
+def test_a_writer_path_that_is_not_a_file(tmp_path, kind):
+    """A folder with overwrite had failed inside h5py and left FOLDER.tmp, FOLDER.0.tmp, FOLDER.1.tmp."""
+    sim, state = _model(), _model().init(_particles())
+    path = {"folder": str(tmp_path), "empty": "", "missing folder": str(tmp_path / "nowhere" / "run.h5")}[kind]
+    words = {"folder": "is a folder; give a file in it", "empty": "is empty",
+             "missing folder": "does not exist; create it first"}[kind]
+    with pytest.raises(jm.InputError, match=words):
+        jm.H5Writer(path, sim, state, overwrite=True)
+    assert sorted(os.listdir(tmp_path)) == []
+
+
+def test_the_command_line_refuses_a_folder_or_an_empty_out(tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    os.mkdir("r_dir")
+    for out, words in (("r_dir", "--out 'r_dir' is a folder"), ("", "--out '' is empty")):
+        assert run_cli(["run", "bar", "--cells", "4", "--t-end", "0.5", "--frames", "1", "--out", out,
+                        "--force"]) == 2
+        err = capsys.readouterr().err
+        assert words in err and len(err.strip().splitlines()) == 1
+    assert sorted(os.listdir(tmp_path)) == ["r_dir"] and os.listdir("r_dir") == []  # nothing left behind
+
+
+def test_resume_and_run_name_a_folder(tmp_path, capsys):
+    assert run_cli(["resume", str(tmp_path)]) == 2
+    assert f"resume: {tmp_path} is a folder, not a file" in capsys.readouterr().err
+    bad = tmp_path / "bad.h5"
+    bad.write_text("not HDF5")
+    assert run_cli(["resume", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert "cannot read" in err and len(err.strip().splitlines()) == 1  # h5py's message had spanned two lines
+    assert run_cli(["run", str(tmp_path), "--out", str(tmp_path / "x.h5")]) == 2
+    assert f"scene file {tmp_path} is a folder" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------- pictures
+
+
+def _small_run(tmp_path):
+    setup = jm.scene("bar", cells=4, t_end=0.5, frames=2)
+    final, history = setup.run()
+    path = tmp_path / "bar.h5"
+    jm.save_h5(path, setup.sim, history, final, dt=setup.dt)
+    return path
+
+
+def test_plot_dpi_beyond_an_image_is_named(tmp_path):
+    """dpi 1e9 had raised matplotlib's TypeError, dpi 1e5 a MemoryError."""
+    path = _small_run(tmp_path)
+    for dpi in (1e9, 1e5):
+        with pytest.raises(jm.InputError, match=r"dpi=.* makes an image of .* pixels; the most is 65535 a side"):
+            jm.plot_frames(path, out=tmp_path / "p.png", dpi=dpi)
+    assert not (tmp_path / "p.png").exists()
+
+
+def test_a_projection_of_a_run_below_3d_is_named(tmp_path):
+    """axes="xz" on a 1D or 2D run had been accepted and ignored."""
+    path = _small_run(tmp_path)
+    with pytest.raises(jm.InputError, match="axes='xz': a 1D run has one view"):
+        jm.plot_frames(path, axes="xz")
+
+
+def test_animate_fps_below_what_a_gif_holds_is_named(tmp_path):
+    """fps 0.001 had raised Pillow's OverflowError and left a broken GIF; a GIF's frame delay is 16 bits of
+    hundredths of a second."""
+    path = _small_run(tmp_path)
+    with pytest.raises(jm.InputError, match=r"fps=0.001: a GIF shows a frame for at most 655.35 s"):
+        jm.animate(path, tmp_path / "a.gif", fps=0.001)
+    out = jm.animate(path, tmp_path / "a.gif", fps=0.002, progress=False)
+    assert os.path.getsize(out) > 0
+    assert sorted(os.listdir(tmp_path)) == ["a.gif", "bar.h5", "bar.xdmf", "bar.xdmf.h5"]  # no partial file left
+
+
+# ----------------------------------------------------------------- scenes on the command line
+
+
+def test_spin_takes_its_stiffness_only_with_stress(tmp_path, capsys):
+    """--E and --nu had been accepted and ignored: the disk is stress-free unless --stress."""
+    out = str(tmp_path / "s.h5")
+    short = ["--spacing", "0.125", "--t-end", "0.05", "--frames", "1", "--no-progress", "--out", out]
+    assert run_cli(["run", "spin", "--E", "5000", *short]) == 2
+    assert "spin: E and nu are the neo-Hookean disk's; give stress=True" in capsys.readouterr().err
+    assert run_cli(["run", "spin", "--stress", "--E", "5000", "--nu", "0.45", *short]) == 0
+    params = jm.load_h5(out).params
+    assert params["E"] == 5000.0 and params["nu"] == 0.45
+    assert jm.scene("spin", spacing=0.125, stress=True).sim.material.E == 100.0  # the documented default
+
+
+def test_incline_saves_its_stress_by_default():
+    from jaxmpm.scenes._common import FIELD_DEFAULTS
+
+    assert FIELD_DEFAULTS["incline"] == ("stress",)
+
+
+def test_per_scene_help_says_what_v0_is(capsys):
+    for scene, words in (("bar", "amplitude v0 of the initial velocity"), ("bars_impact", "each bar meets"),
+                         ("taylor_bar", "impact speed v0 of the rod")):
+        assert run_cli(["run", scene, "--help"]) == 0
+        assert words in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["heat1d", "--conductivity", "0"], "heat1d: conductivity = 0 carries nothing"),
+    (["diffusion2d", "--diffusivity", "0"], "diffusion2d: diffusivity = 0 carries nothing"),
+    (["disks", "--contact", "none", "--separation", "2"], "separation = 2.0 is the contact law's"),
+])
+def test_scene_options_that_mean_nothing_are_named(tmp_path, capsys, argv, words):
+    """Zero conductivity had said only "dt = inf" (these scenes have no --dt); a separation without a contact
+    law had been accepted silently while a friction was refused."""
+    assert run_cli(["run", *argv, "--out", str(tmp_path / "x.h5")]) == 2
+    assert words in capsys.readouterr().err
+
+
+def test_command_line_warnings_print_one_line(tmp_path):
+    """A warning had printed Python's file, line and source line (``sys.exit(main())``)."""
+    import subprocess
+    import sys
+
+    result = subprocess.run([sys.executable, "-m", "jaxmpm", "run", "bar", "--cells", "4", "--cfl", "3", "--t-end",
+                             "0.5", "--frames", "1", "--no-progress", "--out", str(tmp_path / "u.h5")],
+                            capture_output=True, text=True, timeout=300)
+    warning = [line for line in result.stderr.splitlines() if "exceeds the stable limit" in line]
+    assert len(warning) == 1 and warning[0].startswith("jaxmpm: warning: dt = ")
+    assert "sys.exit" not in result.stderr

@@ -231,6 +231,8 @@ def test_per_scene_help_says_what_v0_is(capsys):
     (["heat1d", "--conductivity", "0"], "heat1d: conductivity = 0 carries nothing"),
     (["diffusion2d", "--diffusivity", "0"], "diffusion2d: diffusivity = 0 carries nothing"),
     (["disks", "--contact", "none", "--separation", "2"], "separation = 2.0 is the contact law's"),
+    (["bar", "--E", "1e-300"], "bar: the free end would swing by v0 / omega = 1.59e+150"),  # had blamed the grid
+    (["thermal_bar", "--expansion", "1e300"], "thermal_bar: expansion * heating = 1e+300 * 50"),  # the grid, too
 ])
 def test_scene_options_that_mean_nothing_are_named(tmp_path, capsys, argv, words):
     """Zero conductivity had said only "dt = inf" (these scenes have no --dt); a separation without a contact

@@ -164,6 +164,10 @@ def test_sharded_frames_hdf5_resume_and_cli_equal_one_device():
     assert again["code"] == 0 and again["kept"]["frames"] == 2 and again["frames"] == 4, again
     assert again["same_datasets"] and again["same_schedule"] and again["worst"] < 1e-13, again
     assert again["summary_devices"] and again["summary_devices"][0].split()[1] == "2"
+    # resumed again, finished: nothing to run, and the summary counts no moves (it had raised KeyError 'migrated')
+    finished = out["cli_resume_finished"]
+    assert finished["code"] == 0 and finished["summary_devices"] == ["devices              2 (slabs along x), 0 "
+                                                                     "particle moves between them"], finished
 
 
 @pytest.mark.slow

@@ -16,7 +16,7 @@ ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
 #: the docs pages whose python blocks were README blocks (the other docs pages' examples run in their own tests:
 #: docs/extending.md in tests/test_extending.py)
-DOC_PAGES = [ROOT / "docs" / "contact.md", ROOT / "docs" / "transport.md"]
+DOC_PAGES = [ROOT / "docs" / "contact.md", ROOT / "docs" / "transport.md", ROOT / "docs" / "colliders.md"]
 FENCE = re.compile(r"^```\s*(\w*)\s*$")
 
 
@@ -62,6 +62,7 @@ BLOCKS = {
                                                                'jm.scene("column_collapse", cells=2)', 1),
                                                               ("rebalance_every=200", "rebalance_every=10", 1),
                                                               ("setup.dt, 800)", "setup.dt, 20)", 1)]),
+    "Rigid colliders": Block(),  # docs/colliders.md: one model, no run
     "Extending jaxmpm": Block(
         [('scheme="newpic:0.3")', 'scheme="newpic:0.3", t_end=0.5, frames=2); setup.run()', 1)],  # run the new scheme
     ),

@@ -158,7 +158,8 @@ class ShardedSimulation:
         self.exchange = exchange
         self.axis_name = axis_name
         self._programs = {}
-        self.stats = {}
+        # a run's counts (_start_stats); zeros until a run steps (a resumed file with no step left runs none)
+        self.stats = {"steps": 0, "migrated": 0, "rebalances": 0, "particles": None, "mass": None, "bounds": []}
 
     def _check_images(self):
         """An InputError unless every ghost node of a symmetry plane (jm.Mirror) or of a transport's

@@ -61,6 +61,10 @@ def bar(
     beta1 = math.pi / (2.0 * length)
     c = math.sqrt(E / density)
     omega = beta1 * c
+    amplitude = v0 / omega  # the free end's: a strain of about v0 / c along the bar, the small-strain model's
+    check(amplitude <= length, f"bar: the free end would swing by v0 / omega = {amplitude:.3g} (v0 = {v0:g}, "
+                               f"omega = pi/(2L) sqrt(E/rho) = {omega:.3g}), more than the bar's length {length:g}: "
+                               "beyond a small-strain vibration; lower v0, or raise E or lower density")
     # room for the free end: its amplitude v0/omega (0.159 by default) plus one cell
     grid = Grid.covering((0.0,), (length + h + 2.0 * v0 / omega,), h, shape=shape)
     particles = fill(grid, Box((0.0,), (length,)), ppc=ppc, velocity=lambda x: v0 * np.sin(beta1 * x))

@@ -172,6 +172,9 @@ def thermal_bar(shape=None, cells: int = 32, ppc: int = 2, cfl: float = 0.5, t_e
     scheme = FLIP() if scheme is None else scheme
     h = length / cells
     stretch = expansion * heating
+    check(abs(stretch) < 1.0, f"thermal_bar: expansion * heating = {expansion:g} * {heating:g} = {stretch:.3g}, a "
+                              "thermal strain of magnitude 1 or more (the bar would double or vanish); give "
+                              "|expansion * heating| < 1, e.g. expansion 1e-3 and heating 50")
     room = abs(stretch) * length + 2 * h
     grid = Grid.covering((-room,), (length + room,), h, shape=shape)
     particles = fill(grid, Box((0.0,), (length,)), ppc=ppc)

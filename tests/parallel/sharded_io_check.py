@@ -227,5 +227,11 @@ with contextlib.redirect_stdout(printed):
     code = main(["resume", paths["cli_killed"], "--devices", "2", "--no-progress"])
 out["cli_resume"] = file_err(paths["cli_killed"], paths["cli1"]) | {"code": code, "kept": kept, "summary_devices": [
     line for line in printed.getvalue().splitlines() if line.startswith("devices")]}
+# `jaxmpm resume --devices 2` of the finished file: no step left to run (its summary read a count of none, KeyError)
+printed = io.StringIO()
+with contextlib.redirect_stdout(printed):
+    code = main(["resume", paths["cli_killed"], "--devices", "2", "--no-progress"])
+out["cli_resume_finished"] = {"code": code, "summary_devices": [
+    line for line in printed.getvalue().splitlines() if line.startswith("devices")]}
 shutil.rmtree(folder, ignore_errors=True)
 print(json.dumps(out))

@@ -59,6 +59,16 @@ def test_a_state_of_this_model_runs_also_under_jit_and_vmap():
     assert np.asarray(out[0].step).tolist() == [2, 2]
 
 
+def test_an_ensemble_names_a_state_of_another_model():
+    """jm.ensemble did not check its state as sim.run does: a state without the fields of a term added for a
+    parameter (an ensemble over contact friction on a one-body model, set_params adding jm.Contact) had raised
+    KeyError 'material' from inside the step (the audit of the gradients, 2026-11-29).  That friction is now
+    refused as a parameter that does not act (tests/test_params_act.py); a state of another model is named."""
+    state = _model("apic").init(_particles())
+    with pytest.raises(jm.InputError, match=r"ensemble: the state was made for another model: its scheme_state"):
+        jm.ensemble(_model("flip"), state, 1e-4, 2, 1, params={"E": jnp.asarray([1e3, 2e3])})
+
+
 @pytest.mark.parametrize("state, words", [(_particles(), "state is a jm.Particles; make the state first"),
                                           (None, "state = None must be a jm.State")])
 def test_run_of_something_not_a_state(state, words):

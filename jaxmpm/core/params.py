@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .errors import check
-from .registry import TERMS, all_parameters, owner_registry, resolve_parameter
+from .registry import TERMS, all_parameters, owner_registry, parameter_part, resolve_parameter
 from .validate import fail, traced
 
 
@@ -99,6 +99,7 @@ def check_value(sim, name, value, owner: str = "set_params", label: str | None =
     """Raise InputError unless a concrete ``value`` of parameter ``name`` lies in the range its
     registration declares (``Parameter.valid``) and, for a vector leaf such as gravity, has the
     shape of the model's leaf.  A traced value passes unchecked."""
+    check_acts(sim, name, owner, label)
     if traced(value):
         return
     where, p = resolve_parameter(sim, name)
@@ -107,6 +108,16 @@ def check_value(sim, name, value, owner: str = "set_params", label: str | None =
     if old_shape and np.shape(value) not in ((), old_shape):
         fail(owner, f"{label or name} has shape {np.shape(value)}; this model's {name} has shape {old_shape} "
                     f"(one value per grid axis)")
+
+
+def check_acts(sim, name, owner: str = "set_params", label: str | None = None) -> None:
+    """Raise InputError where parameter ``name`` does not act in this model (``Parameter.acts``: e.g. a
+    contact's friction under the stick law), whatever its value, traced too: its gradient would be 0."""
+    found = resolve_parameter(sim, name)
+    if found is None or found[1].acts is None:
+        return
+    reason = found[1].acts(parameter_part(sim, name))
+    check(reason is None, f"{owner}: {label or name} {reason}")
 
 
 def set_params(sim, **values):

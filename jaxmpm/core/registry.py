@@ -37,6 +37,11 @@ class Parameter:
         valid: the range :func:`jaxmpm.set_params` and :func:`jaxmpm.ensemble` check concrete
             values against: a ``jaxmpm.core.validate.Range``, ``"finite"`` (the default),
             ``"positive"``, ``"non-negative"``, a closed ``(lower, upper)`` or None (no check).
+        acts: ``acts(part) -> None | str``: None where the parameter acts in that part, else why
+            not (e.g. a contact's friction under a law other than Coulomb's: ``"acts only under
+            law='coulomb'; ..."``).  :func:`jaxmpm.set_params` and :func:`jaxmpm.ensemble` refuse to
+            set a parameter that does not act, traced values too: its gradient would be exactly 0
+            and an ensemble's members equal.  None (the default): it always acts.
     """
 
     name: str
@@ -44,6 +49,7 @@ class Parameter:
     doc: str
     bounds: Any = None
     valid: Any = "finite"
+    acts: Callable[[Any], Any] | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "valid", as_range(self.valid))
@@ -287,6 +293,20 @@ def resolve_parameter(sim, name: str):
     check(len(matches) <= 1, f"parameter {name!r} belongs to several parts of this model; name one: "
                              f"{', '.join(matches)}")
     return scoped[matches[0]] if matches else None
+
+
+def parameter_part(sim, name: str):
+    """The part of ``sim`` (scheme, material, shape or term) that owns the parameter ``name`` as
+    :func:`resolve_parameter` finds it, or None."""
+    bare = name.rsplit(".", 1)[-1]
+    found = []
+    for reg, part in parts_of(sim):
+        for p in reg.parameters_of(part):
+            if f"{scope_of(reg, part)}.{p.name}" == name:
+                return part
+            if p.name == bare and "." not in name:
+                found.append(part)
+    return found[0] if len(found) == 1 else None
 
 
 def all_parameters() -> dict:

@@ -193,6 +193,8 @@ class NewtonianFluid(InelasticMaterial):
 K = Parameter("K", lambda m: m.K, "bulk modulus at rest rho_0 c_0^2 (NewtonianFluid)", "positive", valid=POSITIVE)
 ETA = Parameter("eta", lambda m: m.eta, "dynamic viscosity (NewtonianFluid)", "positive", valid=NON_NEGATIVE)
 GAMMA = Parameter("gamma", lambda m: m.gamma, "Tait's exponent (NewtonianFluid, eos='tait')", "positive",
-                  valid=POSITIVE)
+                  valid=POSITIVE, acts=lambda m: None if m.eos == "tait" else
+                  f"is Tait's exponent, and this fluid's equation of state is {m.eos!r}: build it with "
+                  "jm.NewtonianFluid(..., eos='tait')")
 
 register_material("newtonian", NewtonianFluid, parameters=[K, ETA, DENSITY, GAMMA])

@@ -681,7 +681,9 @@ class Simulation(eqx.Module):
         check(have == declared,
               f"{where}: the state was made for another model: it carries "
               f"{f'the fields {have}' if have else 'no fields'}, but this model's terms declare "
-              f"{declared if declared else 'none'}; make the state with this model, state = sim.init(particles)")
+              f"{declared if declared else 'none'}; make the state with this model, state = sim.init(particles) (a "
+              "term added after sim.init, also by set_params or ensemble params of a term's parameter, brings fields "
+              "the older state lacks)")
 
     # ------------------------------------------------------------------- step
     def step(self, state: State, dt) -> State:

@@ -493,4 +493,6 @@ def _nonzero(value) -> bool:
 register_term("collider", Collider, doc="a rigid level-set collider: sticky, slip or Coulomb friction on the grid "
                                         "velocity (Stomakhin et al. 2013 §8)",
               parameters=[Parameter("friction", lambda t: t.friction, "the collider's Coulomb friction coefficient mu",
-                                    "positive", valid="non-negative")])
+                                    "positive", valid="non-negative", acts=lambda t: None if t.condition == "friction"
+                                    else f"acts only on a collider of condition 'friction', and this one's is "
+                                         f"{t.condition!r}: build it with jm.Collider(..., condition='friction')")])

@@ -587,4 +587,7 @@ class ContactIncrements(eqx.Module):
 
 register_term("contact", Contact, doc="materials with their own velocity fields and a contact law (003 ch. 3)",
               parameters=[Parameter("friction", lambda t: t.friction, "Coulomb friction coefficient mu",
-                                    "positive", valid="non-negative")])
+                                    "positive", valid="non-negative", acts=lambda t: None if t.law == "coulomb" else (
+                                        f"acts only under the contact law 'coulomb', and this model's is {t.law!r}"
+                                        " (a model without contact gets jm.Contact() added, 'frictionless'): build "
+                                        "it with jm.Contact(law='coulomb', friction=...)"))])

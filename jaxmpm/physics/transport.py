@@ -576,16 +576,24 @@ class Diffusion(Transport):
         return state.volume0 * det(state.F)  # V_p (001 eq. 146)
 
 
+def _conductance_acts(term, fix: str):
+    """Why the interface conductance does not act in ``term`` (Parameter.acts), or None."""
+    if term.interface == "conductance":
+        return None
+    return f"acts only across an interface given as a conductance, and this term's is {term.interface!r}: build it " \
+           f"with {fix}"
+
+
 register_term("heat", Heat, doc="heat conduction, FLIP temperature update (001 §8)", parameters=[
     Parameter("conductivity", lambda t: t.conductivity, "thermal conductivity k", "positive", valid="non-negative"),
     Parameter("heat_capacity", lambda t: t.capacity, "heat capacity C_p per unit mass", "positive", valid="positive"),
     Parameter("thermal_expansion", lambda t: t.expansion, "thermal expansion coefficient alpha_T"),
     Parameter("interface_conductance", lambda t: t.conductance, "interface conductance h_c (interface=h_c)",
-              "positive", valid="non-negative"),
+              "positive", valid="non-negative", acts=lambda t: _conductance_acts(t, "jm.Heat(..., interface=h_c)")),
 ])
 register_term("diffusion", Diffusion, doc="diffusion of the concentration potential (001 §9)", parameters=[
     Parameter("diffusivity", lambda t: t.conductivity, "diffusivity D", "positive", valid="non-negative"),
     Parameter("moisture_expansion", lambda t: t.expansion, "moisture expansion coefficient per unit mu"),
     Parameter("interface_conductance", lambda t: t.conductance, "interface mass-transfer coefficient (interface=h)",
-              "positive", valid="non-negative"),
+              "positive", valid="non-negative", acts=lambda t: _conductance_acts(t, "jm.Diffusion(..., interface=h)")),
 ])

@@ -177,8 +177,11 @@ def ensemble(sim, state, dt, steps: int, save_every: int = 1, *, params: dict | 
         steps: the number of steps, a multiple of ``save_every`` (>= 0).
         save_every: steps between saved frames, a positive integer (default 1).
         params: ``{name: batch}``, parameter names (see :func:`jaxmpm.set_params`: beta,
-            alpha_g, alpha_p, E, nu, density, gravity, ...) to arrays whose leading axis is the
-            batch; each member is checked against the parameter's valid range.
+            alpha_g, alpha_p, E, nu, gravity, friction, ...) to arrays whose leading axis is the
+            batch; each member is checked against the parameter's valid range, and a parameter
+            that does not act in the model (a friction under a stick contact) is an error.  The
+            density sets the masses at ``sim.init``, so it changes nothing from a given state: vary
+            it through ``states`` (each member's state from ``sim.init`` of its density).
         states: a batched :class:`jaxmpm.State` (leading axis = batch) to vary the initial
             conditions instead of ``state``.
         save_particles: whether the histories keep the particle positions and velocities
@@ -231,6 +234,10 @@ def ensemble(sim, state, dt, steps: int, save_every: int = 1, *, params: dict | 
                                    f"member, pass jm.set_params(sim, {name}=...) as the model")
     check(isinstance(state, State), f"ensemble: state = {type(state).__name__}; give the members' initial jm.State "
                                     "(the template of states=, when given)")
+    members = sim  # the model the members run: set_params adds a term whose parameter it is given
+    for name in params or {}:
+        members = _with_owner(members, name)
+    members.check_state(state, "ensemble")
     check(states is None or isinstance(states, State),
           f"ensemble: states = {type(states).__name__}; give a jm.State whose arrays have a leading batch axis, "
           "e.g. jax.tree_util.tree_map(lambda a: jnp.stack([a, a]), state)")

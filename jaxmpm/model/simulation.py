@@ -662,28 +662,24 @@ class Simulation(eqx.Module):
         holds under ``jit`` and ``vmap``."""
         if isinstance(state, Particles):
             check(False, f"{where}: state is a jm.Particles; make the state first: state = sim.init(particles)")
-        check(isinstance(state, State), f"{where}: state = {show(state)} must be a jm.State, the one "
-                                        "sim.init(particles) returns")
-        def initial(x):  # what init would give particles at x (the laws read their count, dimension and dtype)
-            like = _ParticlesLike(x=x, v=x, volume=x[:, 0], mass=x[:, 0], axisymmetric=self.grid.axisymmetric)
-            return self.scheme.initial_state(like), self.material.initial_state(like)
-
-        expected = jax.eval_shape(initial, state.x)
+        if not isinstance(state, State):  # the messages are formatted only where a check fails
+            check(False, f"{where}: state = {show(state)} must be a jm.State, the one sim.init(particles) returns")
+        expected = _initial_layouts(self.scheme, self.material, self.grid.axisymmetric, state.x)
         for part, owner, have, want in (
                 ("scheme_state", type(self.scheme).__name__, state.scheme_state, expected[0]),
                 ("material_state", type(self.material).__name__, state.material_state, expected[1])):
-            check(_layout(have) == _layout(want),
-                  f"{where}: the state was made for another model: its {part} holds {_layout_text(have)}, but this "
-                  f"model's {owner} needs {_layout_text(want)}; make the state with this model, state = "
-                  "sim.init(particles)")
+            if _layout(have) != _layout(want):
+                check(False, f"{where}: the state was made for another model: its {part} holds {_layout_text(have)}, "
+                             f"but this model's {owner} needs {_layout_text(want)}; make the state with this model, "
+                             "state = sim.init(particles)")
         declared = sorted(f.name for f in self.particle_fields())
         have = sorted(state.fields)
-        check(have == declared,
-              f"{where}: the state was made for another model: it carries "
-              f"{f'the fields {have}' if have else 'no fields'}, but this model's terms declare "
-              f"{declared if declared else 'none'}; make the state with this model, state = sim.init(particles) (a "
-              "term added after sim.init, also by set_params or ensemble params of a term's parameter, brings fields "
-              "the older state lacks)")
+        if have != declared:
+            check(False, f"{where}: the state was made for another model: it carries "
+                         f"{f'the fields {have}' if have else 'no fields'}, but this model's terms declare "
+                         f"{declared if declared else 'none'}; make the state with this model, state = "
+                         "sim.init(particles) (a term added after sim.init, also by set_params or ensemble params of "
+                         "a term's parameter, brings fields the older state lacks)")
 
     # ------------------------------------------------------------------- step
     def step(self, state: State, dt) -> State:
@@ -896,6 +892,30 @@ class _ParticlesLike(NamedTuple):
     mass: jax.Array
     axisymmetric: bool
     ppc: int = 1
+
+
+_INITIAL_LAYOUTS = {}  # (scheme, material structure, axisymmetric, x's shape and dtype) -> their initial states' shapes
+
+
+def _initial_layouts(scheme, material, axisymmetric: bool, x):
+    """The shapes (``jax.ShapeDtypeStruct`` trees) of the scheme's and the material's initial state for particles
+    at ``x``, as :meth:`Simulation.init` makes them; kept per model structure, since tracing them costs about a
+    millisecond, a third of a small run's call."""
+    def initial(x):  # the laws read the particles' count, dimension and dtype
+        like = _ParticlesLike(x=x, v=x, volume=x[:, 0], mass=x[:, 0], axisymmetric=axisymmetric)
+        return scheme.initial_state(like), material.initial_state(like)
+
+    try:
+        key = (jax.tree_util.tree_structure(scheme), jax.tree_util.tree_structure(material), axisymmetric,
+               tuple(jnp.shape(x)), jnp.result_type(x))
+        hash(key)
+    except TypeError:  # a static field that cannot be hashed: traced each time
+        return jax.eval_shape(initial, x)
+    if key not in _INITIAL_LAYOUTS:
+        if len(_INITIAL_LAYOUTS) > 256:
+            _INITIAL_LAYOUTS.clear()
+        _INITIAL_LAYOUTS[key] = jax.eval_shape(initial, x)
+    return _INITIAL_LAYOUTS[key]
 
 
 def _layout(tree) -> tuple:

@@ -19,6 +19,7 @@ import os
 import shlex
 
 import h5py
+import numpy as np
 
 from .core.errors import InputError, check
 from .core.validate import input_file
@@ -109,10 +110,17 @@ def resume(path, model=None, state=None, *, progress: bool = False, check_stabil
     else:
         check(state is not None, "resume: with a Simulation, pass state= (the run's initial state)")
         sim, template, dt = model, state, float(info["dt"])
+    _check_same_model(info, sim, dt, path)
     sharded = _sharded(sim, devices, rebalance_every, check_stability)
     again = restart_command(info, path)
-    loaded, schedule = read_state(path, template, again=again)
-    if schedule["complete"]:
+    try:
+        loaded, schedule = read_state(path, template, again=again)
+    except InputError:  # a file that cannot be continued: a killed writer's working copies go all the same
+        _remove_leftovers(path)
+        raise
+    if schedule["complete"]:  # nothing to run; a run killed after its last publication left its XDMF sidecar
+        with H5Writer(path, sim, loaded, mode="a") as writer:  # behind and its working copies: both mended
+            writer.write_sidecar()
         return loaded
     start, steps, save_every = schedule["start step"], schedule["steps"], schedule["save every"]
     with H5Writer(path, sim, loaded, mode="a") as writer:
@@ -128,6 +136,54 @@ def resume(path, model=None, state=None, *, progress: bool = False, check_stabil
             final, _ = sharded.run(loaded, dt, steps, save_every, writer=writer, start_step=start,
                                    progress=progress, timings=timings)
     return final
+
+
+#: root attributes that describe the run rather than its model (what resume does not compare)
+_NOT_THE_MODEL = {"scene", "ppc", "dtype", "jaxmpm version", "scene parameters", "command", "fields", "damping varies",
+                  "scene_file", "scene_sha256"}
+
+
+def _check_same_model(info: dict, sim, dt, path) -> None:
+    """An InputError unless ``sim`` and ``dt`` are the model the file's run had: its scheme, shape, update, grid,
+    dt and every registered parameter, as the file's root attributes hold them (:func:`run_attributes`).  A
+    file continued by another model would mix two runs under the first one's header."""
+    from .io.hdf5 import run_attributes
+
+    here = run_attributes(sim, dt)
+    differ = []
+    for key, value in here.items():
+        if key in _NOT_THE_MODEL or key not in info:
+            continue
+        stored = info[key]
+        if isinstance(value, str) or isinstance(stored, (str, bytes)):
+            same = str(value) == (stored.decode() if isinstance(stored, bytes) else str(stored))
+        else:
+            a, b = np.asarray(value, dtype=float), np.asarray(stored, dtype=float)
+            same = a.shape == b.shape and bool(np.allclose(a, b, rtol=1e-12, atol=0.0, equal_nan=True))
+        if not same:
+            differ.append(f"{key} = {_shown(value)} here, {_shown(stored)} in the file")
+    check(not differ, f"resume: {os.fspath(path)} was written by another model: {'; '.join(differ)}; resume it with "
+                      "the Setup (jm.scene options) or Simulation that made it, or start a new run")
+
+
+def _shown(value) -> str:
+    value = value.decode() if isinstance(value, bytes) else value
+    if isinstance(value, str):
+        return repr(value)
+    a = np.asarray(value)
+    return f"{float(a):.6g}" if a.ndim == 0 else np.array2string(a, precision=6, separator=", ")
+
+
+def _remove_leftovers(path) -> None:
+    """Remove a killed writer's working copies and lock file beside ``path``, unless a writer holds it."""
+    from .io.hdf5 import _release_lock, _take_lock, remove, working_paths
+
+    try:
+        lock = _take_lock(os.fspath(path))
+    except InputError:  # a live writer: its files are its own
+        return
+    remove(*working_paths(os.fspath(path)))
+    _release_lock(lock, os.fspath(path))
 
 
 def _sharded(sim, devices, rebalance_every, check_stability: bool):

@@ -158,13 +158,13 @@ def _slide(setup, frames=20, skip=0.1):
 @pytest.mark.slow
 @pytest.mark.parametrize("friction", [0.0, 0.2])
 def test_incline_block_accelerates_at_g_sin_minus_mu_cos(friction):
-    """FLIP, theta = 30 deg: measured a = 4.9050 (mu = 0, exact to 1e-12) and 3.2071 (mu = 0.2,
-    exact 3.2059: +0.04 %)."""
+    """FLIP, theta = 30 deg: measured a = 4.9050 (mu = 0, exact to 1e-12) and 3.20645 (mu = 0.2,
+    exact 3.20585: +0.019 %; the docs had said 3.2071, +0.04 %, until 2026-11-29)."""
     setup = jm.scene("incline", angle=30.0, friction=friction, t_end=0.3)
     exact = G * (np.sin(np.radians(30.0)) - friction * np.cos(np.radians(30.0)))
     assert setup.params["acceleration"] == pytest.approx(exact, rel=1e-14)
     a, s, _ = _slide(setup)
-    assert a == pytest.approx(exact, rel=0.01)
+    assert a == pytest.approx(exact, rel=5e-4)  # +0.019 % measured
     assert s[-1] == pytest.approx(setup.reference(setup.t_end), rel=0.02)  # the transient included
 
 

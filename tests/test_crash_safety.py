@@ -204,18 +204,49 @@ def test_leftovers_of_a_killed_writer_and_a_second_writer(tmp_path, bar):
     assert sorted(os.listdir(tmp_path)) == ["run.h5", "run.xdmf", "run.xdmf.h5"]
 
 
+def test_a_lock_file_removed_between_open_and_flock_is_not_held(tmp_path, bar, monkeypatch):
+    """The race the audit of 2026-11-29 forced with a delay: a writer closing removes FILE.h5.lock, then lets go
+    of its flock; a second writer that had opened the lock file just before then locks a file no one else sees,
+    and a third creates a new lock file and locks that: two writers of one file.  A writer now checks that the
+    lock file it holds is the one at the path, and opens it anew where not."""
+    import fcntl
+
+    setup, _, _ = bar
+    path = tmp_path / "run.h5"
+    first = jm.H5Writer(path, setup.sim, setup.state)
+    real_flock = fcntl.flock
+    raced = []
+
+    def flock_after_the_holder_closes(fd, operation):  # the second writer opened the lock file; the first closes
+        if not raced:
+            raced.append(1)
+            first.close()
+        return real_flock(fd, operation)
+
+    monkeypatch.setattr(fcntl, "flock", flock_after_the_holder_closes)
+    second = jm.H5Writer(path, setup.sim, setup.state, overwrite=True)
+    monkeypatch.setattr(fcntl, "flock", real_flock)
+    assert raced
+    with pytest.raises(jm.InputError, match="already open in an H5Writer of this process"):
+        jm.H5Writer(path, setup.sim, setup.state, overwrite=True)  # the lock the second holds is the visible one
+    second.close()
+
+
 def test_a_file_killed_before_its_first_frame_says_to_start_again(tmp_path, bar, capsys):
     setup, final, history = bar
     path = tmp_path / "early.h5"
     jm.H5Writer(path, setup.sim, setup.state, dt=setup.dt, attrs={"command": '{"scene": "bar", "cells": 8}'}).close()
     with h5py.File(path, "r") as f:  # the header: published before the first step
         assert f.attrs["scene"] == "" and "particles/mass" in f and "time" not in f
+    for leftover in [*hdf5.working_paths(path), f"{path}.lock"]:  # as a kill leaves them (they had stayed)
+        open(leftover, "wb").close()
     with pytest.raises(SystemExit) as stop:
         cli.main(["resume", str(path), "--no-progress"])
     assert stop.value.code == 2
     err = capsys.readouterr().err
     assert "holds no frames and no saved state" in err
     assert f"start it again: `jaxmpm run bar --cells 8 --out {path} --force`" in err
+    assert sorted(os.listdir(tmp_path)) == ["early.h5"]  # the leftovers removed (they had stayed)
 
 
 # --- the slow test: SIGKILL at ten random moments --------------------------------------------------

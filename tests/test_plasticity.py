@@ -315,7 +315,8 @@ def test_disks_stick_and_the_energy_balance_closes():
     """The two disks of the ``disks`` scene (003 §4.2) with a von Mises law of yield stress E/50
     collide and stick: the kinetic energy they lose goes into History.totals["plastic_dissipation"],
     and kinetic + strain + scheme-dissipated + plastic-dissipated energy stays as constant as the
-    elastic run's balance (whose error is the time integration's, 2.1% here)."""
+    elastic run's balance, or more: measured 3.36% against the elastic run's 8.17% (its dip while the
+    one-field disks touch; docs/plasticity.md had said 1.8% and 2.1% until 2026-11-29)."""
     import equinox as eqx
 
     setup = jm.scene("disks")
@@ -336,5 +337,6 @@ def test_disks_stick_and_the_energy_balance_closes():
     assert lost > 0.9 * float(history.kinetic[0])  # they stick
     assert float(history.totals["plastic_dissipation"][-1]) > 0.8 * lost
     assert error <= 1.2 * elastic_error
+    assert error == pytest.approx(0.0336, abs=2e-3) and elastic_error == pytest.approx(0.0817, abs=2e-3)
     assert history.fields["plastic_strain"].shape == (7, setup.state.x.shape[0])
     assert float(jnp.max(history.fields["plastic_strain"][-1])) > 0.1

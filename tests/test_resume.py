@@ -99,9 +99,59 @@ def test_resume_errors_name_the_problem(tmp_path):
     cut = tmp_path / "cut.h5"
     with pytest.raises(jm.RunInterrupted):
         written(setup, cut, SignalAfter, signum=signal.SIGINT, after=1)
-    other = jm.scene("bar", cells=16, t_end=2.0, frames=8)  # another particle count
-    with pytest.raises(jm.InputError, match=r"/state/x is float64\[16, 1\] but the model's state has float64\[32, 1\]"):
+    other = jm.scene("bar", cells=16, t_end=2.0, frames=8)  # another grid and particle count
+    with pytest.raises(jm.InputError, match=r"written by another model: dt = 0.015625 here, 0.03125 in the file; "
+                                            r"cells = \[18\] here, \[10\]"):
         jm.resume(cut, other)
+    with pytest.raises(jm.InputError, match=r"/state/x is float64\[16, 1\] but the model's state has float64\[32, 1\]"):
+        jm.resume(cut, setup.sim, state=other.state)  # the model's own, a state of another particle count
+
+
+@pytest.mark.parametrize("options, words", [(dict(E=50.0), r"dt = 0.0441942 here, 0.03125 in the file; E = 50 here, "
+                                                          r"100 in the file"),
+                                            (dict(scheme="pic"), r"scheme = 'PIC' here, 'FLIP' in the file"),
+                                            (dict(cfl=0.2), r"dt = 0.0625 here, 0.03125 in the file")])
+def test_resume_refuses_another_model(tmp_path, options, words):
+    """jm.resume(path, setup) had continued a run with whatever model it was given: E = 50 ran on to t = 2.72 of
+    a 2.0 run, PIC's frames followed FLIP's under a header saying FLIP (the audit of 2026-11-29)."""
+    setup = jm.scene("bar", **BAR)
+    cut = tmp_path / "cut.h5"
+    with pytest.raises(jm.RunInterrupted):
+        written(setup, cut, SignalAfter, signum=signal.SIGINT, after=2)
+    before = os.path.getmtime(cut)
+    with pytest.raises(jm.InputError, match="resume: .* was written by another model: " + words):
+        jm.resume(cut, jm.scene("bar", **BAR, **options))
+    assert os.path.getmtime(cut) == before  # untouched
+    assert jm.resume(cut, jm.scene("bar", **BAR, v0=0.2)).step == setup.steps  # the initial state is not the model
+
+
+def test_resume_of_a_finished_run_mends_its_sidecar_and_working_copies(tmp_path, monkeypatch):
+    """A run killed after its last publication but before the sidecar that follows it (the audit of 2026-11-29:
+    once in 120 random kills) left an XDMF sidecar listing fewer frames, and its working copies and lock; resume
+    returned at once and left them."""
+    import jaxmpm.io.hdf5 as hdf5
+    from jaxmpm.io.xdmf import xdmf_paths
+
+    setup = jm.scene("bar", **BAR)
+    path = tmp_path / "run.h5"
+    calls = []
+    real = hdf5.write_xdmf
+
+    def stale_after_two(*args):  # the sidecar stops at the second publication: as a kill after the last one
+        calls.append(1)
+        if len(calls) <= 2:
+            real(*args)
+
+    monkeypatch.setattr(hdf5, "write_xdmf", stale_after_two)
+    written(setup, path)
+    monkeypatch.setattr(hdf5, "write_xdmf", real)
+    sidecar = xdmf_paths(str(path))[0]
+    assert open(sidecar).read().count("<Grid Name=\"frame") < 9
+    for leftover in hdf5.working_paths(str(path)):
+        open(leftover, "w").close()
+    assert jm.resume(path, setup).step == setup.steps
+    assert open(sidecar).read().count("<Grid Name=\"frame") == 9
+    assert sorted(os.listdir(tmp_path)) == ["run.h5", "run.xdmf", "run.xdmf.h5"]
 
 
 def test_a_save_h5_file_with_its_schedule_is_resumable(tmp_path):

@@ -206,14 +206,16 @@ def bar_length(state):
 @pytest.mark.slow
 def test_free_bar_expands_by_alpha_dT_L():
     """alpha_T = 1e-3, dT = 50: the bar's stress-free state is F = 1 + alpha dT = 1.05.  After the
-    damped oscillation (t = 0.625) the mean stretch sum_p V0_p F_p / L - 1 is 0.049998 (error
-    3e-5 relative, within the issue's 1 %).  The particle positions lag it: the bar's span grows
+    damped oscillation (t = 0.625) the mean stretch sum_p V0_p F_p / L - 1 is 0.0499837 (error
+    3.3e-4 relative, within the issue's 1 %; docs/transport.md had said 0.049998 until 2026-11-29).  The
+    particle positions lag it: the bar's span grows
     by 0.0489 (2.3 % short), the usual gap between MPM's position update (S v) and its F update
     (grad v) at free ends (uGIMP; measured, not asserted)."""
     sim, state = thermal_bar()
     final = advance(sim, state, 1.0 / 32 / 100 * 0.5, 4000)
     stretch = float(jnp.sum(final.volume0 * final.F[:, 0, 0]) / jnp.sum(final.volume0)) - 1.0
-    assert stretch == pytest.approx(1e-3 * 50.0, rel=1e-2), stretch
+    assert stretch == pytest.approx(1e-3 * 50.0, rel=1e-2), stretch  # the issue's goal
+    assert stretch == pytest.approx(0.0499837, rel=2e-5), stretch  # the number the docs state
     assert 0.9 * 0.05 < bar_length(final) - bar_length(state) < 1.1 * 0.05  # the span grew, and by about that
 
 

@@ -303,9 +303,7 @@ class H5Writer:
         # arrays are let go (on the CPU they are views of the run's device buffers, which JAX would otherwise not
         # compute the next chunk in place of) and read back from FILE.h5's copy when needed (_stored_state)
         self._log = [("state", None, op[2]) if op[0] == "state" else op for op in self._log]
-        if self.xdmf:
-            with h5py.File(self.path, "r") as f:
-                write_xdmf(self.path, f)
+        self.write_sidecar()
 
     def _bring_up_to_date(self, index: int) -> None:
         path = self._copy_path(index)
@@ -335,6 +333,13 @@ class H5Writer:
         """The copy ``index`` made again from FILE.h5 (a new file: a reader of the old one keeps it)."""
         copy_into_place(self.path, self._copy_path(index))
         self._applied[index] = self._applied[self._current]
+
+    def write_sidecar(self) -> None:
+        """Write the XDMF sidecar of ``FILE.h5`` as it is published now (every publication does; this is for
+        a file whose run ended without one, :func:`jaxmpm.resume` of a finished run)."""
+        if self.xdmf:
+            with h5py.File(self.path, "r") as f:
+                write_xdmf(self.path, f)
 
     def close(self) -> None:
         """Publish what is left, remove the working copies and the lock; ``FILE.h5`` stays."""
@@ -400,16 +405,26 @@ def _take_lock(path: str):
         return None
     from ..core.errors import check
 
-    fd = os.open(path + ".lock", os.O_RDWR | os.O_CREAT, 0o644)
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
-        holder = os.pread(fd, 32, 0).decode(errors="replace").strip()
-        os.close(fd)
-        check(holder != str(os.getpid()), f"{path} is already open in an H5Writer of this process; close it "
-                                          "first (use the writer in a `with` block)")
-        check(False, f"{path} is being written by another process{' (pid ' + holder + ')' if holder else ''}; "
-                     "wait for it to end, or stop it, first")
+    for _ in range(100):
+        fd = os.open(path + ".lock", os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            holder = os.pread(fd, 32, 0).decode(errors="replace").strip()
+            os.close(fd)
+            check(holder != str(os.getpid()), f"{path} is already open in an H5Writer of this process; close it "
+                                              "first (use the writer in a `with` block)")
+            check(False, f"{path} is being written by another process{' (pid ' + holder + ')' if holder else ''}; "
+                         "wait for it to end, or stop it, first")
+        try:  # the lock file may have been removed by the writer that held it, between our open and our flock:
+            same = os.stat(path + ".lock").st_ino == os.fstat(fd).st_ino  # then we hold a lock nobody sees
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        os.close(fd)  # open the lock file anew
+    else:  # pragma: no cover - a lock file removed a hundred times in a row
+        check(False, f"{path}.lock keeps being removed; is another process writing {path}?")
     os.ftruncate(fd, 0)
     os.pwrite(fd, str(os.getpid()).encode(), 0)
     return fd

@@ -18,7 +18,7 @@
 
 Measured (this file's runs): bars exit velocities -+0.09492 (5.1 % short of v0 = 0.1; uGIMP
 6.6 %; 64 cells 3.4 %; uGIMP 256 cells FLIP 1.45 %, XPIC(2) 1.40 %, FMPM(2) 1.25 %), contact
-duration 0.2031 (+1.6 % of 2L/c; uGIMP +5.5 %).  Slide: mu = 0 0.24279 vs 0.24279 (-0.00 %),
+duration 0.2031 (+1.6 % of 2L/c; uGIMP +1.9 %).  Slide: mu = 0 0.24279 vs 0.24279 (-0.00 %),
 mu = 0.2 0.16045 vs 0.15869 (+1.1 %), mu = 0.7 0.01518 = 6.3 % of the frictionless 0.24279
 (creeps: the undamped slab rings; with gravity ramped over 0.05 s 0.13 %; PIC 0.74 %; normal="average"
 0.53 %, but "average" slides 12 % and 24 % short at mu = 0 and 0.2).

@@ -15,7 +15,7 @@ the bars cannot separate: they vibrate as one free-free bar of length 2L.  1D on
 Defaults: L = 1, E = 100, rho = 1, v0 = 0.1 (c = 10, contact duration 0.2), 32 cells along one
 bar, 2 particles per cell, dt = 0.1 h/c, t_end = 4L/c.  Linear shape functions, measured against
 uGIMP with FLIP and frictionless contact (tests/test_contact_scenes.py): exit velocities 5.1 % of
-v0 short of the exchange (uGIMP 6.6 %), contact duration +1.6 % of 2L/c (uGIMP +5.5 %).  The
+v0 short of the exchange (uGIMP 6.6 %), contact duration +1.6 % of 2L/c (uGIMP +1.9 %).  The
 exchange converges at about order 0.75 in h: ``shape="ugimp", cells=256`` gives 1.45 % (FLIP),
 1.40 % (XPIC(2)), 1.25 % (FMPM(2)); linear shapes invert a free end from 128 cells.  The grid
 holds room for the bars to fly apart until t_end (|v0| t_end + 2 cells beyond each end).

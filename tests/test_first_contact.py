@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import os
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -262,3 +263,58 @@ def test_command_line_warnings_print_one_line(tmp_path):
     warning = [line for line in result.stderr.splitlines() if "exceeds the stable limit" in line]
     assert len(warning) == 1 and warning[0].startswith("jaxmpm: warning: dt = ")
     assert "sys.exit" not in result.stderr
+
+
+# ----------------------------------------------------------------- calibrate and ensembles (audit of 2026-11-29)
+
+
+def _bar_loss():
+    setup = jm.scene("bar", cells=4, t_end=0.5, frames=1)
+
+    def loss(p):
+        return jnp.sum(jm.set_params(setup.sim, **p).run(setup.state, setup.dt, 2, 1)[1].kinetic)
+
+    return setup, loss
+
+
+@pytest.mark.parametrize("bounds, init, words", [
+    ({"E": "negative"}, {"E": 100.0}, r"bound 'negative' must be \(lower, upper\), two finite numbers"),  # ValueError
+    ({"E": (50.0, float("inf"))}, {"E": 100.0}, r"bound \(50.0, inf\) must be"),  # had read as a NaN loss
+    ({"e": (120.0, 140.0)}, {"E": 100.0}, r"bounds name \['e'\], which init does not have"),  # had been ignored
+    (None, {"E": float("nan")}, "initial E = nan must be finite"),  # had read as a NaN loss at iteration 0
+])
+def test_calibrate_names_bad_bounds_and_initial_values(bounds, init, words):
+    _, loss = _bar_loss()
+    with pytest.raises(jm.InputError, match=words):
+        jm.calibrate(loss, init, bounds=bounds, steps=1, progress=False)
+
+
+def test_calibrate_keeps_held_parameters_exactly():
+    """A held (not free) positive parameter came back as exp(log(100)) = 100.00000000000004."""
+    _, loss = _bar_loss()
+    fit = jm.calibrate(loss, {"E": 100.0, "alpha_p": 0.1}, free="alpha_p", steps=2, progress=False)
+    assert float(fit.params["E"]) == 100.0 and np.all(np.asarray(fit.trajectory["E"]) == 100.0)
+
+
+def test_a_vector_parameter_takes_one_value_per_axis():
+    """In 2D, set_params(gravity=-9.8) set both axes to -9.8, and an ensemble's params={"gravity": [0, -9.8]}
+    ran as two members, each with a number for every axis.  In 1D a number is the one axis's value."""
+    disks = jm.scene("disks", spacing=0.2, t_end=0.01, frames=1)
+    with pytest.raises(jm.InputError, match=r"gravity has shape \(\); this model's gravity has shape \(2,\)"):
+        jm.set_params(disks.sim, gravity=-9.8)
+    with pytest.raises(jm.InputError, match=r"ensemble member 0: gravity has shape \(\).*shape \(members, 2\)"):
+        jm.ensemble(disks.sim, disks.state, disks.dt, 1, 1, params={"gravity": [0.0, -9.8]})
+    assert np.asarray(jm.get_params(jm.set_params(disks.sim, gravity=(0.0, -9.8)), "gravity")["gravity"]).shape == (2,)
+    bar, _ = _bar_loss()
+    assert float(np.asarray(jm.get_params(jm.set_params(bar.sim, gravity=-9.8), "gravity")["gravity"]).ravel()[0]) \
+        == -9.8
+
+
+def test_ensemble_states_need_their_batch_axis():
+    """An unbatched states= had been taken as a batch along its particles, then raised IndexError."""
+    setup, _ = _bar_loss()
+    with pytest.raises(jm.InputError, match=r"states.x has the template state's shape, with no batch axis"):
+        jm.ensemble(setup.sim, setup.state, setup.dt, 1, 1, states=setup.state)
+    fewer = jax.tree_util.tree_map(lambda a: jnp.stack([a[:4] if a.ndim else a] * 2), setup.state)
+    with pytest.raises(jm.InputError, match=r"states.x has shape \(2, 4, 1\), where the template state's is"):
+        jm.ensemble(setup.sim, setup.state, setup.dt, 1, 1, states=fewer)

@@ -100,14 +100,19 @@ def check_value(sim, name, value, owner: str = "set_params", label: str | None =
     registration declares (``Parameter.valid``) and, for a vector leaf such as gravity, has the
     shape of the model's leaf.  A traced value passes unchecked."""
     check_acts(sim, name, owner, label)
+    where, p = resolve_parameter(sim, name)
+    old_shape = np.shape(where(sim))
+    # a vector leaf (gravity) takes one value per grid axis, traced values too (their shapes are known); a
+    # number only where it has one axis: in 2D a number had set every axis to it, and an ensemble's batch of one
+    # vector [0, -9.8] had run as two members
+    allowed = {old_shape, ()} if old_shape == (1,) else {old_shape}
+    if old_shape and np.shape(value) not in allowed:
+        batch = f"; an ensemble takes one per member: shape (members, {old_shape[0]})" if "ensemble" in owner else ""
+        fail(owner, f"{label or name} has shape {np.shape(value)}; this model's {name} has shape {old_shape} "
+                    f"(one value per grid axis{batch})")
     if traced(value):
         return
-    where, p = resolve_parameter(sim, name)
     p.check(owner, value, label or name)
-    old_shape = np.shape(where(sim))
-    if old_shape and np.shape(value) not in ((), old_shape):
-        fail(owner, f"{label or name} has shape {np.shape(value)}; this model's {name} has shape {old_shape} "
-                    f"(one value per grid axis)")
 
 
 def check_acts(sim, name, owner: str = "set_params", label: str | None = None) -> None:

@@ -37,6 +37,9 @@ def _transform(bound):
         return (lambda r: r), (lambda v: v)
     if bound == "positive":  # log-parameterisation: scale-free steps, never reaches 0
         return jnp.exp, jnp.log
+    ok = isinstance(bound, tuple) and len(bound) == 2 and all(np.isfinite(b) for b in bound)
+    check(ok, f"calibrate: bound {bound!r} must be (lower, upper), two finite numbers, or 'positive' (0, inf), or "
+              "None (unbounded)")
     lo, hi = bound
     check(hi > lo, f"calibrate: bound {bound!r} needs lower < upper")
 
@@ -232,11 +235,19 @@ def calibrate(
           "parameter's registered range)")
     if tol is not None:
         FINITE.real("calibrate", "tol", tol, fix="the loss below which to stop, or None (run every step)")
-    check(isinstance(steps, int) and steps >= 1, f"calibrate: steps = {steps!r} must be a positive integer")
+    check(isinstance(steps, int) and not isinstance(steps, bool) and steps >= 1,
+          f"calibrate: steps = {steps!r} must be a positive integer")
     names = [free] if isinstance(free, str) else None if free is None else _names(free)
     check(names is None or (names and all(isinstance(n, str) and n in init for n in names)),
           f"calibrate: free = {free!r} must name one or more parameters of init ({', '.join(map(str, init))}); "
           "the others keep their initial values")
+    unknown = sorted(set(bounds or {}) - set(init), key=str)
+    check(not unknown, f"calibrate: bounds name {unknown}, which init does not have ({', '.join(map(str, init))}); "
+                       "bound the parameters init gives")
+    for k, v in init.items():
+        value = np.asarray(v)
+        check(np.issubdtype(value.dtype, np.number) and bool(np.all(np.isfinite(value))),
+              f"calibrate: initial {k} = {v!r} must be finite numbers")
     show = shown(progress, "calibrate")
     bounds = {**{k: default_bounds(k) for k in init}, **(bounds or {})}
     bounds = {k: _bound_key(bounds.get(k)) for k in init}
@@ -294,5 +305,9 @@ def calibrate(
             if tol is not None and value < tol:
                 break
     final = {k: np.asarray(v) for k, v in constrained(raw).items()}
+    for k in init:  # the parameters held (not free) keep their initial values exactly, not through exp(log(v))
+        if names is not None and k not in names:
+            final[k] = np.asarray(jnp.asarray(init[k], dtype=final[k].dtype))
+            trajectory[k] = [final[k]] * len(trajectory[k])
     return CalibrationResult(final, np.asarray(losses), {k: np.asarray(v) for k, v in trajectory.items()},
                              len(losses), time.perf_counter() - start, update.compile_time)

@@ -242,6 +242,16 @@ def ensemble(sim, state, dt, steps: int, save_every: int = 1, *, params: dict | 
           f"ensemble: states = {type(states).__name__}; give a jm.State whose arrays have a leading batch axis, "
           "e.g. jax.tree_util.tree_map(lambda a: jnp.stack([a, a]), state)")
     batch = _batch_size((params or {}, states))
+    if states is not None:  # the template's arrays, each with a leading batch axis (an unbatched state had been
+        # taken as a batch along its particles, then raised IndexError)
+        for (path, one), many in zip(jax.tree_util.tree_flatten_with_path(state)[0],
+                                     jax.tree_util.tree_leaves(states)):
+            if np.shape(many) != (batch,) + np.shape(one):
+                found = ("the template state's shape, with no batch axis" if np.shape(many) == np.shape(one)
+                         else f"shape {np.shape(many)}, where the template state's is {np.shape(one)}")
+                check(False, f"ensemble: states{jax.tree_util.keystr(path)} has {found}: states= holds the members' "
+                             "states along a leading batch axis, shape (members, *the template's shape), e.g. "
+                             "jax.tree_util.tree_map(lambda a: jnp.stack([a, a]), state)")
     if steps % save_every:
         check(False, f"ensemble: steps = {steps} must be a multiple of save_every = {save_every}")
     frames = steps // save_every

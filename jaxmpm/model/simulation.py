@@ -359,7 +359,10 @@ class Simulation(eqx.Module):
     def with_sorting(self, every):
         """A copy whose runs sort the particles by cell every ``every`` steps (0: never; "auto": the
         backend table's choice; ``sort_every`` in the class docstring)."""
-        return self._with_static(sort_every=_checked_sort_every(every))
+        sorted_copy = self._with_static(sort_every=_checked_sort_every(every))
+        if sorted_copy.sort_every not in ("auto", 0):  # refused at once where a term is bound to the particle order
+            sorted_copy._sort_row(1, jnp.float64)
+        return sorted_copy
 
     def sorting(self, state: State):
         """The runs' cell sorting for ``state`` (a :class:`jaxmpm.run.sorting.Sorting`), or None
@@ -369,6 +372,13 @@ class Simulation(eqx.Module):
 
     def _sort_row(self, num_particles: int, dtype) -> tuple:
         """(steps between sorts, 0 for never; why) for runs of ``num_particles`` particles in ``dtype``."""
+        bound = [type(t).__name__ for t in self.terms if not t.order_free]
+        if bound:  # a term holding per-particle arrays in the user's order: sorting would mismatch them
+            check(self.sort_every in ("auto", 0), f"sort_every={self.sort_every}: the term(s) {', '.join(bound)} hold "
+                                                  "per-particle arrays in the particles' order (Term.order_free), "
+                                                  "which sorting would hand to other particles; leave sort_every "
+                                                  "at 0")
+            return 0, f"the term(s) {', '.join(bound)} hold per-particle arrays in the particles' order"
         if self.sort_every != "auto":
             return self.sort_every, f"sort_every={self.sort_every} given"
         kernel = self._kernel_row(num_particles, dtype)[0] or "xla"

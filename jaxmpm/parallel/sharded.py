@@ -135,6 +135,10 @@ class ShardedSimulation:
         unsupported = sorted({type(t).__name__ for t in sim.terms if not isinstance(t, SUPPORTED_TERMS)})
         check(not unsupported, f"ShardedSimulation: {', '.join(unsupported)} not supported on several devices yet "
               f"(supported terms: {', '.join(t.__name__ for t in SUPPORTED_TERMS)}); run this model on one device")
+        bound = sorted({type(t).__name__ for t in sim.terms if not t.order_free})
+        check(not bound, f"ShardedSimulation: the term(s) {', '.join(bound)} hold per-particle arrays in the "
+                         "particles' order (Term.order_free), which particles moving between devices would mismatch; "
+                         "run this model on one device")
         self.sim = sim
         self.mesh = Mesh(np.array(devices), (axis_name,))
         halo = halo if halo is not None else halo_for(sim.shape)

@@ -25,9 +25,21 @@ class BodyForce(Term):
             function or an equinox module); None (the default): gravity alone.
     """
 
-    local = True  # M_p b(x_p, t) per particle (jaxmpm.model.chunks)
     gravity: jnp.ndarray
     field: Callable | None = None
+
+    @property
+    def local(self) -> bool:
+        """M_p b(x_p, t) per particle (jaxmpm.model.chunks), unless the field holds per-particle arrays of its
+        own (``field.holds_particles``, :class:`jaxmpm.scenes.manufactured.ManufacturedForce`): a chunk's
+        positions would not match them."""
+        return not getattr(self.field, "holds_particles", False)
+
+    @property
+    def order_free(self) -> bool:
+        """Whether the particles may be sorted (Term.order_free): not where the field holds per-particle arrays
+        in the user's order."""
+        return self.local
 
     def __init__(self, gravity, field: Callable | None = None):
         example = "the acceleration's D components, e.g. (0.0, -9.81)"

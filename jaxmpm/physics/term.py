@@ -61,6 +61,11 @@ class Term(eqx.Module):
     # its own quadrature and no exchange: the step may then run over the particles in chunks
     # (jaxmpm.model.chunks).  False (the default) keeps a term's step whole.
     local = False
+    # True where everything the term knows per particle travels with the state (its fields): the run may then
+    # sort the particles by cell (jaxmpm.run.sorting).  False for a term holding per-particle arrays of its own
+    # in the user's particle order (the manufactured force's reference positions): sorting would hand each
+    # particle another's.
+    order_free = True
 
     # ------------------------------------------------------------------ declarations
     def particle_fields(self) -> tuple:

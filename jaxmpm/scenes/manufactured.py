@@ -80,6 +80,9 @@ class ManufacturedForce(eqx.Module):
     motion: object = eqx.field(static=True)
     material: object
     X: jnp.ndarray
+    # X is per particle, in the user's order: a run neither sorts the particles nor steps them in chunks
+    # (BodyForce.local, Term.order_free); with_sorting(n) is an error, and "auto" does not sort
+    holds_particles = True
 
     def __init__(self, motion, material, X):
         self.motion = motion

@@ -37,7 +37,10 @@ def _transform(bound):
         return (lambda r: r), (lambda v: v)
     if bound == "positive":  # log-parameterisation: scale-free steps, never reaches 0
         return jnp.exp, jnp.log
-    ok = isinstance(bound, tuple) and len(bound) == 2 and all(np.isfinite(b) for b in bound)
+    try:
+        ok = isinstance(bound, tuple) and len(bound) == 2 and all(np.isfinite(float(b)) for b in bound)
+    except (TypeError, ValueError):  # ("a", "b"): not numbers
+        ok = False
     check(ok, f"calibrate: bound {bound!r} must be (lower, upper), two finite numbers, or 'positive' (0, inf), or "
               "None (unbounded)")
     lo, hi = bound

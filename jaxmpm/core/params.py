@@ -99,8 +99,8 @@ def check_value(sim, name, value, owner: str = "set_params", label: str | None =
     """Raise InputError unless a concrete ``value`` of parameter ``name`` lies in the range its
     registration declares (``Parameter.valid``) and, for a vector leaf such as gravity, has the
     shape of the model's leaf.  A traced value passes unchecked."""
-    check_acts(sim, name, owner, label)
     where, p = resolve_parameter(sim, name)
+    _check_acts(sim, name, p, owner, label)
     old_shape = np.shape(where(sim))
     # a vector leaf (gravity) takes one value per grid axis, traced values too (their shapes are known); a
     # number only where it has one axis: in 2D a number had set every axis to it, and an ensemble's batch of one
@@ -115,13 +115,13 @@ def check_value(sim, name, value, owner: str = "set_params", label: str | None =
     p.check(owner, value, label or name)
 
 
-def check_acts(sim, name, owner: str = "set_params", label: str | None = None) -> None:
-    """Raise InputError where parameter ``name`` does not act in this model (``Parameter.acts``: e.g. a
-    contact's friction under the stick law), whatever its value, traced too: its gradient would be 0."""
-    found = resolve_parameter(sim, name)
-    if found is None or found[1].acts is None:
+def _check_acts(sim, name, p, owner: str, label: str | None) -> None:
+    """Raise InputError where parameter ``name`` (registered as ``p``) does not act in this model
+    (``Parameter.acts``: e.g. a contact's friction under the stick law), whatever its value, traced too: its
+    gradient would be 0."""
+    if p.acts is None:
         return
-    reason = found[1].acts(parameter_part(sim, name))
+    reason = p.acts(parameter_part(sim, name))
     check(reason is None, f"{owner}: {label or name} {reason}")
 
 

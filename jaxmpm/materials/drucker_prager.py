@@ -160,19 +160,22 @@ class DruckerPrager(HenckyPlastic):
         if phi is None or psi is None or dphi is None:
             return
         phi, psi, dphi = np.broadcast_arrays(np.asarray(phi), np.asarray(psi), np.asarray(dphi))
-        at = "" if phi.ndim == 0 else " (first at index {})"
+
+        def first(wrong):  # (the first offending index, how the message names it: nothing for scalars)
+            i = np.unravel_index(np.argmax(wrong), wrong.shape)
+            return i, "" if wrong.ndim == 0 else f" (first at index {i[0] if len(i) == 1 else i})"
+
         wrong = psi > phi
         if wrong.any():
-            i = np.unravel_index(np.argmax(wrong), wrong.shape)
-            fail(owner, f"dilatancy_angle = {float(psi[i]):g} must be <= friction_angle = {float(phi[i]):g}"
-                        + at.format(i[0] if len(i) == 1 else i),
+            i, at = first(wrong)
+            fail(owner, f"dilatancy_angle = {float(psi[i]):g} must be <= friction_angle = {float(phi[i]):g}{at}",
                  "psi <= phi: psi = 0 is isochoric flow (Klar et al. 2016), psi = phi associated flow")
         final = phi + dphi
         wrong = (final < psi) | (final >= 90.0)
         if wrong.any():
-            i = np.unravel_index(np.argmax(wrong), wrong.shape)
+            i, at = first(wrong)
             fail(owner, f"friction_hardening = {float(dphi[i]):g} takes the friction angle to {float(final[i]):g} "
-                        "degrees; it must stay in [dilatancy_angle, 90)" + at.format(i[0] if len(i) == 1 else i),
+                        f"degrees; it must stay in [dilatancy_angle, 90){at}",
                  "choose friction_hardening with dilatancy_angle <= friction_angle + friction_hardening < 90")
 
     def initial_plastic_state(self, n, dtype):

@@ -99,6 +99,11 @@ _NEVER = np.iinfo(np.int32).max
 DONATE = True
 
 
+def _no_stats() -> dict:
+    """:attr:`ShardedSimulation.stats` before a run's first step: nothing counted yet."""
+    return {"steps": 0, "migrated": 0, "rebalances": 0, "particles": None, "mass": None, "bounds": []}
+
+
 class ShardedSimulation:
     """``sim`` on the devices of a one-axis mesh, its grid cut into slabs along x.
 
@@ -162,8 +167,7 @@ class ShardedSimulation:
         self.exchange = exchange
         self.axis_name = axis_name
         self._programs = {}
-        # a run's counts (_start_stats); zeros until a run steps (a resumed file with no step left runs none)
-        self.stats = {"steps": 0, "migrated": 0, "rebalances": 0, "particles": None, "mass": None, "bounds": []}
+        self.stats = _no_stats()  # until a run steps (a resumed file with no step left runs none)
 
     def _check_images(self):
         """An InputError unless every ghost node of a symmetry plane (jm.Mirror) or of a transport's
@@ -351,8 +355,9 @@ class ShardedSimulation:
         that changed device, the rebalances and the boundaries chosen at each step (slabs that move),
         and the fewest and most particles, and the least and most mass, the devices held together
         after any step (every step's census)."""
-        self.stats = {"steps": 0, "migrated": 0, "rebalances": 0, "particles": None, "mass": None,
-                      "bounds": [] if self.bounds is None else [(int(state.step), self.bounds.tolist())]}
+        self.stats = _no_stats()
+        if self.bounds is not None:
+            self.stats["bounds"].append((int(state.step), self.bounds.tolist()))
         self._reached, self._since = int(state.step), 0  # the buffers' step; steps since the slabs moved
 
     def _advance(self, program, sim, state, buffers, valid, ids, dt, steps: int, held=None):

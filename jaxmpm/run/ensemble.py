@@ -71,27 +71,31 @@ def _batch_size(tree) -> int:
     return size
 
 
-def _check_members(sim, params: dict) -> None:
+def _members_model(sim, params: dict):
+    """The model the members run: ``sim`` with a term added, at its neutral default, for each parameter of
+    ``params`` that belongs to a term it lacks (as :func:`jaxmpm.set_params` adds it)."""
+    for name in params:
+        sim = _with_owner(sim, name)
+    return sim
+
+
+def _check_members(members, params: dict) -> None:
     """Every member of a concrete parameter batch in its parameter's valid range, before tracing
-    (inside the vmap the values are tracers and cannot be checked)."""
+    (inside the vmap the values are tracers and cannot be checked); ``members``: :func:`_members_model`."""
     for name, batch in params.items():
-        owned = _with_owner(sim, name)
-        _where(owned, name)  # an unknown name is an error here, not inside the trace
+        _where(members, name)  # an unknown name is an error here, not inside the trace
         batch_members("ensemble", f"params[{name!r}]", batch,
-                      lambda i, member, s=owned, n=name: check_value(
-                          s, n, member, "ensemble" if i is None else f"ensemble member {i}"))
+                      lambda i, member, n=name: check_value(
+                          members, n, member, "ensemble" if i is None else f"ensemble member {i}"))
     # the conditions the material's parameters meet together (Material.check_parameters), member by member
-    if getattr(type(sim.material), "check_parameters", None) in (None, Material.check_parameters):
+    if getattr(type(members.material), "check_parameters", None) in (None, Material.check_parameters):
         return  # a law without such conditions (every built-in one but Drucker-Prager)
     hosted = {name: concrete(batch) for name, batch in params.items()}
     if any(value is None for value in hosted.values()):
         return  # traced members: unchecked, as set_params leaves a traced value
-    owned = sim
-    for name in hosted:
-        owned = _with_owner(owned, name)
     sizes = [np.shape(batch)[0] for batch in hosted.values() if np.ndim(batch) > 0]
     for i in range(max(sizes, default=1)):
-        member = owned
+        member = members
         for name, batch in hosted.items():
             value = np.asarray(batch)[i] if np.ndim(batch) > 0 else batch
             member = eqx.tree_at(_where(member, name), member, jnp.asarray(value))
@@ -224,7 +228,8 @@ def ensemble(sim, state, dt, steps: int, save_every: int = 1, *, params: dict | 
         check(strategy == "vmap", f"ensemble: chunk = {chunk!r} applies to strategy='vmap' only; drop chunk or set "
                                   "strategy='vmap'")
         chunk = positive_int("ensemble", "chunk", chunk)
-    _check_members(sim, params or {})
+    members = _members_model(sim, params or {})
+    _check_members(members, params or {})
     # a list of numbers is a batch too (its own leaves would be taken for members' scalars)
     params = None if params is None else {name: np.asarray(values) if isinstance(values, (list, tuple)) else values
                                           for name, values in params.items()}
@@ -234,9 +239,6 @@ def ensemble(sim, state, dt, steps: int, save_every: int = 1, *, params: dict | 
                                    f"member, pass jm.set_params(sim, {name}=...) as the model")
     check(isinstance(state, State), f"ensemble: state = {type(state).__name__}; give the members' initial jm.State "
                                     "(the template of states=, when given)")
-    members = sim  # the model the members run: set_params adds a term whose parameter it is given
-    for name in params or {}:
-        members = _with_owner(members, name)
     members.check_state(state, "ensemble")
     check(states is None or isinstance(states, State),
           f"ensemble: states = {type(states).__name__}; give a jm.State whose arrays have a leading batch axis, "
@@ -296,8 +298,7 @@ def _one_by_one(sim, state, dt, frames: int, save_every: int, save_particles: bo
     dtype = first.x.dtype  # the members' precision (a model computes in its state's, as Simulation.rollout does)
     sim = sim.in_precision(dtype)
     dt = jax.device_put(np.asarray(jax.device_get(dt), dtype))
-    for name in params:  # a term the model lacks added once (set_params's neutral default), not per member
-        sim = _with_owner(sim, name)
+    sim = _members_model(sim, params)  # a term the model lacks added once, not per member
     names = list(params)
     wheres = [_where(sim, name) for name in names]
     # every member's values on the device in one transfer, cast as set_params casts them (checked: _check_members)

@@ -66,7 +66,7 @@ def bar(
                                f"omega = pi/(2L) sqrt(E/rho) = {omega:.3g}), more than the bar's length {length:g}: "
                                "beyond a small-strain vibration; lower v0, or raise E or lower density")
     # room for the free end: its amplitude v0/omega (0.159 by default) plus one cell
-    grid = Grid.covering((0.0,), (length + h + 2.0 * v0 / omega,), h, shape=shape)
+    grid = Grid.covering((0.0,), (length + h + 2.0 * amplitude,), h, shape=shape)
     particles = fill(grid, Box((0.0,), (length,)), ppc=ppc, velocity=lambda x: v0 * np.sin(beta1 * x))
     tol = 1e-9 * length
     fixed = Fixed(where=lambda x: x[:, 0] <= tol) if boundary == "fixed" else Mirror("x-", 0.0)

@@ -152,7 +152,9 @@ def test_register_scene_reaches_jm_scene_the_listing_and_run(registry, recorded,
         jm.scene("tiny_bar", cells=0)  # checked like a built-in scene
     with pytest.raises(jm.InputError, match=r"the scene name 'tiny_bar' is taken \(A four-cell bar\.\); choose "
                                             r"another name, or pass replace=True"):
-        jm.register_scene("tiny_bar", tiny_bar, "another")
+        jm.register_scene("tiny_bar", lambda **kw: tiny_bar(**kw), "another")
+    jm.register_scene("tiny_bar", tiny_bar, "the same builder again")  # a notebook cell run twice
+    assert registry["tiny_bar"][1] == "the same builder again"
     with pytest.raises(jm.InputError, match="the scene name 'bar' is taken"):
         jm.register_scene("bar", tiny_bar)
     with pytest.raises(jm.InputError, match="name = 'my scene' must be a word"):

@@ -87,6 +87,43 @@ def test_scheme_specs_are_parsed_strictly():
             jm.scheme_from_name(spec)
 
 
+def test_a_taken_name_is_replaced_only_on_request_or_by_the_same_class_defined_anew():
+    """A name taken by a built-in or by another class is an error (it was replaced silently: a
+    user's ``register_scheme("flip", ...)`` changed every FLIP model, the CLI's included)."""
+    class Mine(jm.Scheme):
+        def update(self, V, X, transfer, constraint, grid, damping, dt):
+            raise NotImplementedError
+
+    entry = jm.SCHEMES["flip"]
+    with pytest.raises(jm.InputError, match=r"'flip' is taken by jaxmpm\.schemes\.xpic\.FLIP; choose another name"):
+        jm.register_scheme("flip", Mine)
+    with pytest.raises(jm.InputError, match=r"'newpic' is taken by \S*test_open_core\.NewPIC"):
+        jm.register_scheme("newpic", Mine)
+    with pytest.raises(jm.InputError, match="replace = 1 must be True or False"):
+        jm.register_scheme("newpic", Mine, replace=1)
+    assert jm.SCHEMES["flip"] is entry and jm.SCHEMES["newpic"].cls is NewPIC
+
+    # the same class again, or a class of the same name defined anew (a notebook cell run twice)
+    jm.register_scheme("mine_again", Mine)
+    jm.register_scheme("mine_again", Mine)
+    first = Mine
+
+    class Mine(jm.Scheme):  # noqa: F811 -- the cell run again
+        def update(self, V, X, transfer, constraint, grid, damping, dt):
+            raise NotImplementedError
+
+    jm.register_scheme("mine_again", Mine)
+    assert jm.SCHEMES["mine_again"].cls is Mine and Mine is not first
+
+    # replace=True replaces even a built-in; put it back
+    try:
+        jm.register_scheme("flip", Mine, replace=True)
+        assert jm.SCHEMES["flip"].cls is Mine
+    finally:
+        jm.SCHEMES._entries["flip"] = entry
+    del jm.SCHEMES._entries["mine_again"]
+
+
 # ------------------------------------------------------------ a per-particle field in one file
 class Age(jm.Term):
     """Declares the per-particle field ``age`` (time since the start) and a vector field

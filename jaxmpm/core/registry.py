@@ -80,10 +80,16 @@ class Registry:
         self._entries: dict[str, Entry] = {}
 
     def register(self, name: str, cls: type, *, parse: Callable | None = None, spec: str | None = None,
-                 parameters=(), doc: str = "") -> type:
+                 parameters=(), doc: str = "", replace: bool = False) -> type:
         check(isinstance(name, str) and name and name == name.lower() and ":" not in name,
               f"register_{self.kind}: name = {name!r} must be a lower-case word without ':'")
         check(isinstance(cls, type), f"register_{self.kind}: {cls!r} is not a class")
+        check(isinstance(replace, bool), f"register_{self.kind}: replace = {replace!r} must be True or False")
+        if name in self._entries and not replace:
+            taken = self._entries[name].cls
+            check(redefinition(taken, cls),
+                  f"register_{self.kind}: the name {name!r} is taken by {_qualified(taken)}; choose another "
+                  f"name, or pass replace=True to replace it")
         for p in parameters:
             check(isinstance(p, Parameter), f"register_{self.kind}: parameters must be jm.Parameter, got {p!r}")
             check(isinstance(p.name, str) and p.name.isidentifier(),
@@ -148,6 +154,22 @@ class Registry:
         return {p.name: p for e in self._entries.values() for p in e.parameters}
 
 
+def _qualified(cls: type) -> str:
+    return f"{cls.__module__}.{cls.__qualname__}"
+
+
+def redefinition(taken, new) -> bool:
+    """Whether registering ``new`` (a class, or a scene's builder) under ``taken``'s name may
+    replace it without ``replace=True``: the same object, or a user's class or function of the same
+    name defined anew (a notebook cell run again, a script re-executed).  A built-in part
+    (``jaxmpm.*``) is replaced only on request."""
+    taken = getattr(taken, "__wrapped__", taken)  # a scene's builder, as jm.register_scene wraps it
+    if new is taken:
+        return True
+    module = getattr(taken, "__module__", None) or ""
+    return not module.startswith("jaxmpm.") and getattr(taken, "__qualname__", None) == getattr(new, "__qualname__", 0)
+
+
 def _term_of(sim, cls):
     for term in sim.terms:
         if isinstance(term, cls):
@@ -186,7 +208,8 @@ def register_shape(name, cls, **kwargs):
     Args:
         name: the shape's name, a lower-case word without ':'.
         cls: the :class:`jaxmpm.ShapeFunction` subclass.
-        **kwargs: ``parse``, ``spec``, ``parameters`` and ``doc``, as for :func:`register_scheme`
+        **kwargs: ``parse``, ``spec``, ``parameters``, ``doc`` and ``replace``, as for
+            :func:`register_scheme`
             (``parse(argument, **options)``; None: ``cls(**options)``).
 
     Returns:
@@ -201,8 +224,8 @@ def register_material(name, cls, **kwargs):
     Args:
         name: the material's name, a lower-case word without ':'.
         cls: the :class:`jaxmpm.Material` subclass.
-        **kwargs: ``parse``, ``spec``, ``parameters`` (e.g. E, nu, density) and ``doc``, as for
-            :func:`register_scheme`.
+        **kwargs: ``parse``, ``spec``, ``parameters`` (e.g. E, nu, density), ``doc`` and ``replace``, as
+            for :func:`register_scheme`.
 
     Returns:
         ``cls``.
@@ -216,7 +239,8 @@ def register_term(name, cls, **kwargs):
     Args:
         name: the term's name, a lower-case word without ':'.
         cls: the :class:`jaxmpm.Term` subclass.
-        **kwargs: ``parse``, ``spec``, ``parameters`` and ``doc``, as for :func:`register_scheme`.
+        **kwargs: ``parse``, ``spec``, ``parameters``, ``doc`` and ``replace``, as for
+            :func:`register_scheme`.
 
     Returns:
         ``cls``.

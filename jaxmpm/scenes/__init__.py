@@ -15,6 +15,7 @@ from __future__ import annotations
 import re
 
 from ..core.errors import InputError, check
+from ..core.registry import redefinition
 from ._common import Setup, cast_state, resolve_dtype
 from .bar import bar
 from .bars_impact import bars_impact
@@ -100,7 +101,8 @@ def register_scene(name: str, builder, description: str | None = None, *, replac
     :class:`Setup`; it is wrapped in :func:`~jaxmpm.scenes._options.checked_options`, so its options
     are checked like a built-in scene's.  ``description`` (default: the first line of the builder's
     docstring) is what ``jaxmpm scenes`` prints.  A name already taken is an error unless
-    ``replace=True``.
+    ``replace=True``, or the builder is the one it holds or a function of the same name defined anew
+    (a notebook cell run again).
 
     Args:
         name: the scene's name, a word of letters, digits, '_' and '-' starting with a letter
@@ -108,7 +110,8 @@ def register_scene(name: str, builder, description: str | None = None, *, replac
         builder: ``builder(**options) -> Setup``, the function that builds the scene.
         description: one line for ``jaxmpm scenes``; None (the default): the first line of the
             builder's docstring.
-        replace: replace a scene of that name (default False: a taken name is an error).
+        replace: replace a scene of that name (default False: a name taken by another builder is
+            an error).
     """
     from ._options import checked_options
 
@@ -118,7 +121,7 @@ def register_scene(name: str, builder, description: str | None = None, *, replac
     check(callable(builder), f"register_scene: builder = {builder!r} must be a function returning a jm.scenes.Setup")
     check(description is None or isinstance(description, str),
           f"register_scene: description = {description!r} must be a string (one line)")
-    check(replace or name not in SCENES,
+    check(replace or name not in SCENES or redefinition(SCENES[name][0], builder),
           f"register_scene: the scene name {name!r} is taken ({SCENES[name][1] if name in SCENES else ''}); "
           "choose another name, or pass replace=True to replace it")
     if description is None:

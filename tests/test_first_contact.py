@@ -10,6 +10,7 @@ import os
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
 from cases import run_cli
 
@@ -287,6 +288,24 @@ def test_calibrate_names_bad_bounds_and_initial_values(bounds, init, words):
     _, loss = _bar_loss()
     with pytest.raises(jm.InputError, match=words):
         jm.calibrate(loss, init, bounds=bounds, steps=1, progress=False)
+
+
+def test_calibrate_says_where_the_loss_or_its_gradient_stopped_being_finite():
+    """Each read "the loss became nan at iteration N; lower the learning rate": a loss undefined at
+    the initial values, or a finite loss whose derivative is not (no learning rate mends either)."""
+    optimizer = optax.sgd(1.0)
+    with pytest.raises(jm.InputError, match=r"the loss is nan at the initial parameters \(a = 1.0\): the loss "
+                                            r"function gives it there, before any step"):
+        jm.calibrate(lambda p: jnp.log(p["a"] - 2.0), {"a": 1.0}, steps=3, optimizer=optimizer, progress=False)
+    with pytest.raises(jm.InputError, match=r"the loss's gradient is (nan|inf) at iteration 0 \(a = 2.0\) while "
+                                            r"the loss is 0: a derivative inside the loss function is undefined"):
+        jm.calibrate(lambda p: jnp.sqrt(jnp.abs(p["a"] - 2.0)), {"a": 2.0}, steps=3, optimizer=optimizer,
+                     progress=False)
+    # a step too long: a = 1 - 2 * 2.25 = -3.5 lands where log(a + 3) is undefined
+    with pytest.raises(jm.InputError, match=r"the loss became nan at iteration 1 \(a = -3.5\), after 1; the step "
+                                            r"was too long: lower the learning rate"):
+        jm.calibrate(lambda p: p["a"] ** 2 + jnp.log(p["a"] + 3.0) - jnp.log(4.0), {"a": 1.0}, steps=3,
+                     optimizer=optax.sgd(2.0), progress=False)
 
 
 def test_calibrate_keeps_held_parameters_exactly():

@@ -114,6 +114,20 @@ def _make_update(loss_ref, optimizer, bounds, fast_compile: bool = False) -> _Up
     return _Update(jax.jit(update, compiler_options=compiler_options(fast_compile=fast_compile)), {})
 
 
+def _check_finite(it: int, value: float, grad_norm: float, params: dict, losses: list) -> None:
+    """Raise InputError naming where the loss or its gradient stopped being finite, and why it may have."""
+    at = ", ".join(f"{k} = {np.asarray(v).tolist()}" for k, v in params.items())
+    if not np.isfinite(value):
+        check(it > 0, f"calibrate: the loss is {value} at the initial parameters ({at}): the loss function "
+                      "gives it there, before any step; check that the model is stable at these values")
+        check(False, f"calibrate: the loss became {value} at iteration {it} ({at}), after {losses[-1]:.6g}; the step "
+                     "was too long: lower the learning rate, or bound the parameters (bounds=)")
+    check(np.isfinite(grad_norm),
+          f"calibrate: the loss's gradient is {grad_norm} at iteration {it} ({at}) while the loss is {value:.6g}: "
+          "a derivative inside the loss function is undefined there (a square root or norm of 0, a division by "
+          "0; jax.config.update('jax_debug_nans', True) finds it)")
+
+
 def _update_for(loss, optimizer, bounds, fast_compile: bool = False) -> _Update:
     """The cached update of (``loss``, ``optimizer``, ``bounds``, ``fast_compile``), made on the first call; a
     loss that cannot be weakly referenced or hashed (or an unhashable optimizer) gets one of its own."""
@@ -295,8 +309,7 @@ def calibrate(
             params = constrained(raw)
             raw, opt_state, value, grad_norm = update(raw, opt_state, mask)
             value = float(value)
-            check(np.isfinite(value),
-                  f"calibrate: the loss became {value} at iteration {it}; lower the learning rate")
+            _check_finite(it, value, float(grad_norm), params, losses)
             losses.append(value)
             for k in init:
                 trajectory[k].append(np.asarray(params[k]))

@@ -356,3 +356,16 @@ def test_a_force_holding_per_particle_arrays_is_neither_sorted_nor_chunked():
     np.testing.assert_array_equal(np.asarray(chunked.v), np.asarray(plain.v))
     with pytest.raises(jm.InputError, match="ShardedSimulation: the term.s. BodyForce hold per-particle arrays"):
         ShardedSimulation(setup.sim)
+
+
+def test_gradient_schedule_checks_dt_and_state_and_run_refuses_checkpoint_none():
+    """gradient_schedule took dt = 0 or nan (and a state of another kind) without a word; checkpoint=None
+    ran as False, a value no documentation named."""
+    setup, _ = _bar_loss()
+    for dt, words in [(0.0, "dt = 0.0 must be positive"), (float("nan"), "dt = nan must be finite and positive")]:
+        with pytest.raises(jm.InputError, match=f"gradient_schedule: {words}; the time step"):
+            jm.gradient_schedule(setup.sim, setup.state, dt, 4, 1)
+    with pytest.raises(jm.InputError, match="gradient_schedule: state = None must be a jm.State"):
+        jm.gradient_schedule(setup.sim, None, setup.dt, 4, 1)
+    with pytest.raises(jm.InputError, match=r"checkpoint = None must be 'auto', 'states', True, False"):
+        setup.sim.run(setup.state, setup.dt, 4, 1, checkpoint=None)

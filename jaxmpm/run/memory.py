@@ -38,6 +38,7 @@ import numpy as np
 
 from ..core.errors import check
 from ..core.limits import available_bytes, size_text
+from ..core.validate import POSITIVE
 from ..transfer.backend import KEEP_STATES_UP_TO, STORE_RESIDUALS_UP_TO, resolve
 
 _UNITS = {"": 1, "b": 1, "kb": 10**3, "mb": 10**6, "gb": 10**9, "tb": 10**12,
@@ -199,6 +200,8 @@ def gradient_schedule(sim, state, dt, steps: int, save_every: int = 1, memory=No
     check(isinstance(steps, (int, np.integer)) and isinstance(save_every, (int, np.integer)) and save_every >= 1
           and steps >= save_every and steps % save_every == 0,
           f"gradient_schedule: steps = {steps!r} must be a positive multiple of save_every = {save_every!r}")
+    POSITIVE.real("gradient_schedule", "dt", dt, fix="the time step, e.g. a scene's setup.dt or sim.stable_dt(state)")
+    sim.check_state(state, "gradient_schedule")  # a jm.State, made for this model
     sim = sim.in_precision(state.x.dtype)  # as sim.run: the model computes in its state's precision
     dt = jax.numpy.asarray(dt, state.x.dtype)
     frames = steps // save_every
@@ -211,7 +214,7 @@ def gradient_schedule(sim, state, dt, steps: int, save_every: int = 1, memory=No
 
 def _segment_length(save_every: int, checkpoint, frames: int = 1):
     """Steps per rematerialised segment, or None for no checkpointing (see :func:`rollout`)."""
-    if checkpoint is False or checkpoint is None:
+    if checkpoint is False:
         return None
     if is_schedule(checkpoint, "states"):  # one level: a frame's steps in one segment
         return save_every

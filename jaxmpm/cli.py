@@ -32,7 +32,8 @@ NO_CACHE_HELP = ("do not keep compiled programs on disk.  By default they are ke
 CACHE_HELP = "the default (the cache is on unless --no-cache); accepted for older command lines"
 
 #: the options of ``jaxmpm run`` that are not scene options (kept out of the stored command)
-RUN_ONLY = ("out", "force", "no_progress", "command", "cache", "no_cache", "devices", "rebalance_every", "cpu_devices")
+RUN_ONLY = ("out", "force", "no_progress", "command", "cache", "no_cache", "devices", "rebalance_every", "capacity",
+            "exchange", "cpu_devices")
 CPU_DEVICES_HELP = ("start JAX with N CPU devices: each step shares its particles among them where the backend "
                     "table says (2D from 60k particles; README, \"Particles shared among the CPU's devices\"), and "
                     "--devices may use them (default: JAX's one CPU device)")
@@ -275,6 +276,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="with --devices: move the slab boundaries with the particles every K steps (and before a "
                           "step that would overflow a device's buffer; docs/scaling.md, load balance); default: "
                           "fixed equal slabs")
+    add_buffer_options(run)
     run.add_argument("--cpu-devices", type=int, default=None, metavar="N", help=CPU_DEVICES_HELP)
     run.add_argument("--out", required=True, metavar="FILE.h5",
                      help="HDF5 output file (an XDMF sidecar goes beside it)")
@@ -295,6 +297,7 @@ def build_parser() -> argparse.ArgumentParser:
     resume.add_argument("--rebalance-every", type=int, default=None, metavar="K",
                         help="with --devices: move the slab boundaries with the particles every K steps, as "
                              "`jaxmpm run --rebalance-every K` (default: fixed equal slabs)")
+    add_buffer_options(resume)
     resume.add_argument("--cpu-devices", type=int, default=None, metavar="N", help=CPU_DEVICES_HELP)
     resume.add_argument("--no-progress", action="store_true", help="no progress bar")
     resume.add_argument("--no-cache", action="store_true", help=NO_CACHE_HELP)
@@ -503,12 +506,7 @@ def run_scene(args) -> int:
              "sidecar of an earlier run, which this run would replace); pass --force to overwrite, or choose "
              "another file")
     try:
-        check(args.rebalance_every is None or args.devices is not None,
-              f"--rebalance-every {args.rebalance_every} moves the slabs of a run on several devices; add --devices N")
-        if args.devices is not None:  # enough devices, before the scene is built
-            from jaxmpm.parallel import local_devices
-
-            local_devices(args.devices, "--devices")
+        check_device_options(args)  # before the scene is built
         setup = build_setup(args)
         if args.max_steps is not None:
             check(args.max_steps >= 1, f"--max-steps = {args.max_steps} must be a positive integer")
@@ -523,15 +521,48 @@ def run_scene(args) -> int:
     return run_setup(setup, args, stored_options(options_of(args), setup))
 
 
-def sharded_model(setup, devices: int, rebalance_every: int | None = None):
+def add_buffer_options(parser) -> None:
+    """``--capacity`` and ``--exchange`` of ``jaxmpm run`` and ``jaxmpm resume``: the particle buffers
+    of a run on several devices (:class:`jaxmpm.parallel.ShardedSimulation`)."""
+    parser.add_argument("--capacity", type=int, default=None, metavar="C",
+                        help="with --devices: particle slots per device (default: 1.15 x the fullest slab's "
+                             "particles at the start, plus 16); raise it when a run stops because particles "
+                             "gathered in one slab did not fit")
+    parser.add_argument("--exchange", type=int, default=None, metavar="X",
+                        help="with --devices: slots per step for the particles moving to each neighbouring device "
+                             "(default: the most of a tenth of the capacity, 8 and 1.25 x the fullest cell column's "
+                             "particles)")
+
+
+def check_device_options(args) -> None:
+    """The options of a run on several devices, checked before the scene is built: an InputError
+    naming the option (not ShardedSimulation's keyword) and its fix."""
+    from jaxmpm.core.errors import check
+
+    for name, what in (("rebalance_every", "moves the slabs"), ("capacity", "sizes the particle buffers"),
+                       ("exchange", "sizes the exchange buffers")):
+        value = getattr(args, name, None)
+        option = "--" + name.replace("_", "-")
+        check(value is None or args.devices is not None,
+              f"{option} {value} {what} of a run on several devices; add --devices N")
+        check(value is None or value >= 1, f"{option} {value} must be a positive integer")
+    if args.devices is not None:  # enough devices
+        from jaxmpm.parallel import local_devices
+
+        local_devices(args.devices, "--devices")
+
+
+def sharded_model(setup, args):
     """``--devices N``: the scene's model on the first N local devices
     (:class:`jaxmpm.parallel.ShardedSimulation`; ``--rebalance-every K``: its slabs moving with the
-    particles), checked before the output file is made; an InputError naming the fix when there are
-    fewer devices, the model has terms the sharded path does not support, or K is not a positive
-    integer."""
+    particles; ``--capacity``, ``--exchange``: its buffers), checked before the output file is made; an
+    InputError naming the fix when there are fewer devices or the model has terms the sharded path
+    does not support."""
     from jaxmpm.parallel import ShardedSimulation, local_devices
 
-    return ShardedSimulation(setup.sim, devices=local_devices(devices, "--devices"), rebalance_every=rebalance_every)
+    return ShardedSimulation(setup.sim, devices=local_devices(args.devices, "--devices"),
+                             rebalance_every=getattr(args, "rebalance_every", None),
+                             capacity=getattr(args, "capacity", None), exchange=getattr(args, "exchange", None))
 
 
 def frame_fields(args, setup) -> tuple:
@@ -551,7 +582,6 @@ def fields_option(text: str) -> tuple:
 def resume_run(args) -> int:
     import json
 
-    from jaxmpm.core.errors import check
     from jaxmpm.resume import run_info
 
     try:
@@ -560,17 +590,13 @@ def resume_run(args) -> int:
             fail(f"{args.file} was not written by `jaxmpm run`; resume it from Python with jm.resume(path, setup)")
         options = json.loads(info["command"])
         _with_x64(options.get("dtype", "f64"))
-        check(args.rebalance_every is None or args.devices is not None,
-              f"--rebalance-every {args.rebalance_every} moves the slabs of a run on several devices; add --devices N")
-        if args.devices is not None:  # enough devices, before the scene is built
-            from jaxmpm.parallel import local_devices
-
-            local_devices(args.devices, "--devices")
+        check_device_options(args)  # before the scene is built
         setup = setup_from_options(options)
     except (ValueError, KeyError) as err:  # InputError is a ValueError
         fail(str(err))
     return run_setup(setup, argparse.Namespace(out=args.file, no_progress=args.no_progress, devices=args.devices,
-                                               rebalance_every=args.rebalance_every), options, resume=True)
+                                               rebalance_every=args.rebalance_every, capacity=args.capacity,
+                                               exchange=args.exchange), options, resume=True)
 
 
 def saved_state(path) -> dict | None:
@@ -687,7 +713,7 @@ def run_setup(setup, args, options: dict, resume: bool = False) -> int:
     sharded = None
     try:
         if getattr(args, "devices", None) is not None:  # checked before the file is made (or continued)
-            sharded = sharded_model(setup, args.devices, getattr(args, "rebalance_every", None))
+            sharded = sharded_model(setup, args)
         if resume:
             final = jm.resume(args.out, setup, progress=not args.no_progress, timings=timings, devices=sharded)
         else:

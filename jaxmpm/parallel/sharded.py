@@ -120,8 +120,9 @@ class ShardedSimulation:
         halo: the halo in node planes (default: the shape function's nodes per axis minus one).
         capacity: particle slots per device (default: 1.15 x the particles of the fullest slab at
             the start, plus 16; every slot costs a particle's step, parked or not).
-        exchange: slots per step for the particles moving to each neighbour (default: a tenth of
-            ``capacity``, at least 8).
+        exchange: slots per step for the particles moving to each neighbour (default: the most of
+            a tenth of ``capacity``, 8, and 1.25 x the particles of the fullest cell column along x
+            at the start -- a stable step moves a particle less than a cell -- at most ``capacity``).
         rebalance_every: K, the steps between rebalances: the slab boundaries move to equalise the
             particle counts every K steps (with frames: at the first frame at or after K steps), and
             before any step where a particle would not fit its buffer (see the module docstring).
@@ -230,10 +231,11 @@ class ShardedSimulation:
         the particle's index in ``state`` (-1 in free slots).  With ``rebalance_every``, first the
         boundaries that equalise the slabs' particle counts (:attr:`bounds`)."""
         n = state.x.shape[0]
-        if self.rebalance_every is not None:  # the cells' histogram along x, then the most even slabs
-            grid = self.sim.grid
-            cell = np.clip(np.asarray(self.slabs.cell(state.x, grid.lower[0], grid.spacing[0])), 0, grid.cells[0] - 1)
-            self.bounds = self.slabs.balanced_bounds(np.bincount(cell, minlength=grid.cells[0]))
+        grid = self.sim.grid
+        cell = np.clip(np.asarray(self.slabs.cell(state.x, grid.lower[0], grid.spacing[0])), 0, grid.cells[0] - 1)
+        columns = np.bincount(cell, minlength=grid.cells[0])  # the particles of each cell column along x
+        if self.rebalance_every is not None:  # the most even slabs
+            self.bounds = self.slabs.balanced_bounds(columns)
         owner = np.asarray(self.owner(state.x))
         counts = np.bincount(owner, minlength=self.devices)
         # every slot is stepped, parked or not: the headroom costs its share of the step (one device
@@ -247,7 +249,10 @@ class ShardedSimulation:
         check(counts.max() <= capacity, f"ShardedSimulation: a slab starts with {counts.max()} particles, more than "
               f"capacity = {capacity}; raise capacity")
         self.capacity = capacity
-        self.exchange = self.exchange or max(8, capacity // 10)
+        # a stable step moves a particle less than a cell, so at most one cell column's particles cross
+        # a face in a step: particles on a lattice cross a plane at a time (a tenth of the capacity was
+        # too few for a disk's 16-particle planes); a quarter more for a column that fills
+        self.exchange = self.exchange or min(capacity, max(8, capacity // 10, int(columns.max()) * 5 // 4))
         slots = np.zeros(self.devices * capacity, dtype=np.int64)  # a real particle or the placeholder
         valid = np.zeros(self.devices * capacity, dtype=bool)
         ids = -np.ones(self.devices * capacity, dtype=np.int64)
@@ -413,8 +418,8 @@ class ShardedSimulation:
         """The error naming ``capacity`` and ``exchange`` when particles did not fit at the next step."""
         first = self._reached + 1
         check(overflow == 0, f"ShardedSimulation: at step {first}, {overflow} particle(s) did not fit: raise "
-              f"capacity (now {self.capacity} per device) or exchange (now {self.exchange} per step and face); "
-              f"the state after step {first - 1} was kept")
+              f"capacity (now {self.capacity} per device) or exchange (now {self.exchange} per step and face; "
+              f"jaxmpm run --capacity C --exchange X); the state after step {first - 1} was kept")
 
     def _rebalance(self, buffers, valid, ids, n: int, held=None):
         """The slabs moved to the particles: every particle gathered on the host (or ``held``, the

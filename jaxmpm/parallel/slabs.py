@@ -52,6 +52,14 @@ from ..core.errors import check
 from ..transfer.kernels.windowed import Window
 
 
+def _too_many(cells_x: int, devices: int, halo: int) -> str:
+    """The error for more slabs than the grid holds: each is at least 2 H + 1 cells wide."""
+    most = cells_x // (2 * halo + 1)
+    return (f"Slabs: the grid's {cells_x} cells along x hold at most {most} slab(s) of 2 H + 1 = {2 * halo + 1} "
+            f"cells (the narrowest, halo H = {halo} planes), not {devices}; use at most {most} device(s), or a grid "
+            f"of at least {devices * (2 * halo + 1)} cells along x")
+
+
 class Slabs(eqx.Module):
     """The slab decomposition of ``grid`` over ``devices`` devices along grid axis x.
 
@@ -82,17 +90,17 @@ class Slabs(eqx.Module):
             check(isinstance(max_cells, (int, np.integer)) and not isinstance(max_cells, bool)
                   and 2 * halo + 1 <= max_cells <= cells_x, f"Slabs: max_cells = {max_cells!r} must be an integer "
                   f"from 2 H + 1 = {2 * halo + 1} (the narrowest slab) to the grid's {cells_x} cells along x")
-            check(devices * (2 * halo + 1) <= cells_x <= devices * max_cells, f"Slabs: {devices} slabs of "
-                  f"{2 * halo + 1} to {max_cells} cells cannot cover the grid's {cells_x} cells along x; "
-                  "raise max_cells, or use fewer devices or a finer grid")
+            check(devices * (2 * halo + 1) <= cells_x, _too_many(cells_x, devices, halo))
+            check(cells_x <= devices * max_cells, f"Slabs: {devices} slabs of at most max_cells = {max_cells} cells "
+                  f"cannot cover the grid's {cells_x} cells along x; raise max_cells to at least "
+                  f"{-(-cells_x // devices)}")
             self.cells, self.devices, self.halo, self.axis_name = tuple(grid.cells), devices, halo, axis_name
             self.max_cells = int(max_cells)
             return
+        check(devices * (2 * halo + 1) <= cells_x, _too_many(cells_x, devices, halo))
         check(cells_x % devices == 0, f"Slabs: the grid's {cells_x} cells along x do not split into {devices} equal "
               f"slabs; choose a cell count along x that is a multiple of {devices}, or let the slabs differ: "
-              "ShardedSimulation(..., rebalance_every=K) (jaxmpm run --rebalance-every K)")
-        check(cells_x // devices > 2 * halo, f"Slabs: slabs of {cells_x // devices} cells are not wider than twice the "
-              f"halo ({halo} planes); use fewer devices or a finer grid")
+              "ShardedSimulation(..., rebalance_every=K) (--rebalance-every K on the command line)")
         self.cells = tuple(grid.cells)
         self.devices = devices
         self.halo = halo

@@ -175,4 +175,15 @@ for key, model, options in (("mirror_x_error", wide_band, {}),
         out[key] = None
     except jm.InputError as error:
         out[key] = str(error)
+
+# default buffers: disks at speed 1 on 4 slabs that move (26 cells along x).  A plane of 16 particles of a
+# lattice crosses a face at once; the default exchange, a tenth of the capacity (13 slots), stopped the run
+# at step 13, long before the impact.  It now holds a cell column's particles.
+disks = jm.scene("disks", speed=1.0)
+sharded = ShardedSimulation(disks.sim, devices=jax.devices()[:4], rebalance_every=50)
+reached = sharded.run(disks.state, disks.dt, 100)
+one = jax.jit(lambda s: jax.lax.fori_loop(0, 100, lambda i, s: disks.sim.step(s, disks.dt), s))(disks.state)
+out["disks_default_buffers"] = {"exchange": sharded.exchange, "capacity": sharded.capacity,
+                                "migrated": sharded.stats["migrated"], "step": int(reached.step),
+                                "x_abs_err": float(np.max(np.abs(np.asarray(reached.x) - np.asarray(one.x))))}
 print(json.dumps(out))

@@ -188,7 +188,10 @@ def build_parser() -> argparse.ArgumentParser:
                      help="how grid damping acts (001 §5.1.2-5.2.2; jm.Damping's approach): on the particle update "
                           "(velocity, the default), on the grid momentum extrapolated as momentum (momentum), "
                           "or on the nodal force (force); needs --alpha-g")
-    run.add_argument("--shape", default=None, choices=list(SHAPES.names()), help="shape function " + _defaults("shape"))
+    # no argparse choices: a scene file may register a shape of its own (jm.register_shape), and the file is
+    # imported after the options are read; an unknown name is refused when the scene is built
+    run.add_argument("--shape", default=None, metavar=SHAPES.specs().replace(" ", ""),
+                     help="shape function " + _defaults("shape"))
     run.add_argument("--update", default=None, choices=["USL", "USF", "MUSL", "USAVG-", "USAVG+"],
                      help="stress update " + _defaults("update"))
     run.add_argument("--cells", type=int, default=None, metavar="N", help="cells along each axis " + _defaults("cells"))

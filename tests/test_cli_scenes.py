@@ -88,6 +88,36 @@ def test_scene_file_builds_stores_its_path_and_digest_and_resume_checks_them(bar
 
 
 @pytest.mark.slow
+def test_a_shape_a_scene_file_registers_is_taken_by_shape(tmp_path, recorded, capsys):
+    """--shape had argparse choices fixed before the scene file was imported: a shape the file
+    registers was refused ("invalid choice"), while a scheme it registers was taken."""
+    path = tmp_path / "my_shape.py"
+    path.write_text('''"""A bar on a shape of one's own."""
+import jaxmpm as jm
+
+
+class FileQuadratic(jm.QuadraticBSpline):
+    """The quadratic B-spline under a name of the file's own."""
+
+
+jm.register_shape("file_quadratic", FileQuadratic)
+
+
+def scene(shape="linear", cells=8, t_end=2.0, frames=8):
+    """The fixed-free bar, 8 cells."""
+    return jm.scene("bar", shape=shape, cells=cells, t_end=t_end, frames=frames)
+''')
+    try:
+        assert run_cli(["run", str(path), "--shape", "file_quadratic", "--out", str(tmp_path / "o.h5")]) is None
+        (setup, options), = recorded
+        assert type(setup.sim.shape).__name__ == "FileQuadratic" and options["shape"] == "file_quadratic"
+        assert run_cli(["run", "bar", "--shape", "foo", "--out", str(tmp_path / "o.h5")]) == 2
+        assert one_error_line(capsys).endswith("unknown shape 'foo'; choose linear | ugimp | quadratic | cubic | "
+                                               "file_quadratic")
+    finally:
+        jm.SHAPES._entries.pop("file_quadratic", None)
+
+
 def test_scene_file_run_interrupted_then_resumed_equals_the_whole_run(bar_file, monkeypatch, capsys):
     """`jaxmpm run my_bar.py`, stopped by SIGINT after its first chunk, then `jaxmpm resume`: the
     file equals the uninterrupted run's bit for bit."""

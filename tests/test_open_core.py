@@ -39,7 +39,8 @@ class NewPIC(jm.Scheme):
 
 jm.register_scheme("newpic", NewPIC, spec="newpic:THETA",
                    parse=lambda arg, beta=None: NewPIC(float(arg) if arg else 0.0),
-                   parameters=[jm.Parameter("theta", lambda s: s.theta, "FLIP fraction of NewPIC", (0.0, 1.0))])
+                   parameters=[jm.Parameter("theta", lambda s: s.theta, "FLIP fraction of NewPIC", (0.0, 1.0),
+                                            valid=(0.0, 1.0))])
 
 
 def _bar(scheme, steps=64, **kw):
@@ -59,6 +60,8 @@ def test_new_scheme_runs_through_scene_params_calibrate_and_hdf5(tmp_path):
     # set_params / get_params / PARAMETERS know theta; the HDF5 attributes carry it
     sim = jm.set_params(setup.sim, theta=0.7)
     assert float(jm.get_params(sim, "theta")["theta"]) == 0.7 and "theta" in jm.PARAMETERS
+    with pytest.raises(jm.InputError, match=r"theta = 1.5 must lie in \[0(\.0)?, 1(\.0)?\]"):  # valid=, as registered
+        jm.set_params(setup.sim, theta=1.5)
     path = tmp_path / "newpic.h5"
     jm.save_h5(path, sim, hist, state=setup.state, dt=setup.dt, scene="bar")
     res = jm.load_h5(path)

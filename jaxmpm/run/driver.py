@@ -43,7 +43,8 @@ class History(eqx.Module):
     in multimaterial mode, per-material sums (``by_material``: kinetic, strain, momentum,
     contact_force), and the model's totals (``totals``: thermal energy, solute, a material's
     dissipated energy).  Runs build it
-    (``Simulation.diagnostics_frame``); ``jaxmpm.load_h5`` reads one back.
+    (``Simulation.diagnostics_frame``); :func:`jaxmpm.save_h5` writes one, and :func:`jaxmpm.load_h5`
+    reads the file back as a :class:`jaxmpm.io.hdf5.Results` mapping (``res["particles/x"]``), not a History.
 
     Args:
         time: the frames' times, (T,).

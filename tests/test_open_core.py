@@ -105,6 +105,12 @@ def test_a_taken_name_is_replaced_only_on_request_or_by_the_same_class_defined_a
     with pytest.raises(jm.InputError, match="replace = 1 must be True or False"):
         jm.register_scheme("newpic", Mine, replace=1)
     assert jm.SCHEMES["flip"] is entry and jm.SCHEMES["newpic"].cls is NewPIC
+    # a class of another kind (it had registered, and failed only when used: "'beta' is an invalid keyword")
+    for register, base in ((jm.register_scheme, "Scheme"), (jm.register_shape, "ShapeFunction"),
+                           (jm.register_material, "Material"), (jm.register_term, "Term")):
+        with pytest.raises(jm.InputError, match=f"int is not a subclass of jm.{base}; derive it from jm.{base}"):
+            register("not_a_part", int)
+    assert "not_a_part" not in jm.SCHEMES
 
     # the same class again, or a class of the same name defined anew (a notebook cell run twice)
     jm.register_scheme("mine_again", Mine)
@@ -117,6 +123,23 @@ def test_a_taken_name_is_replaced_only_on_request_or_by_the_same_class_defined_a
 
     jm.register_scheme("mine_again", Mine)
     assert jm.SCHEMES["mine_again"].cls is Mine and Mine is not first
+
+    # a model made with the class before it was defined anew keeps its name and parameters
+    def theta_scheme():
+        class Theta(jm.Scheme):  # not derived from a registered scheme, whose entry would serve it
+            theta: jnp.ndarray
+
+            def update(self, V, X, transfer, constraint, grid, damping, dt):
+                raise NotImplementedError
+        return Theta
+
+    old, new = theta_scheme(), theta_scheme()
+    jm.register_scheme("theta_again", old, parameters=[jm.Parameter("theta", lambda s: s.theta, "theta")])
+    sim = jm.scene("bar", cells=4, t_end=0.5, frames=1, scheme=old(0.25)).sim
+    jm.register_scheme("theta_again", new, parameters=[jm.Parameter("theta", lambda s: s.theta, "theta")])
+    assert jm.SCHEMES["theta_again"].cls is new and jm.SCHEMES.name_of(sim.scheme) == "theta_again"
+    assert float(jm.get_params(jm.set_params(sim, theta=0.5), "theta")["theta"]) == 0.5
+    del jm.SCHEMES._entries["theta_again"], jm.SCHEMES._replaced[old]
 
     # replace=True replaces even a built-in; put it back
     try:

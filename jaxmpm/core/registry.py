@@ -77,13 +77,20 @@ class Registry:
     def __init__(self, kind: str, owner: Callable):
         self.kind = kind
         self.owner = owner
+        self.base: type | None = None  # the class every registered part derives from (set where it is defined)
         self._entries: dict[str, Entry] = {}
+        # the entries of classes replaced under their name (a notebook cell run again): a model made with
+        # the old class keeps its name and parameters (set_params, get_params, the HDF5 attributes)
+        self._replaced: dict[type, Entry] = {}
 
     def register(self, name: str, cls: type, *, parse: Callable | None = None, spec: str | None = None,
                  parameters=(), doc: str = "", replace: bool = False) -> type:
         check(isinstance(name, str) and name and name == name.lower() and ":" not in name,
               f"register_{self.kind}: name = {name!r} must be a lower-case word without ':'")
         check(isinstance(cls, type), f"register_{self.kind}: {cls!r} is not a class")
+        check(self.base is None or issubclass(cls, self.base),
+              f"register_{self.kind}: {cls.__qualname__} is not a subclass of jm.{getattr(self.base, '__name__', '')}; "
+              f"derive it from jm.{getattr(self.base, '__name__', '')} (docs/extending.md)")
         check(isinstance(replace, bool), f"register_{self.kind}: replace = {replace!r} must be True or False")
         if name in self._entries and not replace:
             taken = self._entries[name].cls
@@ -94,9 +101,17 @@ class Registry:
             check(isinstance(p, Parameter), f"register_{self.kind}: parameters must be jm.Parameter, got {p!r}")
             check(isinstance(p.name, str) and p.name.isidentifier(),
                   f"register_{self.kind}: parameter name {p.name!r} must be an identifier (it is a keyword)")
+        old = self._entries.get(name)
+        if old is not None and old.cls is not cls:
+            self._replaced[old.cls] = old
         self._entries[name] = Entry(name, cls, parse, spec or name, doc or (cls.__doc__ or "").strip().split("\n")[0],
                                     tuple(parameters))
+        self._replaced.pop(cls, None)
         return cls
+
+    def _known(self):
+        """The entries, then those of replaced classes."""
+        return (*self._entries.values(), *self._replaced.values())
 
     # ------------------------------------------------------------------ lookup
     def names(self) -> tuple:
@@ -116,7 +131,7 @@ class Registry:
     def entry_of(self, part) -> Entry | None:
         """The entry of ``part``'s class, or of its nearest registered base class."""
         for cls in type(part).__mro__:
-            for e in self._entries.values():
+            for e in self._known():
                 if e.cls is cls:
                     return e
         return None
@@ -141,7 +156,7 @@ class Registry:
         """The registered parameters of ``part`` (of its class and its registered base classes)."""
         out, seen = [], set()
         for cls in type(part).__mro__:
-            for e in self._entries.values():
+            for e in self._known():
                 if e.cls is cls:
                     for p in e.parameters:
                         if p.name not in seen:

@@ -36,6 +36,7 @@ import equinox as eqx
 import jax.numpy as jnp
 
 from ..core.errors import check
+from ..core.registry import MATERIALS
 
 
 def identity(F):
@@ -238,6 +239,11 @@ class Material(eqx.Module):
     def lame(self):
         """(lambda, mu) of the material's E and nu."""
         return lame(self.E, self.nu)
+
+
+
+
+MATERIALS.base = Material  # register_material accepts its subclasses only
 
 
 class ElasticMaterial(Material):

@@ -49,6 +49,7 @@ from __future__ import annotations
 
 import equinox as eqx
 
+from ..core.registry import TERMS
 from ..transfer.contractions import PerSlot
 
 
@@ -183,6 +184,11 @@ class Term(eqx.Module):
         """Deprecated: a whole-solution rewrite, which composed by overwriting (issue 27).  A term
         that still overrides it runs it in the readers phase; use the phase hooks instead."""
         return solution
+
+
+
+
+TERMS.base = Term  # register_term accepts its subclasses only
 
 
 def overrides(term, hook: str) -> bool:

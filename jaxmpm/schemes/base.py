@@ -24,6 +24,7 @@ import jax.numpy as jnp
 
 from ..core.errors import check
 from ..core.measures import angular_momentum
+from ..core.registry import SCHEMES
 from ..core.state import with_scheme_state
 from ..core.validate import compiled_when_concrete
 from ..transfer.contractions import Weighted
@@ -204,6 +205,11 @@ class Scheme(eqx.Module):
         """The scheme state of particles moving with the velocity field of gradient L (N, D, D)
         (:func:`with_velocity_gradient`); the scheme's state unchanged by default."""
         return state.scheme_state
+
+
+
+
+SCHEMES.base = Scheme  # register_scheme accepts its subclasses only
 
 
 def with_velocity_gradient(sim, state, gradient):

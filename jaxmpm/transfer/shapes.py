@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..core.errors import check
-from ..core.registry import register_shape
+from ..core.registry import SHAPES, register_shape
 from .backend import derivative_rule, evaluate_once, hold_tangent
 
 
@@ -393,6 +393,11 @@ class ShapeFunction(eqx.Module):
         top = base + self.nodes_per_axis - 1
         cells = xp.asarray(grid.cells, dtype=np.int32)
         return xp.all((base >= 0) & (top <= cells[None, :]) & xp.isfinite(xi), axis=-1)
+
+
+
+
+SHAPES.base = ShapeFunction  # register_shape accepts its subclasses only
 
 
 def _radial_factors(shape, r, w, dw, radius, h):

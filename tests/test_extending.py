@@ -1,8 +1,9 @@
-"""docs/extending.md: each worked example -- a scheme, a physics term, a material, a transfer
-kernel, each one file plus one registration -- runs on its own in a fresh interpreter, and its
-own assertions hold (the scheme equals FMPM(1) at theta = 0; the drag term relaxes particles to
-the ambient velocity at its rate; the Saint Venant-Kirchhoff law conserves energy and matches
-Hooke's law at small strain; the column-by-column kernel gives the default kernel's numbers)."""
+"""docs/extending.md: each worked example -- a scheme, a physics term, a material, a shape
+function, a transfer kernel, each one file plus one registration -- runs on its own in a fresh
+interpreter, and its own assertions hold (the scheme equals FMPM(1) at theta = 0; the drag term
+relaxes particles to the ambient velocity at its rate; the Saint Venant-Kirchhoff law conserves
+energy and matches Hooke's law at small strain; the tent shape gives jm.Linear's numbers in 1D
+and 2D; the column-by-column kernel gives the default kernel's numbers)."""
 
 from pathlib import Path
 
@@ -11,7 +12,7 @@ from test_readme import python_blocks, run_alone
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "extending.md"
 BLOCKS = python_blocks(DOC.read_text())
-EXPECTED = ["A scheme", "A physics term", "A material", "A transfer kernel"]
+EXPECTED = ["A scheme", "A physics term", "A material", "A shape function", "A transfer kernel"]
 
 
 def test_every_extension_axis_has_an_example():

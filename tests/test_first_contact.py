@@ -369,3 +369,22 @@ def test_gradient_schedule_checks_dt_and_state_and_run_refuses_checkpoint_none()
         jm.gradient_schedule(setup.sim, None, setup.dt, 4, 1)
     with pytest.raises(jm.InputError, match=r"checkpoint = None must be 'auto', 'states', True, False"):
         setup.sim.run(setup.state, setup.dt, 4, 1, checkpoint=None)
+
+
+def test_a_shape_function_without_its_hooks_is_refused_when_made():
+    """An empty jm.ShapeFunction subclass was made, and its run raised a bare NotImplementedError."""
+    class Empty(jm.ShapeFunction):
+        pass
+
+    class NoKernel(jm.ShapeFunction):
+        nodes_per_axis = 2
+
+        def _base(self, xi):
+            return xi
+
+    with pytest.raises(jm.InputError, match=r"Empty: a shape function sets nodes_per_axis \(a positive int; now 0\) "
+                                            r"and margin, and defines _base\(xi\) and _kernel\(r\); missing: _base, "
+                                            r"_kernel \(docs/extending.md, 'A shape function'\)"):
+        Empty()
+    with pytest.raises(jm.InputError, match="NoKernel: .*; missing: _kernel "):
+        NoKernel()

@@ -241,8 +241,6 @@ class Material(eqx.Module):
         return lame(self.E, self.nu)
 
 
-
-
 MATERIALS.base = Material  # register_material accepts its subclasses only
 
 

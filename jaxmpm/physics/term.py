@@ -186,8 +186,6 @@ class Term(eqx.Module):
         return solution
 
 
-
-
 TERMS.base = Term  # register_term accepts its subclasses only
 
 

@@ -207,8 +207,6 @@ class Scheme(eqx.Module):
         return state.scheme_state
 
 
-
-
 SCHEMES.base = Scheme  # register_scheme accepts its subclasses only
 
 

@@ -281,12 +281,22 @@ class AxisymmetricStencil(TensorStencil):
 
 
 class ShapeFunction(eqx.Module):
-    """Base class: subclasses define ``nodes_per_axis``, ``margin``, ``_base`` and ``_kernel``."""
+    """Base class: subclasses define ``nodes_per_axis``, ``margin``, ``_base`` and ``_kernel``
+    (docs/extending.md, "A shape function")."""
 
     # nodes touched per axis, and the distance (in cells) a particle must keep from the grid edge
     # for its whole stencil to exist; subclasses set both as class constants
     nodes_per_axis = 0
     margin = 0.0
+
+    def __check_init__(self):
+        cls = type(self)
+        missing = [hook for hook in ("_base", "_kernel") if getattr(cls, hook) is getattr(ShapeFunction, hook)]
+        count = cls.nodes_per_axis
+        check(not missing and isinstance(count, int) and count >= 1,
+              f"{cls.__qualname__}: a shape function sets nodes_per_axis (a positive int; now {count!r}) and margin, "
+              f"and defines _base(xi) and _kernel(r){'; missing: ' + ', '.join(missing) if missing else ''} "
+              "(docs/extending.md, 'A shape function')")
 
     def _base(self, xi):  # first node of the stencil along one axis, xi in cells
         raise NotImplementedError
@@ -393,8 +403,6 @@ class ShapeFunction(eqx.Module):
         top = base + self.nodes_per_axis - 1
         cells = xp.asarray(grid.cells, dtype=np.int32)
         return xp.all((base >= 0) & (top <= cells[None, :]) & xp.isfinite(xi), axis=-1)
-
-
 
 
 SHAPES.base = ShapeFunction  # register_shape accepts its subclasses only

@@ -6,6 +6,7 @@ default fields, spin's stiffness)."""
 from __future__ import annotations
 
 import os
+import warnings
 
 import jax
 import jax.numpy as jnp
@@ -388,3 +389,69 @@ def test_a_shape_function_without_its_hooks_is_refused_when_made():
         Empty()
     with pytest.raises(jm.InputError, match="NoKernel: .*; missing: _kernel "):
         NoKernel()
+
+
+def test_a_law_or_scheme_of_ones_own_returning_the_wrong_shape_is_named():
+    """A kirchhoff_stress of shape (N,) raised "P2G column 'force' sums contractions of different widths";
+    a scheme's update returning a tuple raised AttributeError 'strain_velocity', and a velocity of the
+    wrong shape JAX's while-loop type error."""
+    class FlatStress(jm.ElasticMaterial):
+        E: float = 1.0
+        nu: float = 0.3
+
+        def kirchhoff_stress(self, F):
+            return jnp.zeros(F.shape[0])
+
+        def energy_density(self, F):
+            return jnp.zeros(F.shape[0])
+
+    disks = jm.scene("disks", spacing=0.2, t_end=0.01, frames=1)
+    sim = jm.Simulation(disks.sim.grid, disks.sim.shape, FlatStress(density=1000.0), "flip")
+    state = sim.init(jm.fill(disks.sim.grid, jm.Disk((0.5, 0.5), 0.3), ppc=2))
+    n = state.x.shape[0]
+    with pytest.raises(jm.InputError, match=rf"FlatStress.stress \(kirchhoff_stress of an elastic law\) returned shape "
+                                            rf"\({n},\); the Kirchhoff stress has F's shape \({n}, 2, 2\)"):
+        sim.run(state, 1e-3, 1, 1)
+
+    class Returns(jm.Scheme):
+        answer: str = "tuple"
+
+        def update(self, V, X, transfer, constraint, grid, damping, dt):
+            if self.answer == "tuple":
+                return V, X
+            if self.answer == "flat":
+                return jm.ParticleUpdate(V[:, 0], X, grid.v, jnp.zeros(()))
+            return jm.ParticleUpdate(V, X, grid.v, jnp.zeros(V.shape[0]))
+
+    for answer, words in [("tuple", r"Returns.update returned tuple; return jm.ParticleUpdate\(velocity, position, "
+                                    r"strain_velocity, dissipated\)"),
+                          ("flat", rf"Returns.update returned velocity of shape \({n},\); it must have shape "
+                                   rf"\({n}, 2\)"),
+                          ("per particle", rf"returned dissipated of shape \({n},\); it must have shape \(\) \(one "
+                                           r"energy for all the particles\)")]:
+        model = jm.Simulation(disks.sim.grid, disks.sim.shape, jm.LinearElastic(E=1.0, nu=0.3, density=1.0),
+                              Returns(answer))
+        with pytest.raises(jm.InputError, match=words):
+            model.run(model.init(jm.fill(disks.sim.grid, jm.Disk((0.5, 0.5), 0.3), ppc=2)), 1e-3, 1, 1)
+
+
+def test_a_grid_force_returned_under_a_misspelt_name_warns():
+    """grid_force's {"forces": f} became a named result that nothing read: the term acted by exactly nothing,
+    silently.  A name close to "force" warns; other names (results for other terms) do not."""
+    class Drag(jm.Term):
+        key: str = "forces"
+
+        def grid_force(self, sim, fields, dt):
+            return {self.key: -0.5 * fields.momentum}
+
+    disks = jm.scene("disks", spacing=0.2, t_end=0.01, frames=1)
+    for key, warns in (("forces", True), ("Force", True), ("drag_force_x", False)):
+        sim = disks.sim.with_term(Drag(key))
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            sim.run(disks.state, disks.dt, 1, 1)
+        said = [str(w.message) for w in caught if "grid_force returned" in str(w.message)]
+        assert bool(said) == warns, (key, said)
+        if warns:
+            assert said[0].startswith(f"Drag.grid_force returned {key!r}, which is kept as a named result") and \
+                said[0].endswith("a nodal force is returned as 'force'")

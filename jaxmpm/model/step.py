@@ -34,15 +34,18 @@ colliders whose solids overlap (each acts on the velocity the one before left).
 
 from __future__ import annotations
 
+import difflib
+
 import equinox as eqx
 import jax.numpy as jnp
 
 from ..core.errors import check
 from ..core.fields import GridFields, GridSolution
 from ..core.linalg import matmul
+from ..core.warn import warn
 from ..materials.base import Increment
 from ..physics.term import overrides
-from ..schemes.base import combine_damping
+from ..schemes.base import ParticleUpdate, combine_damping
 from ..transfer.contractions import Weighted, as_terms
 from ..transfer.kernels import shared_reads
 from ..transfer.operators import Transfer, gather, safe_divide
@@ -241,6 +244,15 @@ def grid_solve(fields: GridFields, force, dt, constraint) -> GridSolution:
     return impose_conditions(fields if force is None else fields.replace(force=force), dt, constraint)
 
 
+def _warn_if_misspelt_force(term, out: dict) -> None:
+    """A grid_force result named like "force" but not it ("forces", "Force") is a result for other terms to
+    read, not a force: the term would act by nothing.  Warned when the step is traced."""
+    for name in out:
+        if name != "force" and difflib.get_close_matches(name.lower(), ["force"], n=1, cutoff=0.85):
+            warn(f"{type(term).__name__}.grid_force returned {name!r}, which is kept as a named result for "
+                 "other terms to read and added to no force; a nodal force is returned as 'force'")
+
+
 def _add_results(results: dict, new: dict, term) -> None:
     """Record a phase's named results, refusing a name already taken (two terms would overwrite)."""
     for name, value in (new or {}).items():
@@ -330,6 +342,7 @@ def grid_phases(sim, fields: GridFields, dt, constraint, time=None) -> GridSolut
             force = out.pop("force", None)
             if force is not None:
                 fields = fields.replace(force=fields.force + force)
+            _warn_if_misspelt_force(term, out)
             _add_results(results, out, term)
     exchanger = sim.exchange_term  # 2. momentum exchange between velocity fields
     if exchanger is not None:
@@ -430,12 +443,27 @@ def g2p(sim, state, transfer: Transfer, constraint, grid: GridSolution, dt, fiel
         return _g2p(sim, state, transfer, constraint, grid, dt, fields)
 
 
+def _check_update(scheme, update, state) -> None:
+    """A scheme's ``update`` returned a :class:`~jaxmpm.ParticleUpdate` of the particles' shapes (checked when
+    the step is traced: a scheme of one's own had failed inside the step with an AttributeError or JAX's
+    while-loop type error)."""
+    name = f"{type(scheme).__name__}.update"
+    check(isinstance(update, ParticleUpdate), f"{name} returned {type(update).__name__}; return "
+          "jm.ParticleUpdate(velocity, position, strain_velocity, dissipated) (docs/extending.md, 'A scheme')")
+    for field, value, expected in (("velocity", update.velocity, state.v.shape),
+                                   ("position", update.position, state.x.shape),
+                                   ("dissipated", update.dissipated, ())):
+        check(jnp.shape(value) == expected, f"{name} returned {field} of shape {jnp.shape(value)}; it must have "
+              f"shape {expected}" + (" (one energy for all the particles)" if field == "dissipated" else ""))
+
+
 def _g2p(sim, state, transfer: Transfer, constraint, grid: GridSolution, dt, fields: GridFields | None = None):
     damping = combine_damping(term.particle_damping(sim, state, transfer, grid) for term in sim.terms)
     V = state.v
     if "condition_dv" in grid:  # the conditions' impulse on the particles (jm.Prescribed(impulse=True))
         V = V + transfer.gather(grid["condition_dv"])
     upd = sim.scheme.update(V, state.x, transfer, constraint, grid, damping, dt)
+    _check_update(sim.scheme, upd, state)
     scheme_state = sim.scheme.next_state(state, upd, transfer, grid)
     F, dF = state.F, None
     if sim.update in ("USL", "USAVG-"):  # USL-: the velocity the update just used (USAVG-: for dt/2)

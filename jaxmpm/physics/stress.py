@@ -46,7 +46,11 @@ class StressDivergence(Term):
         return self.xpic == 0
 
     def p2g_quantities(self, sim, state, stencil):
-        tau = sim.material.stress(sim.elastic_deformation(state), state.material_state)
+        F = sim.elastic_deformation(state)
+        tau = sim.material.stress(F, state.material_state)
+        check(jnp.shape(tau) == F.shape,  # shapes are static: checked when the step is traced
+              f"{type(sim.material).__name__}.stress (kirchhoff_stress of an elastic law) returned shape "
+              f"{jnp.shape(tau)}; the Kirchhoff stress has F's shape {F.shape}, (particles, d, d)")
         if self.xpic:
             check(sim.constraint(tau.dtype).mirror is None,
                   "StressDivergence(xpic=m): the stress smoothing does not fold in a jm.Mirror's images; "

@@ -294,7 +294,7 @@ class ShapeFunction(eqx.Module):
         missing = [hook for hook in ("_base", "_kernel") if getattr(cls, hook) is getattr(ShapeFunction, hook)]
         count = cls.nodes_per_axis
         check(not missing and isinstance(count, int) and count >= 1,
-              f"{cls.__qualname__}: a shape function sets nodes_per_axis (a positive int; now {count!r}) and margin, "
+              f"{cls.__name__}: a shape function sets nodes_per_axis (a positive int; now {count!r}) and margin, "
               f"and defines _base(xi) and _kernel(r){'; missing: ' + ', '.join(missing) if missing else ''} "
               "(docs/extending.md, 'A shape function')")
 

@@ -1,11 +1,15 @@
 """Taichi's mpm88 substep in any dimension (2D: Taichi's 88-line demo; 3D: the same physics on a cube), the peer
 reference of ``benchmarks/gpu.py``.
 
-The same physics as jaxmpm's ``mpm88`` scene: MLS/APIC transfers with quadratic B-splines, the J-fluid of E = 400,
-gravity 9.8 along axis 1, one-sided walls 3 cells wide, dt = 2e-4, particle volume (dx/2)^dim and density 1,
-float32.  Taken from ``../shared/gpu/taichi_mpm.py`` (ours), which wrote ``python -m taichi example mpm88``'s
-substep with the dimension as a parameter; ``benchmarks/vs_taichi.py`` keeps its own 2D copy.  Taichi is not a
-dependency of jaxmpm: the callers import it and skip with a message when it is missing.
+The scene of jaxmpm's ``mpm88``: APIC transfers with quadratic B-splines, the J-fluid of E = 400, gravity 9.8
+along axis 1, one-sided walls 3 cells wide, dt = 2e-4, particle volume (dx/2)^dim and density 1, float32; the same
+work per particle-step.  Two terms are written differently (jaxmpm/scenes/mpm88.py): Taichi's MLS force
+-V0 tau D^-1 (x_i - X_p) S_pi and J <- J (1 + dt tr C), where jaxmpm has -V0 tau G_pi and J <- det(I + dt L) J.
+From the same particles the two agree to round-off while the fluid falls freely (J = 1: the timed windows) and
+part after it reaches the floor (experiments/mpm88_vs_taichi.py). Taken from ``../shared/gpu/taichi_mpm.py`` (ours),
+which wrote ``python -m taichi example mpm88``'s substep with the dimension as a parameter;
+``benchmarks/vs_taichi.py`` keeps its own 2D copy. Taichi is not a dependency of jaxmpm: the callers import it and
+skip with a message when it is missing.
 """
 
 from __future__ import annotations

@@ -267,6 +267,10 @@ def build_parser() -> argparse.ArgumentParser:
                           "pressure, J, F (and a material's saved state), or none (default: "
                           + ", ".join(f"{scene} {','.join(names)}" for scene, names in FIELD_DEFAULTS.items())
                           + "; other scenes none)")
+    run.add_argument("--set", action="append", default=None, metavar="NAME=VALUE",
+                     help="a keyword of the scene that has no option of its own, e.g. --set n_particles=32768 "
+                          "(mpm88) or --set dim=2 (mms); repeatable; VALUE a Python literal (a number, a tuple, "
+                          "True, 'text') or a bare word (`jaxmpm scenes` lists each scene's keywords)")
     run.add_argument("--max-steps", type=int, default=None, metavar="N",
                      help="refuse a run of more than N steps (default: the step counter's limit 2^31 - 1)")
     run.add_argument("--devices", type=int, default=None, metavar="N",
@@ -418,7 +422,7 @@ def scene_help(parser, scene: str) -> int:
     then the run options (those of every scene)."""
     from jaxmpm.core.errors import InputError
     from jaxmpm.scenes._common import FIELD_DEFAULTS
-    from jaxmpm.scenes.command import accepted_keywords, scene_builder
+    from jaxmpm.scenes.command import accepted_keywords, other_keywords, scene_builder
 
     try:
         builder, description, scene_file = scene_builder(scene)
@@ -438,6 +442,13 @@ def scene_help(parser, scene: str) -> int:
             if action.dest == "fields":  # the list of every scene's defaults -> this scene's
                 own_fields = ",".join(FIELD_DEFAULTS.get(scene, ())) or "none"
                 action.help = f"{action.help[:action.help.rfind(' (default')]} (default {own_fields})"
+            if action.dest == "set":  # this scene's keywords without an option, with their defaults
+                other = other_keywords(builder)
+                action.help = ("a keyword of the scene without an option of its own; repeatable; VALUE a Python "
+                               "literal or a bare word; " + (f"{scene}'s: " + ", ".join(
+                                   f"{k}={v!r}" for k, v in other.items()) if other else f"{scene} has none"))
+                own._group_actions.append(action)
+                continue
             general._group_actions.append(action)
             continue
         keyword = SCENE_OPTIONS[option]
@@ -462,6 +473,7 @@ def scene_help(parser, scene: str) -> int:
 def list_scenes() -> int:
     """Each scene's description, then its options (as ``jaxmpm run`` spells them) and defaults."""
     from .scenes import ENTRY_POINT_ERRORS, SCENES
+    from .scenes.command import other_keywords
 
     defaults = _scene_defaults()
     width = max(len(name) for name in SCENES)
@@ -470,6 +482,9 @@ def list_scenes() -> int:
         options = [f"{option} {text}" for option in SCENE_OPTIONS
                    if (text := option_default(name, option, defaults[name])) is not None]
         print(f"{'':<{width}}    " + ", ".join(options))
+        other = other_keywords(SCENES[name][0])
+        if other:
+            print(f"{'':<{width}}    --set " + ", ".join(f"{k}={v!r}" for k, v in other.items()))
     for message in ENTRY_POINT_ERRORS.values():  # an installed package's scene that could not be added
         print(f"jaxmpm: warning: {message}", file=sys.stderr)
     return 0

@@ -37,7 +37,11 @@ def test_scenes_lists_each_scene_with_its_options_and_defaults(capsys):
     """One line per scene (name and description), then its options and their defaults."""
     assert run_cli(["scenes"]) == 0
     lines = capsys.readouterr().out.splitlines()
-    heads, options = lines[0::2], lines[1::2]
+    heads = [line for line in lines if not line.startswith(" ")]
+    options = [lines[lines.index(head) + 1] for head in heads]  # then, where it has any, the --set line
+    sets = {head.split()[0]: lines[lines.index(head) + 2].strip() for head in heads
+            if lines.index(head) + 2 < len(lines) and lines[lines.index(head) + 2].strip().startswith("--set ")}
+    assert sets["mpm88"] == "--set n_particles=8192, n_grid=128, bound=3, speed=1.0, seed=0" and "incline" not in sets
     assert [line.split()[0] for line in heads] == list(jm.SCENES) and {"bar", "disks"} <= set(jm.SCENES)
     for line, (_, description) in zip(heads, jm.SCENES.values()):
         assert line.endswith(description)

@@ -118,6 +118,32 @@ def scene(shape="linear", cells=8, t_end=2.0, frames=8):
         jm.SHAPES._entries.pop("file_quadratic", None)
 
 
+def test_set_reaches_a_scene_keyword_without_an_option_and_is_stored_for_resume(recorded, capsys, tmp_path):
+    """mpm88's n_particles, mms's dim, the bar's boundary: keywords the command line could not reach."""
+    from jaxmpm.scenes.command import setup_from_options
+
+    out = str(tmp_path / "o.h5")
+    assert run_cli(["run", "mpm88", "--set", "n_particles=1024", "--set", "speed=2", "--out", out]) is None
+    assert run_cli(["run", "mms", "--set", "dim=2", "--cells", "4", "--out", out]) is None
+    assert run_cli(["run", "bar", "--set", "boundary=mirror", "--out", out]) is None  # a bare word: text
+    (mpm88, stored), (mms, _), (bar, _) = recorded
+    assert mpm88.state.x.shape == (1024, 2) and float(mpm88.state.v[0, 1]) == -2.0 and mms.sim.grid.dim == 2
+    assert any(isinstance(condition, jm.Mirror) for condition in bar.sim.boundary)
+    assert stored["set"] == ["n_particles=1024", "speed=2"]  # in the file's command: resume rebuilds it
+    assert setup_from_options(stored).state.x.shape == (1024, 2)
+    for argv, words in [(["--set", "E=3"], "--set E: 'mpm88' takes it as the option --E; use that"),
+                        (["--set", "foo=1"], "--set foo: scene 'mpm88' has no keyword 'foo'; its keywords without an "
+                                             "option of their own: n_particles=8192, n_grid=128, bound=3, speed=1.0, "
+                                             "seed=0"),
+                        (["--set", "n_particles"], "--set 'n_particles': give NAME=VALUE"),
+                        (["--set", "seed=1", "--set", "seed=2"], "--set seed is given twice"),
+                        (["--set", "n_particles=0"], "mpm88: n_particles = 0 must be a positive integer")]:
+        assert run_cli(["run", "mpm88", *argv, "--out", out]) == 2
+        assert words in one_error_line(capsys)
+    assert run_cli(["scenes"]) == 0
+    assert "  --set n_particles=8192, n_grid=128, bound=3, speed=1.0, seed=0" in capsys.readouterr().out
+
+
 def test_scene_file_run_interrupted_then_resumed_equals_the_whole_run(bar_file, monkeypatch, capsys):
     """`jaxmpm run my_bar.py`, stopped by SIGINT after its first chunk, then `jaxmpm resume`: the
     file equals the uninterrupted run's bit for bit."""
@@ -285,8 +311,8 @@ def test_run_scene_help_lists_its_options_with_its_defaults(capsys):
 def test_scenes_prints_every_default_as_a_value(capsys):
     assert run_cli(["scenes"]) == 0
     lines = capsys.readouterr().out.splitlines()
-    options = {head.split()[0]: dict(item.split(" ", 1) for item in line.strip().split(", "))
-               for head, line in zip(lines[0::2], lines[1::2])}
+    options = {line.split()[0]: dict(item.split(" ", 1) for item in lines[i + 1].strip().split(", "))
+               for i, line in enumerate(lines) if not line.startswith(" ")}
     for scene, shown in options.items():
         for option, value in shown.items():
             assert value not in ("derived", "None", "False", "set by the scene"), (scene, option, value)

@@ -11,6 +11,7 @@ that the file is gone or has changed."""
 from __future__ import annotations
 
 import argparse
+import ast
 import dataclasses
 import hashlib
 import inspect
@@ -162,9 +163,44 @@ def accepted_keywords(builder) -> tuple[set, bool]:
     return set(params), any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
 
 
+def other_keywords(builder) -> dict:
+    """{keyword: default} of a scene builder's keywords that have no option of their own (``jaxmpm run
+    SCENE --set NAME=VALUE`` sets them: mpm88's n_particles, mms's dim, the disks' speed)."""
+    named = set(SCENE_OPTIONS.values())
+    return {k: p.default for k, p in inspect.signature(builder).parameters.items()
+            if k not in named and p.kind not in (inspect.Parameter.VAR_KEYWORD, inspect.Parameter.VAR_POSITIONAL)}
+
+
+def settings(items, builder, scene: str) -> dict:
+    """The keywords of ``--set NAME=VALUE`` (``items``: the values given, or None): VALUE a Python literal
+    (a number, a tuple, True, 'text') or else the bare word as text; an InputError for a NAME the scene
+    does not take, one with an option of its own, or one given twice."""
+    from ..core.errors import check
+
+    out = {}
+    other = other_keywords(builder)
+    _, takes_any = accepted_keywords(builder)
+    named = {k: o for o, k in reversed(list(SCENE_OPTIONS.items()))}
+    for item in items or ():
+        name, equals, text = item.partition("=")
+        name = name.strip()
+        check(equals and name.isidentifier(), f"--set {item!r}: give NAME=VALUE, e.g. --set n_particles=32768")
+        check(name not in named, f"--set {name}: {scene!r} takes it as the option {named.get(name)}; use that")
+        listing = ", ".join(f"{k}={v!r}" for k, v in other.items()) or "none"
+        check(name in other or takes_any, f"--set {name}: scene {scene!r} has no keyword {name!r}; its keywords "
+                                          f"without an option of their own: {listing}")
+        check(name not in out, f"--set {name} is given twice")
+        try:
+            out[name] = ast.literal_eval(text.strip())
+        except (ValueError, SyntaxError):
+            out[name] = text.strip()  # a bare word: boundary=mirror
+    return out
+
+
 def setup_from_options(options: dict):
     """The scene ``Setup`` of stored command-line options (see :func:`options_of`)."""
-    defaults = {_attr(option): None for option in SCENE_OPTIONS} | {"max_steps": None, "conventions": None}
+    defaults = {_attr(option): None for option in SCENE_OPTIONS} | {"max_steps": None, "conventions": None,
+                                                                    "set": None}
     return build_setup(argparse.Namespace(**{**defaults, "dtype": "f64", **options}))
 
 
@@ -229,6 +265,7 @@ def build_setup(args):
             kwargs[name] = getattr(args, name)
     if "gravity" in kwargs and "gravity" in accepted and isinstance(accepted["gravity"].default, (tuple, list)):
         kwargs["gravity"] = tuple(np.atleast_1d(kwargs["gravity"]).tolist())  # a vector, also when given as G
+    kwargs.update(settings(getattr(args, "set", None), builder, args.scene))  # --set NAME=VALUE
     setup = _built(builder, kwargs, scene_file, args.scene)
     conventions = getattr(args, "conventions", None)
     if conventions is not None:  # every scene: the model's conventions (jm.Simulation.with_conventions)

@@ -428,6 +428,8 @@ def scene_help(parser, scene: str) -> int:
         builder, description, scene_file = scene_builder(scene)
     except InputError as err:
         fail(str(err))
+    if scene_file is not None:  # built anew: the help then lists the schemes and shapes the file registers
+        parser = build_parser()
     keywords, takes_any = accepted_keywords(builder)
     defaults = _builder_defaults(scene, builder)
     run = _subparser(parser, "run")

@@ -114,6 +114,9 @@ def scene(shape="linear", cells=8, t_end=2.0, frames=8):
         assert run_cli(["run", "bar", "--shape", "foo", "--out", str(tmp_path / "o.h5")]) == 2
         assert one_error_line(capsys).endswith("unknown shape 'foo'; choose linear | ugimp | quadratic | cubic | "
                                                "file_quadratic")
+        jm.SHAPES._entries.pop("file_quadratic")  # as in a new process: the file's help registers it again
+        assert run_cli(["run", str(path), "--help"]) == 0
+        assert "--shape linear|ugimp|quadratic|cubic|file_quadratic" in capsys.readouterr().out
     finally:
         jm.SHAPES._entries.pop("file_quadratic", None)
 

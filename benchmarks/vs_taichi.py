@@ -25,10 +25,16 @@ Taichi is not a dependency of jaxmpm; install it to run this file::
     python benchmarks/vs_taichi.py --dtype f32 f64       # both precisions, each side by side
     python benchmarks/vs_taichi.py --quick --t-end 1     # also the full t = 1 run, f32 and f64
     python benchmarks/vs_taichi.py --cpu-devices 2       # jaxmpm with 2 CPU devices sharing the particles
+    python benchmarks/vs_taichi.py --settle 2500         # the fluid piled up on the floor (t = 0.5)
 
 ``--cpu-devices D`` starts JAX with D CPU devices (``jax_num_cpu_devices``), among which jaxmpm's steps
 share their particles where its table says (:mod:`jaxmpm.model.devices`); the "devices" column says how
 many a run used.
+
+The default timed window (300 steps from mpm88's start) is the free fall: the particles spread evenly
+over the box, J = 1.  ``--settle S`` times from the particles of jaxmpm's scene after S untimed steps
+instead (Taichi starting there with J = 1 and C = 0: the work per step depends on where the particles
+are, not on J), e.g. S = 2500 for the fluid piled up on the floor.
 
 ``--t-end T`` also runs the 8192-particle scene to time T in Taichi (f32) and jaxmpm (f32 and
 f64, ``sim.run`` with its instability check) and prints bulk diagnostics of the final state.
@@ -60,6 +66,10 @@ def parse_args(argv=None):
     p.add_argument("--warmup", type=int, default=20, help="untimed steps first (compilation; default 20)")
     p.add_argument("--repeats", type=int, default=3, help="timed repeats; the best is reported (default 3)")
     p.add_argument("--quick", action="store_true", help="8192 particles, 100 steps, 2 repeats")
+    p.add_argument("--settle", type=int, default=0, metavar="S",
+                   help="start both engines from the particles of jaxmpm's scene after S untimed steps (default 0: "
+                        "mpm88's start). The default timed window is mpm88's free fall; S = 2500 (t = 0.5) times "
+                        "the fluid piled up on the floor, every cell full (Taichi starts there with J = 1, C = 0)")
     p.add_argument("--pause", type=float, default=2.0,
                    help="seconds of idle before each engine's measurement (default 2; see main())")
     p.add_argument("--dtype", nargs="+", choices=["f32", "f64"], default=["f32"],
@@ -242,7 +252,8 @@ def main(argv=None) -> int:
           f"{os.cpu_count()} CPUs, {platform.processor() or platform.machine()}, load {os.getloadavg()[0]:.2f}, "
           f"{len(jax.devices())} JAX device(s)")
     print(f"mpm88: {N_GRID}^2 grid, dt = {DT}; {args.steps} timed steps (best of {args.repeats}) "
-          f"after {args.warmup} warm-up steps\n")
+          f"after {args.warmup} warm-up steps" + (f", from the particles at step {args.settle}" if args.settle else "")
+          + "\n")
     rows = []
     header = f"{'dtype':>5} | {'particles':>9} | {'Taichi p-steps/s':>16} | {'jaxmpm p-steps/s':>16} | " \
              f"{'jaxmpm/Taichi':>13} | {'y_cm Taichi':>11} | {'y_cm jaxmpm':>11} | {'KE/m Taichi':>11} | " \
@@ -251,6 +262,8 @@ def main(argv=None) -> int:
     print("-" * len(header))
     for dtype, n in [(dtype, n) for dtype in args.dtype for n in args.particles]:
         setup = jm.scene("mpm88", n_particles=n, dtype=dtype)
+        if args.settle:  # the particles after S steps, where both engines start
+            setup.state, _ = setup.sim.run(setup.state, setup.dt, args.settle, args.settle, save_particles=False)
         x0, v0 = np.asarray(setup.state.x), np.asarray(setup.state.v)
         devices = jm.backend_info(setup.sim, setup.state)["particle_devices"]
         # each engine on a quiet machine: Taichi's CPU worker threads keep both cores busy for a
@@ -268,6 +281,7 @@ def main(argv=None) -> int:
         rows.append(dict(dtype=dtype, particles=n, grid=f"{N_GRID}x{N_GRID}", steps=args.steps, repeats=args.repeats,
                          taichi_s=t_ti, jaxmpm_s=t_jm, taichi_particle_steps_per_s=rate_ti,
                          jaxmpm_particle_steps_per_s=rate_jm, ratio_jaxmpm_over_taichi=rate_jm / rate_ti,
+                         settle=args.settle,
                          y_cm_taichi=float(c_ti[1]), y_cm_jaxmpm=float(c_jm[1]), ke_taichi=k_ti, ke_jaxmpm=k_jm,
                          particle_devices=devices, jax=jax.__version__, taichi=".".join(map(str, ti.__version__)),
                          cpus=os.cpu_count(),

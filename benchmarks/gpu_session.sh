@@ -34,6 +34,8 @@ log=$out/log.txt
       | grep -v "^\[Taichi\]"
   }
   stage auto 170 --parts mpm88 mpm3d
+  # the same from the fluid piled up on the floor (the default window is mpm88's free fall: the particles spread out)
+  stage settled 60 --parts mpm88 --sizes 131072 2097152 --settle 2500
   stage xla 50 --parts mpm3d --kernel xla --no-taichi
   stage pallas 70 --parts mpm3d mpm88 --kernel pallas --sort-every 0 --no-taichi
   stage stencil_sum 60 --parts mpm88 mpm3d --kernel xla --stencil-sum reduce --no-taichi

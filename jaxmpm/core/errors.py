@@ -16,16 +16,20 @@ class InstabilityError(RuntimeError):
         cause: why, in words, with the first offending particle, e.g. "J = det F <= 0 (a particle
             inverted) (particle 12)".
         time: the simulated time of that step, or None (the default) when unknown.
+        history: the frames saved before that step (a :class:`jaxmpm.History`), where the run kept
+            them in memory; None (the default) where a writer holds them (in its file) or none was
+            finished.
     """
 
-    def __init__(self, step: int, cause: str, time: float | None = None):
+    def __init__(self, step: int, cause: str, time: float | None = None, history=None):
         self.step = int(step)
         self.cause = cause
         self.time = time
+        self.history = history
         when = f" (t = {time:.6g})" if time is not None else ""
         super().__init__(
             f"simulation went unstable at step {self.step}{when}: {cause}. "
-            "Reduce dt (see jaxmpm.stable_dt), use a smoother scheme/shape, or enlarge the grid."
+            "Reduce dt (see jaxmpm.stable_dt) or use a smoother scheme/shape."
         )
 
 
@@ -43,9 +47,12 @@ class ParticlesLeftGrid(InstabilityError):
         lower: the grid's lower corner, or None.
         upper: the grid's upper corner, or None.
         time: the simulated time of ``step``, or None.
+        history: the frames saved before ``step``, as for :class:`InstabilityError`.
     """
 
-    def __init__(self, step: int, particle: int, position=None, lower=None, upper=None, time: float | None = None):
+    def __init__(self, step: int, particle: int, position=None, lower=None, upper=None, time: float | None = None,
+                 history=None):
+        self.history = history
         self.step = int(step)
         self.particle = int(particle)
         self.position = None if position is None else tuple(float(c) for c in position)

@@ -629,7 +629,7 @@ class ShardedSimulation:
                 """This device's failure record (step, cause, particle) after ``state``: the model's own
                 check (Simulation.instability), the particle by its user's index; no communication
                 (the devices' records are reduced once, after the scan)."""
-                code, particle = sim.instability(jax.lax.stop_gradient(state))
+                code, particle = sim.instability(jax.lax.stop_gradient(state), jax.lax.stop_gradient(dt))
                 new = (fail[0] < 0) & (code > 0)
                 return tuple(jnp.where(new, a, b).astype(jnp.int32) for a, b in zip((state.step, code, ids[particle]),
                                                                                    fail))
@@ -640,8 +640,11 @@ class ShardedSimulation:
                 the smallest user index among the devices' first particles with it (one device names the
                 smallest of all)."""
                 step = jax.lax.pmin(jnp.where(fail[0] >= 0, fail[0], _NEVER), axis)
-                cause = jax.lax.pmin(jnp.where(fail[0] == step, fail[1], _NEVER), axis)
-                particle = jax.lax.pmin(jnp.where((fail[0] == step) & (fail[1] == cause), fail[2], _NEVER), axis)
+                grave = jnp.where(fail[1] == 4, 3, fail[1])  # a fast exit is an exit: ordered as one, and named
+                at = fail[0] == step  # by its first particle, as on one device
+                cause = jax.lax.pmin(jnp.where(at, grave, _NEVER), axis)
+                particle = jax.lax.pmin(jnp.where(at & (grave == cause), fail[2], _NEVER), axis)
+                cause = jax.lax.pmax(jnp.where(at & (grave == cause) & (fail[2] == particle), fail[1], 0), axis)
                 failed = step < _NEVER
                 return tuple(jnp.where(failed, a, -1 if i != 1 else 0).astype(jnp.int32)
                              for i, a in enumerate((step, cause, particle)))

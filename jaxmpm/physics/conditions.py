@@ -567,6 +567,9 @@ def _as_tuple(boundary) -> tuple:
         return ()
     if isinstance(boundary, (Fixed, Slip, Prescribed, Wall, Mirror)):
         return (boundary,)
+    check(isinstance(boundary, (tuple, list)),
+          f"boundary = {boundary!r}: give a condition (jm.Fixed, jm.Slip, jm.Prescribed, jm.Wall, jm.Mirror), a "
+          "tuple or list of them, or None (no conditions)")
     conditions = tuple(boundary)
     for c in conditions:
         check(isinstance(c, (Fixed, Slip, Prescribed, Wall, Mirror)),

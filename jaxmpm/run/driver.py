@@ -29,11 +29,18 @@ CAUSES = {
     1: "NaN or Inf in the particle state",
     2: "J = det F <= 0 (a particle inverted)",
     3: "particles left the grid",
+    4: "a particle left the grid moving more than a cell a step (|V| dt > h, which no stable step allows): the "
+       "step blew up, or dt exceeds the CFL limit; not a grid too small",
 }
 
 
 class StableTimeStepWarning(UserWarning):
     """dt exceeds the CFL limit h / max(c + |V|) or a term's limit (conduction, diffusion)."""
+
+
+class TracedInstabilityWarning(UserWarning):
+    """A run inside a traced function (``jax.jit``, ``jax.grad``, :func:`jaxmpm.calibrate`) went unstable;
+    it cannot raise there, so its result and gradient are not meaningful."""
 
 
 class History(eqx.Module):
@@ -312,14 +319,17 @@ def run(
                     else f"the {name} term's limit h^2 / (2 D k / (rho C_p))")
             warn(f"dt = {dtc:.6g} exceeds the stable limit {limit:.6g} (= {what}); "
                  f"use dt <= {0.5 * limit:.6g} (CFL 0.5) to stay stable", StableTimeStepWarning)
+        _check_start(sim, state)
         first = int(state.step) if start_step is None else int(start_step)
         require_steps(first + steps, "shorten t_end, use a larger dt, or split the run")
         frame_bytes = _require_frame_memory(sim, state, frames, save_particles, writer is None, fields)
     if donate and not traced:
         state = _unshared(state)  # a buffer two leaves hold can be donated once only
     if traced:  # differentiated or staged: scans of static lengths (reverse mode needs them)
-        final, history, _ = _jit_rollout(sim, state, dt, frames, save_every, save_particles, checkpoint,
-                                         history_gradients, fields, memory)
+        final, history, failure = _jit_rollout(sim, state, dt, frames, save_every, save_particles, checkpoint,
+                                               history_gradients, fields, memory)
+        if check_stability:
+            _warn_when_failed(failure)
         return final, history
     if writer is None and not progress:
         with _plain_timings(timings, steps) as timed:
@@ -349,7 +359,7 @@ def _run_plain(sim, state, dt, frames, save_every, save_particles, checkpoint, h
             (sim, dt, frames, save_every, save_particles, checkpoint, history_gradients, fields, memory), state)
         history = _jit_joined(first, later)
     if check_stability:
-        _raise_if_failed(failure, dt, start, None, sim.grid)
+        _raise_if_failed(failure, dt, start, None, sim.grid, _frames_before(history, int(start.step), save_every))
     return final, history
 
 
@@ -776,8 +786,10 @@ def _run_chunked(sim, state, dt, frames, save_every, save_particles, check_stabi
                     publisher.publish(frames_kept, None if failed else new_state,
                                       due=stop.requested is not None or done_steps + steps_run == total)
                 clock.chunk(steps_run)
-                if check_stability:
-                    _raise_if_failed(failure, dt, before, new_state, sim.grid)
+                if check_stability:  # the error carries the frames kept in memory (a writer's are in its file)
+                    _raise_if_failed(failure, dt, before, new_state, sim.grid,
+                                     jax.tree_util.tree_map(lambda *a: jnp.concatenate(a), *pieces)
+                                     if writer is None and pieces else None)
                 state = new_state
                 done_steps += steps_run
                 rate = _measured_rate(rate, steps_run, elapsed)
@@ -895,7 +907,7 @@ def _stepper(sim, sorting, dt):
         if sorting is not None:
             s, order = sorting.renew(s, order)
         s = sim.step(s, dt)
-        code, particle = sim.instability(jax.lax.stop_gradient(s))
+        code, particle = sim.instability(jax.lax.stop_gradient(s), jax.lax.stop_gradient(dt))
         if sorting is not None:
             particle = sorting.user_particle(particle, order)
         new = (fail.step < 0) & (code > 0)
@@ -998,11 +1010,14 @@ def _copied(state):
     return jax.tree_util.tree_unflatten(treedef, leaves)
 
 
-def _raise_if_failed(failure: Failure, dt, state0, reached=None, grid=None):
+def _raise_if_failed(failure: Failure, dt, state0, reached=None, grid=None, history=None):
     """:class:`InstabilityError` for the first failing step of a run from ``state0``, if any:
     :class:`ParticlesLeftGrid` when particles left the grid (cause 3: the grid is too small, not
     a numerical instability), with the particle's position in ``reached`` when that is the state
-    of the failing step (the chunked runner stops there) and the box of ``grid``."""
+    of the failing step (the chunked runner stops there) and the box of ``grid``.  ``history``: the
+    run's frames (a History whose frame 0 is ``state0``'s, one every ``save_every`` steps, or a
+    function of ``kept``, the count of frames before the failing step, returning them); the error
+    carries those before the failing step (:attr:`InstabilityError.history`)."""
     step = int(failure.step)
     if step < 0:
         return
@@ -1010,7 +1025,61 @@ def _raise_if_failed(failure: Failure, dt, state0, reached=None, grid=None):
     particle = int(failure.particle)
     if int(failure.cause) == 3:
         at = reached is not None and int(reached.step) == step
-        raise ParticlesLeftGrid(step, particle, np.asarray(reached.x[particle]) if at else None,
-                                None if grid is None else grid.lower, None if grid is None else grid.upper, t)
-    cause = CAUSES.get(int(failure.cause), "unknown")
-    raise InstabilityError(step, f"{cause} (particle {particle})", t)
+        error = ParticlesLeftGrid(step, particle, np.asarray(reached.x[particle]) if at else None,
+                                  None if grid is None else grid.lower, None if grid is None else grid.upper, t)
+    else:
+        error = InstabilityError(step, f"{CAUSES.get(int(failure.cause), 'unknown')} (particle {particle})", t)
+    error.history = history(step) if callable(history) else history
+    raise error
+
+
+def _check_start(sim, state) -> None:
+    """An InputError for a state that is unstable before its first step -- a position, velocity or F not
+    finite, an inverted F, a particle whose shape function reaches past the grid -- naming the particle
+    (the run had reported it as failing at its first step).  On the host, in NumPy: nothing compiled."""
+    x, v, F = (np.asarray(a) for a in (state.x, state.v, state.F))
+    bad = np.flatnonzero(~(np.isfinite(x).all(-1) & np.isfinite(v).all(-1) & np.isfinite(F).all((-1, -2))))
+    if bad.size:
+        p = int(bad[0])
+        check(False, f"run: the state is not finite before the first step: particle {p} has x = {x[p].tolist()}, "
+                     f"v = {v[p].tolist()} ({bad.size} such particle(s)); build the state with sim.init, or mend it")
+    bad = np.flatnonzero(np.linalg.det(F) <= 0)
+    if bad.size:
+        check(False, f"run: particle {int(bad[0])} has det F <= 0 before the first step ({bad.size} such "
+                     "particle(s)); F must start invertible, e.g. the identity")
+    bad = np.flatnonzero(~np.asarray(sim.shape.inside(sim.grid, x)))
+    if bad.size:
+        p = int(bad[0])
+        check(False, f"run: particle {p} at x = {x[p].tolist()} lies where its shape function reaches past the "
+                     f"grid's nodes before the first step ({bad.size} such particle(s); the grid spans "
+                     f"{tuple(sim.grid.lower)} .. {tuple(sim.grid.upper)}, and a {type(sim.shape).__name__} "
+                     f"particle needs {sim.shape.margin} cells of room); move it or enlarge the grid")
+
+
+def _warn_when_failed(failure: Failure) -> None:
+    """In a traced run, which cannot raise: a :class:`TracedInstabilityWarning` from the host when the
+    compiled run fails (a callback on the failing branch only: a run that holds costs one test)."""
+    def tell(step, cause, particle):
+        step, cause, particle = (np.atleast_1d(np.asarray(a)) for a in (step, cause, particle))
+        bad = np.flatnonzero(step >= 0)  # the first failing member, where the run is vmapped
+        if bad.size:
+            i = bad[0]
+            warn(f"a run inside a traced function (jax.jit, jax.grad, jm.calibrate) went unstable at step {step[i]}: "
+                 f"{CAUSES.get(int(cause[i]), 'unknown')} (particle {particle[i]}); it cannot raise there, so its "
+                 "result and gradient are not meaningful: run the model once with sim.run outside the trace to see "
+                 "the error, and lower dt or bound the parameters", TracedInstabilityWarning)
+
+    jax.lax.cond(jnp.any(failure.step >= 0), lambda: jax.debug.callback(tell, failure.step, failure.cause,
+                                                                         failure.particle), lambda: None)
+
+
+def _frames_before(history, start_step: int, save_every: int):
+    """``kept(step)``: the frames of ``history`` (frame 0 at ``start_step``, one every ``save_every`` steps)
+    strictly before the failing ``step``, or None if there are none (a History of T frames)."""
+    def kept(step: int):
+        count = (step - start_step - 1) // save_every + 1  # frames at start_step + i save_every < step
+        if history is None or count <= 0:
+            return None
+        return jax.tree_util.tree_map(lambda a: a[:count], history)
+
+    return kept

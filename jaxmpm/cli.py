@@ -35,8 +35,8 @@ CACHE_HELP = "the default (the cache is on unless --no-cache); accepted for olde
 RUN_ONLY = ("out", "force", "no_progress", "command", "cache", "no_cache", "devices", "rebalance_every", "capacity",
             "exchange", "cpu_devices")
 CPU_DEVICES_HELP = ("start JAX with N CPU devices: each step shares its particles among them where the backend "
-                    "table says (2D from 60k particles; README, \"Particles shared among the CPU's devices\"), and "
-                    "--devices may use them (default: JAX's one CPU device)")
+                    "table says (2D from 60k particles; docs/performance.md, \"Particles shared among the CPU's "
+                    "devices\"), and --devices may use them (default: JAX's one CPU device)")
 
 
 class _OneLineErrors(argparse.ArgumentParser):

@@ -77,3 +77,17 @@ def test_interface_conductance_acts_only_across_a_conductance():
     with pytest.raises(jm.InputError, match="interface_conductance acts only across an interface given as a "
                                             "conductance, and this term's is 'perfect'"):
         jm.set_params(setup.sim, interface_conductance=1.0)
+
+
+def test_an_ensemble_over_the_density_is_refused():
+    """The density acts through sim.init only (the particles' masses): an ensemble over it with one shared
+    state ran members alike (kinetic energies equal to every digit) and gave a zero gradient."""
+    bar = jm.scene("bar", cells=4, t_end=0.5, frames=1)
+    for name in ("density", "material.density"):
+        with pytest.raises(jm.InputError, match=rf"ensemble: params\['{name}'\] acts through sim.init only \(the "
+                                                r"particles' masses\).*with states="):
+            jm.ensemble(bar.sim, bar.state, bar.dt, 2, 1, params={name: [1.0, 2.0]}, progress=False)
+    # set_params then sim.init: the masses follow it (the way to vary it, member by member through states=)
+    particles = jm.fill(bar.sim.grid, jm.Box((0.0,), (25.0,)), ppc=2)
+    light, heavy = (jm.set_params(bar.sim, density=rho).init(particles).mass for rho in (1.0, 2.0))
+    assert float(jnp.max(jnp.abs(heavy - 2.0 * light))) == 0.0

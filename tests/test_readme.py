@@ -16,7 +16,8 @@ ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
 #: the docs pages whose python blocks were README blocks (the other docs pages' examples run in their own tests:
 #: docs/extending.md in tests/test_extending.py)
-DOC_PAGES = [ROOT / "docs" / "contact.md", ROOT / "docs" / "transport.md", ROOT / "docs" / "colliders.md"]
+DOC_PAGES = [ROOT / "docs" / "contact.md", ROOT / "docs" / "transport.md", ROOT / "docs" / "colliders.md",
+             ROOT / "docs" / "performance.md"]
 FENCE = re.compile(r"^```\s*(\w*)\s*$")
 
 

@@ -42,6 +42,9 @@ class Parameter:
             law='coulomb'; ..."``).  :func:`jaxmpm.set_params` and :func:`jaxmpm.ensemble` refuse to
             set a parameter that does not act, traced values too: its gradient would be exactly 0
             and an ensemble's members equal.  None (the default): it always acts.
+        through_init: True where the parameter acts only through :meth:`jaxmpm.Simulation.init`
+            (a material's density: the particles' masses), not in the step: :func:`jaxmpm.ensemble`,
+            whose members share one initial state unless ``states=`` gives their own, refuses it.
     """
 
     name: str
@@ -50,6 +53,7 @@ class Parameter:
     bounds: Any = None
     valid: Any = "finite"
     acts: Callable[[Any], Any] | None = None
+    through_init: bool = False
 
     def __post_init__(self):
         object.__setattr__(self, "valid", as_range(self.valid))

@@ -11,7 +11,7 @@ from .base import ElasticMaterial, hooke, identity, lame, trace
 E = Parameter("E", lambda m: m.E, "Young's modulus (bulk modulus of VolumetricFluid)", "positive", valid=POSITIVE)
 NU = Parameter("nu", lambda m: m.nu, "Poisson's ratio", (-1.0, 0.5), valid=POISSON)
 DENSITY = Parameter("density", lambda m: m.density, "reference density (re-run sim.init for particle masses)",
-                    "positive", valid=POSITIVE)
+                    "positive", valid=POSITIVE, through_init=True)
 
 
 class LinearElastic(ElasticMaterial):

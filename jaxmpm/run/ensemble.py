@@ -42,6 +42,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from ..core.device import to_device
 from ..core.errors import check
 from ..core.params import _where, _with_owner, check_material, check_value, set_params
+from ..core.registry import resolve_parameter
 from ..core.state import State
 from ..core.validate import POSITIVE, batch_members, concrete, device_list, positive_int
 from ..materials.base import Material
@@ -84,6 +85,11 @@ def _check_members(members, params: dict) -> None:
     (inside the vmap the values are tracers and cannot be checked); ``members``: :func:`_members_model`."""
     for name, batch in params.items():
         _where(members, name)  # an unknown name is an error here, not inside the trace
+        parameter = resolve_parameter(members, name)[1]
+        check(not parameter.through_init,
+              f"ensemble: params[{name!r}] acts through sim.init only (the particles' masses), not in the step: "
+              "members sharing one initial state would run alike; give each member its state, built by sim.init "
+              "of a model with its value, with states= (a batch of states)")
         batch_members("ensemble", f"params[{name!r}]", batch,
                       lambda i, member, n=name: check_value(
                           members, n, member, "ensemble" if i is None else f"ensemble member {i}"))

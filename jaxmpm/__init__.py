@@ -37,7 +37,7 @@ from .physics import (BodyForce, Constraint, Contact, Damping, Diffusion, Dirich
 from .physics import Collider, HalfSpace, LevelSet, SolidBox, SolidCylinder, SolidSphere, SolidUnion
 from .run.cache import compilation_cache, enable_by_default as _enable_compilation_cache
 from .run.calibrate import CalibrationResult, calibrate
-from .run.driver import History, RunInterrupted, StableTimeStepWarning, TracedInstabilityWarning
+from .run.driver import History, RunInterrupted, StableTimeStepWarning
 from .run.ensemble import ensemble
 from .run.memory import gradient_schedule
 from .model.simulation import Simulation, backend_info
@@ -59,7 +59,6 @@ __all__ = [
     "Material", "NeoHookean", "NodeSet", "PIC", "ParticleField", "ParticleUpdate", "Particles", "Prescribed",
     "QuadraticBSpline", "Region", "Ring", "RunInterrupted", "SCENES", "Scheme", "ShapeFunction", "Simulation", "Slip",
     "StableTimeStepWarning", "State", "Stencil", "StencilBase", "StressDivergence", "TensorStencil", "Term",
-    "TracedInstabilityWarning",
     "AxisymmetricStencil",
     "Transfer", "UGIMP", "XPIC", "angular_momentum", "fill", "folds_force", "g2p", "gather", "grid_solve",
     "kinetic_energy", "linear_momentum", "load_h5", "resume", "mass_matrix_series", "p2g", "save_h5", "scatter",

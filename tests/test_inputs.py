@@ -225,12 +225,27 @@ def test_bar_with_cfl_3_is_unstable():
     assert err.time == pytest.approx(err.step * setup.dt, rel=1e-12)
 
 
-def test_nan_in_the_state_is_detected_at_step_1():
+def test_nan_in_the_state_is_refused_before_the_first_step():
+    """A NaN in the state a run starts from is bad input (it was reported as going unstable at step 1)."""
     sim = small_simulation()
     state = body_state(sim, 6.0, 10.0)
     state = eqx.tree_at(lambda s: s.v, state, state.v.at[3, 0].set(jnp.nan))
-    with pytest.raises(jm.InstabilityError) as info:
+    with pytest.raises(jm.InputError, match=r"run: the state is not finite before the first step: particle 3 has "
+                                            r"x = \[7.75\], v = \[nan\]"):
         sim.run(state, jnp.asarray(0.1), STEPS, 1)
+
+
+class _NaNForce(jm.Term):
+    """A nodal force that is NaN: the first step's particles turn NaN."""
+
+    def grid_force(self, sim, fields, dt):
+        return {"force": fields.force * jnp.nan}
+
+
+def test_nan_made_by_a_step_is_detected_at_step_1():
+    sim = small_simulation().with_term(_NaNForce())
+    with pytest.raises(jm.InstabilityError) as info:
+        sim.run(body_state(sim, 6.0, 10.0), jnp.asarray(0.1), STEPS, 1)
     assert_names_step_and_cause(info.value, 1, "NaN")
 
 

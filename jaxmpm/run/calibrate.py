@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from ..core.errors import check
+from ..core.errors import InputError, InstabilityError, check
 from ..core.params import default_bounds
 from ..core.validate import FINITE
 from ..transfer.backend import compiler_options
@@ -194,6 +194,7 @@ def calibrate(
     progress: bool | None = None,
     free: str | Iterable[str] | None = None,
     fast_compile: bool = False,
+    check_stability: bool = True,
 ) -> CalibrationResult:
     """Minimise ``loss(params)`` from ``init`` with ``optimizer`` (default ``optax.adam(0.05)``
     on the raw parameters; ``optax.lbfgs()`` converges in far fewer iterations on smooth,
@@ -240,9 +241,17 @@ def calibrate(
         fast_compile: compile the update with ``jm.compiler_options(fast_compile=True)``: on the CPU
             0.55-0.65x the compile time, each iteration 0.9-1.4x as long (benchmarks/README.md, "Compile
             time"); for a calibration of a few iterations.  Default False.
+        check_stability: evaluate the loss once more at the parameters reached, outside the trace, so
+            that a run that goes unstable there raises (True, the default: one forward run more, not in
+            ``wall_time``).  A run inside the compiled update cannot raise: an optimizer that steps into
+            an unstable range would otherwise return its parameters as if fitted.
 
     Returns:
         A :class:`CalibrationResult`.
+
+    Raises:
+        InputError: where the loss or its gradient stops being finite, and (``check_stability``)
+            where a run of the loss goes unstable at the parameters reached.
     """
     check(callable(loss), f"calibrate: loss = {loss!r} is not a function; give loss(params) -> a scalar, params "
                           "a dict like init")
@@ -325,5 +334,21 @@ def calibrate(
         if names is not None and k not in names:
             final[k] = np.asarray(jnp.asarray(init[k], dtype=final[k].dtype))
             trajectory[k] = [final[k]] * len(trajectory[k])
+    wall_time = time.perf_counter() - start
+    check(isinstance(check_stability, bool), f"calibrate: check_stability = {check_stability!r}; pass True or False")
+    if check_stability:
+        _check_stable_at(loss, final)
     return CalibrationResult(final, np.asarray(losses), {k: np.asarray(v) for k, v in trajectory.items()},
-                             len(losses), time.perf_counter() - start, update.compile_time)
+                             len(losses), wall_time, update.compile_time)
+
+
+def _check_stable_at(loss, params: dict) -> None:
+    """The loss evaluated outside any trace at ``params``: its runs check their stability there (inside the
+    compiled update they cannot raise), and one that goes unstable is an InputError naming the parameters."""
+    try:
+        loss({k: jnp.asarray(v) for k, v in params.items()})
+    except InstabilityError as err:
+        at = ", ".join(f"{k} = {np.asarray(v).tolist()}" for k, v in params.items())
+        raise InputError(f"calibrate: at the parameters reached ({at}) a run of the loss goes unstable: {err} "
+                         "The optimizer stepped out of the stable range: lower the learning rate, bound the "
+                         "parameters (bounds=), or lower the run's dt") from err

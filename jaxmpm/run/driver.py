@@ -38,11 +38,6 @@ class StableTimeStepWarning(UserWarning):
     """dt exceeds the CFL limit h / max(c + |V|) or a term's limit (conduction, diffusion)."""
 
 
-class TracedInstabilityWarning(UserWarning):
-    """A run inside a traced function (``jax.jit``, ``jax.grad``, :func:`jaxmpm.calibrate`) went unstable;
-    it cannot raise there, so its result and gradient are not meaningful."""
-
-
 class History(eqx.Module):
     """Saved frames (leading axis T): time, particle x/v (None if not saved), energies, momenta,
     the per-particle fields the terms declare and those the run chose (``fields``: stress,
@@ -326,10 +321,10 @@ def run(
     if donate and not traced:
         state = _unshared(state)  # a buffer two leaves hold can be donated once only
     if traced:  # differentiated or staged: scans of static lengths (reverse mode needs them)
-        final, history, failure = _jit_rollout(sim, state, dt, frames, save_every, save_particles, checkpoint,
-                                               history_gradients, fields, memory)
-        if check_stability:
-            _warn_when_failed(failure)
+        # it cannot raise here (nor call back to the host: a program with a host callback is never kept in
+        # the persistent compilation cache); jm.calibrate runs its loss once more outside the trace instead
+        final, history, _ = _jit_rollout(sim, state, dt, frames, save_every, save_particles, checkpoint,
+                                         history_gradients, fields, memory)
         return final, history
     if writer is None and not progress:
         with _plain_timings(timings, steps) as timed:
@@ -1033,44 +1028,31 @@ def _raise_if_failed(failure: Failure, dt, state0, reached=None, grid=None, hist
     raise error
 
 
-def _check_start(sim, state) -> None:
+def _check_start(sim, state, rows: int = 65536) -> None:
     """An InputError for a state that is unstable before its first step -- a position, velocity or F not
     finite, an inverted F, a particle whose shape function reaches past the grid -- naming the particle
-    (the run had reported it as failing at its first step).  On the host, in NumPy: nothing compiled."""
+    (the run had reported it as failing at its first step).  On the host, in NumPy, ``rows`` particles at a
+    time (on a CPU the arrays are read in place, and the temporaries stay small): nothing compiled."""
     x, v, F = (np.asarray(a) for a in (state.x, state.v, state.F))
-    bad = np.flatnonzero(~(np.isfinite(x).all(-1) & np.isfinite(v).all(-1) & np.isfinite(F).all((-1, -2))))
-    if bad.size:
-        p = int(bad[0])
-        check(False, f"run: the state is not finite before the first step: particle {p} has x = {x[p].tolist()}, "
-                     f"v = {v[p].tolist()} ({bad.size} such particle(s)); build the state with sim.init, or mend it")
-    bad = np.flatnonzero(np.linalg.det(F) <= 0)
-    if bad.size:
-        check(False, f"run: particle {int(bad[0])} has det F <= 0 before the first step ({bad.size} such "
-                     "particle(s)); F must start invertible, e.g. the identity")
-    bad = np.flatnonzero(~np.asarray(sim.shape.inside(sim.grid, x)))
-    if bad.size:
-        p = int(bad[0])
-        check(False, f"run: particle {p} at x = {x[p].tolist()} lies where its shape function reaches past the "
-                     f"grid's nodes before the first step ({bad.size} such particle(s); the grid spans "
-                     f"{tuple(sim.grid.lower)} .. {tuple(sim.grid.upper)}, and a {type(sim.shape).__name__} "
-                     f"particle needs {sim.shape.margin} cells of room); move it or enlarge the grid")
-
-
-def _warn_when_failed(failure: Failure) -> None:
-    """In a traced run, which cannot raise: a :class:`TracedInstabilityWarning` from the host when the
-    compiled run fails (a callback on the failing branch only: a run that holds costs one test)."""
-    def tell(step, cause, particle):
-        step, cause, particle = (np.atleast_1d(np.asarray(a)) for a in (step, cause, particle))
-        bad = np.flatnonzero(step >= 0)  # the first failing member, where the run is vmapped
+    for start in range(0, x.shape[0], rows):
+        part = slice(start, start + rows)
+        bad = np.flatnonzero(~(np.isfinite(x[part]).all(-1) & np.isfinite(v[part]).all(-1)
+                               & np.isfinite(F[part]).all((-1, -2))))
         if bad.size:
-            i = bad[0]
-            warn(f"a run inside a traced function (jax.jit, jax.grad, jm.calibrate) went unstable at step {step[i]}: "
-                 f"{CAUSES.get(int(cause[i]), 'unknown')} (particle {particle[i]}); it cannot raise there, so its "
-                 "result and gradient are not meaningful: run the model once with sim.run outside the trace to see "
-                 "the error, and lower dt or bound the parameters", TracedInstabilityWarning)
-
-    jax.lax.cond(jnp.any(failure.step >= 0), lambda: jax.debug.callback(tell, failure.step, failure.cause,
-                                                                         failure.particle), lambda: None)
+            p = start + int(bad[0])
+            check(False, f"run: the state is not finite before the first step: particle {p} has x = {x[p].tolist()},"
+                         f" v = {v[p].tolist()}; build the state with sim.init, or mend it")
+        bad = np.flatnonzero(np.linalg.det(F[part]) <= 0)
+        if bad.size:
+            check(False, f"run: particle {start + int(bad[0])} has det F <= 0 before the first step; F must start "
+                         "invertible, e.g. the identity")
+        bad = np.flatnonzero(~np.asarray(sim.shape.inside(sim.grid, x[part])))
+        if bad.size:
+            p = start + int(bad[0])
+            check(False, f"run: particle {p} at x = {x[p].tolist()} lies where its shape function reaches past the "
+                         f"grid's nodes before the first step (the grid spans {tuple(sim.grid.lower)} .. "
+                         f"{tuple(sim.grid.upper)}, and a {type(sim.shape).__name__} particle needs "
+                         f"{sim.shape.margin} cells of room); move it or enlarge the grid")
 
 
 def _frames_before(history, start_step: int, save_every: int):

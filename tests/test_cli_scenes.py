@@ -140,7 +140,9 @@ def test_set_reaches_a_scene_keyword_without_an_option_and_is_stored_for_resume(
                                              "seed=0"),
                         (["--set", "n_particles"], "--set 'n_particles': give NAME=VALUE"),
                         (["--set", "seed=1", "--set", "seed=2"], "--set seed is given twice"),
-                        (["--set", "n_particles=0"], "mpm88: n_particles = 0 must be a positive integer")]:
+                        (["--set", "n_particles=0"], "mpm88: n_particles = 0 must be a positive integer"),
+                        # no literal (literal_eval raised TypeError, a traceback): the text, which the scene refuses
+                        (["--set", "n_particles={[1]: 2}"], "mpm88: n_particles = '{[1]: 2}' must be a positive")]:
         assert run_cli(["run", "mpm88", *argv, "--out", out]) == 2
         assert words in one_error_line(capsys)
     assert run_cli(["scenes"]) == 0

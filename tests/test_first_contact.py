@@ -455,3 +455,30 @@ def test_a_grid_force_returned_under_a_misspelt_name_warns():
         if warns:
             assert said[0].startswith(f"Drag.grid_force returned {key!r}, which is kept as a named result") and \
                 said[0].endswith("a nodal force is returned as 'force'")
+
+
+def test_a_shape_functions_node_count_may_be_a_numpy_integer_or_a_property():
+    class NumpyCount(jm.QuadraticBSpline):
+        nodes_per_axis = np.int64(3)
+
+    class PropertyCount(jm.QuadraticBSpline):
+        @property
+        def nodes_per_axis(self):
+            return 3
+
+    NumpyCount()
+    PropertyCount()
+    for bad in (True, 0, 2.5):
+        with pytest.raises(jm.InputError, match=f"a positive int; now {bad!r}"):
+            type("Bad", (jm.QuadraticBSpline,), {"nodes_per_axis": bad})()
+
+
+def test_calibrate_reads_a_finite_float32_gradient_past_1e19_as_finite():
+    """Its norm, summed as squares, overflowed float32 and read as an undefined derivative."""
+    from jaxmpm.run.calibrate import _norm
+
+    big = [jnp.asarray([1e19, 1e19], jnp.float32), jnp.asarray([3e19], jnp.float32)]
+    assert float(_norm(big)) == pytest.approx(np.sqrt(11.0) * 1e19, rel=1e-6)
+    assert not np.isfinite(float(_norm([jnp.asarray([1.0, np.nan], jnp.float32)])))
+    assert not np.isfinite(float(_norm([jnp.asarray([1.0, np.inf], jnp.float32)])))
+    assert float(_norm([jnp.zeros(3)])) == 0.0

@@ -100,3 +100,12 @@ def test_boundary_of_the_wrong_kind_is_an_input_error():
     for boundary in (False, "walls", 3):
         with pytest.raises(jm.InputError, match=f"boundary = {boundary!r}: give a condition"):
             jm.Simulation(bar.sim.grid, bar.sim.shape, bar.sim.material, "flip", boundary=boundary)
+
+
+def test_check_stability_false_checks_neither_the_start_nor_the_steps():
+    """A run asked not to check its stability takes a state that is already bad (so that a file a blown-up
+    run wrote with check_stability=False can be continued the same way) and returns every frame."""
+    setup = jm.scene("disks", spacing=0.1, t_end=0.01, frames=1, dtype="f64")
+    state = eqx.tree_at(lambda s: s.x, setup.state, setup.state.x.at[3, 0].set(jnp.nan))
+    final, history = setup.sim.run(state, setup.dt, 2, 1, check_stability=False)
+    assert len(history.time) == 3 and not np.all(np.isfinite(np.asarray(final.x)))

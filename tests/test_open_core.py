@@ -124,6 +124,12 @@ def test_a_taken_name_is_replaced_only_on_request_or_by_the_same_class_defined_a
     jm.register_scheme("mine_again", Mine)
     assert jm.SCHEMES["mine_again"].cls is Mine and Mine is not first
 
+    # a class of that name from another module (another package's) is refused, not replaced silently
+    elsewhere = type("Mine", (jm.Scheme,), {"__module__": "another_package.schemes",
+                                            "update": lambda self, *a: None})
+    with pytest.raises(jm.InputError, match=r"'mine_again' is taken by \S*test_open_core\..*Mine"):
+        jm.register_scheme("mine_again", elsewhere)
+
     # a model made with the class before it was defined anew keeps its name and parameters
     def theta_scheme():
         class Theta(jm.Scheme):  # not derived from a registered scheme, whose entry would serve it
@@ -139,6 +145,9 @@ def test_a_taken_name_is_replaced_only_on_request_or_by_the_same_class_defined_a
     jm.register_scheme("theta_again", new, parameters=[jm.Parameter("theta", lambda s: s.theta, "theta")])
     assert jm.SCHEMES["theta_again"].cls is new and jm.SCHEMES.name_of(sim.scheme) == "theta_again"
     assert float(jm.get_params(jm.set_params(sim, theta=0.5), "theta")["theta"]) == 0.5
+    # ... a parameter the new class renamed too
+    jm.register_scheme("theta_again", new, parameters=[jm.Parameter("theta2", lambda s: s.theta, "renamed")])
+    assert float(jm.get_params(jm.set_params(sim, theta=0.25), "theta")["theta"]) == 0.25
     del jm.SCHEMES._entries["theta_again"], jm.SCHEMES._replaced[old]
 
     # replace=True replaces even a built-in; put it back

@@ -279,14 +279,21 @@ def test_bad_input_names_the_option():
         Slabs(grid, 3, 1)
     Slabs(grid, 3, 1, max_cells=4)  # as they may, moving
     with pytest.raises(jm.InputError, match=r"the grid's 10 cells along x hold at most 1 slab\(s\) of 2 H \+ 1 = 7 "
-                                            r"cells \(the narrowest, halo H = 3 planes\), not 2; use at most 1"):
+                                            r"cells \(the narrowest, halo H = 3 planes\), not 2; run on one device, or "
+                                            r"use a grid of at least 14 cells along x"):
         Slabs(grid, 2, 3)
     # the advice leads somewhere: 10 cells in 4 slabs of at least 5 cells cannot be, moving or not (the
     # equal slabs' error had said to let them move, and the moving slabs' to raise max_cells)
     for moving in (None, 10):
         with pytest.raises(jm.InputError, match=r"hold at most 2 slab\(s\) of 2 H \+ 1 = 5 cells .* not 4; use at "
-                                                r"most 2 device\(s\), or a grid of at least 20 cells along x"):
+                                                r"most 2 devices, or a grid of at least 20 cells along x"):
             Slabs(grid, 4, 2, max_cells=moving)
+    # equal slabs must also split the cells evenly: 11 cells hold two slabs of 5, but only moving ones
+    odd = jm.Grid(lower=(0.0, 0.0), upper=(1.0, 1.0), cells=(11, 4))
+    with pytest.raises(jm.InputError, match=r"not 3; use 1 device\(s\) \(equal slabs split the 11 cells evenly\), "
+                                            r"or up to 2 with slabs that move \(--rebalance-every K\)"):
+        Slabs(odd, 3, 2)
+    Slabs(odd, 2, 2, max_cells=6)
     setup = jm.scene("disks")
     with pytest.raises(jm.InputError, match="raise capacity"):
         ShardedSimulation(setup.sim, capacity=10).distribute(setup.state)

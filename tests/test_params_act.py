@@ -91,3 +91,16 @@ def test_an_ensemble_over_the_density_is_refused():
     particles = jm.fill(bar.sim.grid, jm.Box((0.0,), (25.0,)), ppc=2)
     light, heavy = (jm.set_params(bar.sim, density=rho).init(particles).mass for rho in (1.0, 2.0))
     assert float(jnp.max(jnp.abs(heavy - 2.0 * light))) == 0.0
+
+
+def test_an_ensemble_over_the_density_with_states_of_its_own_runs():
+    """With states= (each member's state made by sim.init at its density) the density is the members'
+    own, as the refusal's message advises; their masses differ, and so do their runs."""
+    bar = jm.scene("bar", cells=4, t_end=0.5, frames=1)
+    particles = jm.fill(bar.sim.grid, jm.Box((0.0,), (25.0,)), ppc=2)
+    states = [jm.set_params(bar.sim, density=rho).init(particles) for rho in (1.0, 2.0)]
+    batch = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *states)
+    final, _, failed = jm.ensemble(bar.sim, states[0], bar.dt, 2, 1, params={"density": jnp.asarray([1.0, 2.0])},
+                                   states=batch, progress=False)
+    assert [int(f) for f in failed] == [-1, -1]
+    assert float(jnp.max(jnp.abs(final.mass[1] - 2.0 * final.mass[0]))) == 0.0

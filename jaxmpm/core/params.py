@@ -66,8 +66,10 @@ def _with_owner(sim, name):
 
 def _where(sim, name):
     known = all_parameters()
-    check(name in known, f"unknown parameter {name!r}; choose one of {', '.join(k for k in known if '.' not in k)} "
-                         "(or scoped, e.g. 'material.E')")
+    # a model made with a class since replaced under its name keeps that class's parameters
+    check(name in known or resolve_parameter(sim, name) is not None,
+          f"unknown parameter {name!r}; choose one of {', '.join(k for k in known if '.' not in k)} "
+          "(or scoped, e.g. 'material.E')")
     found = resolve_parameter(sim, name)
     if found is None:
         from ..core.registry import sim_parameters

@@ -180,13 +180,15 @@ def _qualified(cls: type) -> str:
 def redefinition(taken, new) -> bool:
     """Whether registering ``new`` (a class, or a scene's builder) under ``taken``'s name may
     replace it without ``replace=True``: the same object, or a user's class or function of the same
-    name defined anew (a notebook cell run again, a script re-executed).  A built-in part
-    (``jaxmpm.*``) is replaced only on request."""
+    name in the same module defined anew (a notebook cell run again, a script re-executed; two
+    packages' classes of one name are refused).  A built-in part (``jaxmpm.*``) is replaced only on
+    request."""
     taken = getattr(taken, "__wrapped__", taken)  # a scene's builder, as jm.register_scene wraps it
     if new is taken:
         return True
     module = getattr(taken, "__module__", None) or ""
-    return not module.startswith("jaxmpm.") and getattr(taken, "__qualname__", None) == getattr(new, "__qualname__", 0)
+    return (not module.startswith("jaxmpm.") and module == getattr(new, "__module__", None)
+            and getattr(taken, "__qualname__", None) == getattr(new, "__qualname__", 0))
 
 
 def _term_of(sim, cls):

@@ -52,12 +52,20 @@ from ..core.errors import check
 from ..transfer.kernels.windowed import Window
 
 
-def _too_many(cells_x: int, devices: int, halo: int) -> str:
-    """The error for more slabs than the grid holds: each is at least 2 H + 1 cells wide."""
-    most = cells_x // (2 * halo + 1)
-    return (f"Slabs: the grid's {cells_x} cells along x hold at most {most} slab(s) of 2 H + 1 = {2 * halo + 1} "
-            f"cells (the narrowest, halo H = {halo} planes), not {devices}; use at most {most} device(s), or a grid "
-            f"of at least {devices * (2 * halo + 1)} cells along x")
+def _too_many(cells_x: int, devices: int, halo: int, moving: bool) -> str:
+    """The error for more slabs than the grid holds: each is at least 2 H + 1 cells wide; equal slabs
+    also split the cells evenly."""
+    narrow = 2 * halo + 1
+    most = cells_x // narrow
+    where = f"Slabs: the grid's {cells_x} cells along x hold at most {most} slab(s) of 2 H + 1 = {narrow} cells (the " \
+            f"narrowest, halo H = {halo} planes), not {devices}; "
+    if most < 2:
+        return where + f"run on one device, or use a grid of at least {devices * narrow} cells along x"
+    even = max(d for d in range(1, most + 1) if cells_x % d == 0)
+    fits = (f"use at most {most} devices" if moving else
+            f"use {even} device(s) (equal slabs split the {cells_x} cells evenly), or up to {most} with slabs that "
+            "move (--rebalance-every K)" if even < most else f"use at most {most} devices")
+    return where + f"{fits}, or a grid of at least {devices * narrow} cells along x"
 
 
 class Slabs(eqx.Module):
@@ -90,14 +98,14 @@ class Slabs(eqx.Module):
             check(isinstance(max_cells, (int, np.integer)) and not isinstance(max_cells, bool)
                   and 2 * halo + 1 <= max_cells <= cells_x, f"Slabs: max_cells = {max_cells!r} must be an integer "
                   f"from 2 H + 1 = {2 * halo + 1} (the narrowest slab) to the grid's {cells_x} cells along x")
-            check(devices * (2 * halo + 1) <= cells_x, _too_many(cells_x, devices, halo))
+            check(devices * (2 * halo + 1) <= cells_x, _too_many(cells_x, devices, halo, moving=True))
             check(cells_x <= devices * max_cells, f"Slabs: {devices} slabs of at most max_cells = {max_cells} cells "
                   f"cannot cover the grid's {cells_x} cells along x; raise max_cells to at least "
                   f"{-(-cells_x // devices)}")
             self.cells, self.devices, self.halo, self.axis_name = tuple(grid.cells), devices, halo, axis_name
             self.max_cells = int(max_cells)
             return
-        check(devices * (2 * halo + 1) <= cells_x, _too_many(cells_x, devices, halo))
+        check(devices * (2 * halo + 1) <= cells_x, _too_many(cells_x, devices, halo, moving=False))
         check(cells_x % devices == 0, f"Slabs: the grid's {cells_x} cells along x do not split into {devices} equal "
               f"slabs; choose a cell count along x that is a multiple of {devices}, or let the slabs differ: "
               "ShardedSimulation(..., rebalance_every=K) (--rebalance-every K on the command line)")

@@ -107,11 +107,20 @@ def _make_update(loss_ref, optimizer, bounds, fast_compile: bool = False) -> _Up
         # promote as it expects even when the caller runs JAX with strict promotion
         with jax.numpy_dtype_promotion("standard"):
             updates, s = optimizer.update(grads, s, r, value=value, grad=grads, value_fn=raw_loss)
-            grad_norm = jnp.sqrt(sum(jnp.sum(jnp.square(g)) for g in jax.tree_util.tree_leaves(grads)))  # shown
+            grad_norm = _norm(jax.tree_util.tree_leaves(grads))  # shown; infinite only where a component is
         return optax.apply_updates(r, masked(updates, free)), s, value, grad_norm
 
     # the backend's XLA options for gradients of steps (jm.compiler_options: 1.3x at 131k particles)
     return _Update(jax.jit(update, compiler_options=compiler_options(fast_compile=fast_compile)), {})
+
+
+def _norm(leaves) -> jnp.ndarray:
+    """The Euclidean norm of the leaves, scaled by their largest magnitude first: the squares of a finite
+    float32 gradient past 1.3e19 overflow, and its norm read infinite (a NaN or Inf component still gives
+    NaN or Inf)."""
+    largest = jnp.max(jnp.stack([jnp.max(jnp.abs(g)) for g in leaves]))
+    scale = jnp.where(jnp.isfinite(largest) & (largest > 0), largest, 1.0)
+    return scale * jnp.sqrt(sum(jnp.sum(jnp.square(g / scale)) for g in leaves))
 
 
 def _check_finite(it: int, value: float, grad_norm: float, params: dict, losses: list) -> None:
@@ -303,6 +312,7 @@ def calibrate(
 
     mask = {k: jnp.asarray(names is None or k in names) for k in init}  # the parameters fitted
     check(isinstance(fast_compile, bool), f"calibrate: fast_compile = {fast_compile!r}; pass True or False")
+    check(isinstance(check_stability, bool), f"calibrate: check_stability = {check_stability!r}; pass True or False")
     cached = _update_for(loss, optimizer, tuple(sorted(bounds.items())), fast_compile)
 
     losses, trajectory = [], {k: [] for k in init}
@@ -335,7 +345,6 @@ def calibrate(
             final[k] = np.asarray(jnp.asarray(init[k], dtype=final[k].dtype))
             trajectory[k] = [final[k]] * len(trajectory[k])
     wall_time = time.perf_counter() - start
-    check(isinstance(check_stability, bool), f"calibrate: check_stability = {check_stability!r}; pass True or False")
     if check_stability:
         _check_stable_at(loss, final)
     return CalibrationResult(final, np.asarray(losses), {k: np.asarray(v) for k, v in trajectory.items()},

@@ -314,7 +314,8 @@ def run(
                     else f"the {name} term's limit h^2 / (2 D k / (rho C_p))")
             warn(f"dt = {dtc:.6g} exceeds the stable limit {limit:.6g} (= {what}); "
                  f"use dt <= {0.5 * limit:.6g} (CFL 0.5) to stay stable", StableTimeStepWarning)
-        _check_start(sim, state)
+        if check_stability:  # check_stability=False: neither the start nor the steps
+            _check_start(sim, state)
         first = int(state.step) if start_step is None else int(start_step)
         require_steps(first + steps, "shorten t_end, use a larger dt, or split the run")
         frame_bytes = _require_frame_memory(sim, state, frames, save_particles, writer is None, fields)

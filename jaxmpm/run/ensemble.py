@@ -80,13 +80,13 @@ def _members_model(sim, params: dict):
     return sim
 
 
-def _check_members(members, params: dict) -> None:
+def _check_members(members, params: dict, own_states: bool = False) -> None:
     """Every member of a concrete parameter batch in its parameter's valid range, before tracing
     (inside the vmap the values are tracers and cannot be checked); ``members``: :func:`_members_model`."""
     for name, batch in params.items():
         _where(members, name)  # an unknown name is an error here, not inside the trace
         parameter = resolve_parameter(members, name)[1]
-        check(not parameter.through_init,
+        check(own_states or not parameter.through_init,
               f"ensemble: params[{name!r}] acts through sim.init only (the particles' masses), not in the step: "
               "members sharing one initial state would run alike; give each member its state, built by sim.init "
               "of a model with its value, with states= (a batch of states)")
@@ -235,7 +235,7 @@ def ensemble(sim, state, dt, steps: int, save_every: int = 1, *, params: dict | 
                                   "strategy='vmap'")
         chunk = positive_int("ensemble", "chunk", chunk)
     members = _members_model(sim, params or {})
-    _check_members(members, params or {})
+    _check_members(members, params or {}, own_states=states is not None)
     # a list of numbers is a batch too (its own leaves would be taken for members' scalars)
     params = None if params is None else {name: np.asarray(values) if isinstance(values, (list, tuple)) else values
                                           for name, values in params.items()}

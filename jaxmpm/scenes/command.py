@@ -192,8 +192,8 @@ def settings(items, builder, scene: str) -> dict:
         check(name not in out, f"--set {name} is given twice")
         try:
             out[name] = ast.literal_eval(text.strip())
-        except (ValueError, SyntaxError):
-            out[name] = text.strip()  # a bare word: boundary=mirror
+        except (ValueError, SyntaxError, TypeError, MemoryError, RecursionError):
+            out[name] = text.strip()  # a bare word (boundary=mirror), or no literal: the scene checks it
     return out
 
 

@@ -292,8 +292,8 @@ class ShapeFunction(eqx.Module):
     def __check_init__(self):
         cls = type(self)
         missing = [hook for hook in ("_base", "_kernel") if getattr(cls, hook) is getattr(ShapeFunction, hook)]
-        count = cls.nodes_per_axis
-        check(not missing and isinstance(count, int) and count >= 1,
+        count = self.nodes_per_axis  # a class constant, or a property of the instance
+        check(not missing and isinstance(count, (int, np.integer)) and not isinstance(count, bool) and count >= 1,
               f"{cls.__name__}: a shape function sets nodes_per_axis (a positive int; now {count!r}) and margin, "
               f"and defines _base(xi) and _kernel(r){'; missing: ' + ', '.join(missing) if missing else ''} "
               "(docs/extending.md, 'A shape function')")

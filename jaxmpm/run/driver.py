@@ -233,8 +233,11 @@ def run(
     Returns ``(final_state, history)``.  Traceable: under ``jax.grad``/``vmap``/``jit`` it is a
     single ``lax.scan`` (:func:`rollout`, static lengths).  Called eagerly it runs one compiled loop whose
     frame and step counts are runtime values (:func:`_run_at_once`: a new ``steps`` or ``save_every``
-    compiles nothing), warns when ``dt`` exceeds the CFL limit and raises :class:`InstabilityError` naming
-    the first bad step.  With ``writer`` (a
+    compiles nothing), refuses a state that is unstable before its first step (NaN, det F <= 0, a particle
+    off the grid: an InputError), warns when ``dt`` exceeds the CFL limit and raises
+    :class:`InstabilityError` naming the first bad step, its particle and cause, with the frames saved
+    before it as ``error.history`` where no writer holds them (``check_stability=False``: neither check,
+    every frame returned).  With ``writer`` (a
     :class:`jaxmpm.H5Writer`) or ``progress=True`` it runs in chunks of ``frames_per_chunk``
     frames, writing/reporting each before the next, and returns ``(final_state, None)`` when
     a writer holds the frames.  ``checkpoint`` controls rematerialisation for reverse-mode
@@ -1011,9 +1014,8 @@ def _raise_if_failed(failure: Failure, dt, state0, reached=None, grid=None, hist
     :class:`ParticlesLeftGrid` when particles left the grid (cause 3: the grid is too small, not
     a numerical instability), with the particle's position in ``reached`` when that is the state
     of the failing step (the chunked runner stops there) and the box of ``grid``.  ``history``: the
-    run's frames (a History whose frame 0 is ``state0``'s, one every ``save_every`` steps, or a
-    function of ``kept``, the count of frames before the failing step, returning them); the error
-    carries those before the failing step (:attr:`InstabilityError.history`)."""
+    frames saved before the failing step (a History), or a function of the failing step returning them
+    (:func:`_frames_before`); the error carries them (:attr:`InstabilityError.history`)."""
     step = int(failure.step)
     if step < 0:
         return

@@ -145,6 +145,9 @@ def test_set_reaches_a_scene_keyword_without_an_option_and_is_stored_for_resume(
                         (["--set", "n_particles={[1]: 2}"], "mpm88: n_particles = '{[1]: 2}' must be a positive")]:
         assert run_cli(["run", "mpm88", *argv, "--out", out]) == 2
         assert words in one_error_line(capsys)
+    assert run_cli(["run", "heat1d", "--set", "E=3", "--out", out]) == 2  # an option it does not take at all
+    assert "--set E: scene 'heat1d' has no keyword 'E'; its keywords without an option of their own: length=1.0" in \
+        one_error_line(capsys)
     assert run_cli(["scenes"]) == 0
     assert "  --set n_particles=8192, n_grid=128, bound=3, speed=1.0, seed=0" in capsys.readouterr().out
 

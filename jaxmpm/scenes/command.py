@@ -179,13 +179,14 @@ def settings(items, builder, scene: str) -> dict:
 
     out = {}
     other = other_keywords(builder)
-    _, takes_any = accepted_keywords(builder)
+    keywords, takes_any = accepted_keywords(builder)
     named = {k: o for o, k in reversed(list(SCENE_OPTIONS.items()))}
     for item in items or ():
         name, equals, text = item.partition("=")
         name = name.strip()
         check(equals and name.isidentifier(), f"--set {item!r}: give NAME=VALUE, e.g. --set n_particles=32768")
-        check(name not in named, f"--set {name}: {scene!r} takes it as the option {named.get(name)}; use that")
+        check(name not in named or (name not in keywords and not takes_any),  # else: no such keyword, below
+              f"--set {name}: {scene!r} takes it as the option {named.get(name)}; use that")
         listing = ", ".join(f"{k}={v!r}" for k, v in other.items()) or "none"
         check(name in other or takes_any, f"--set {name}: scene {scene!r} has no keyword {name!r}; its keywords "
                                           f"without an option of their own: {listing}")

@@ -10,7 +10,7 @@ Taichi's 88-line demo.  The two are the same scene with two terms written differ
   F <- (I + dt L_p) F with L_p = sum_i v_i (x) G_pi, so J <- det(I + dt L_p) J, and the fluid resets F
   to sqrt(J) I.
 
-Two Taichi kernels, both float64 on one CPU thread:
+Two forms of the benchmarks' Taichi kernel (``benchmarks/_taichi_mpm.py``), both float64 on one CPU thread:
 
 1. **Taichi in jaxmpm's form** (both terms rewritten as above, everything else mpm88's): from a
    start with random velocities and J = 1 +- 0.02 (so that the first step has stress), one step
@@ -45,91 +45,10 @@ import numpy as np  # noqa: E402
 import jaxmpm as jm  # noqa: E402
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-N_GRID, BOUND, E, GRAVITY = 128, 3, 400.0, 9.8
+sys.path.insert(0, os.path.join(os.path.dirname(HERE), "benchmarks"))
+from _taichi_mpm import substep_kernel  # noqa: E402  (the benchmarks' mpm88 substep, in either form)
 
-
-def taichi_substep(ti, n: int, form: str, dt: float):
-    """(substep, fields) of mpm88 in 2D, float64: ``form`` "mls" (Taichi's own) or "gradient" (jaxmpm's
-    force and J update).  ``fields`` = (x, v, C, J)."""
-    gradient = form == "gradient"
-    dx = 1 / N_GRID
-    p_vol = (dx * 0.5) ** 2
-    p_mass = p_vol
-    x = ti.Vector.field(2, ti.f64, n)
-    v = ti.Vector.field(2, ti.f64, n)
-    C = ti.Matrix.field(2, 2, ti.f64, n)
-    J = ti.field(ti.f64, n)
-    grid_v = ti.Vector.field(2, ti.f64, (N_GRID, N_GRID))
-    grid_m = ti.field(ti.f64, (N_GRID, N_GRID))
-
-    @ti.func
-    def weights(fx):
-        """The quadratic B-spline's weights and their derivatives d/dX_p (1/dx), per axis."""
-        w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1) ** 2, 0.5 * (fx - 0.5) ** 2]
-        dw = [(fx - 1.5) / dx, -2 * (fx - 1) / dx, (fx - 0.5) / dx]
-        return w, dw
-
-    @ti.kernel
-    def substep():
-        for i, j in grid_m:
-            grid_v[i, j] = [0, 0]
-            grid_m[i, j] = 0
-        for p in x:  # P2G
-            Xp = x[p] / dx
-            base = int(Xp - 0.5)
-            fx = Xp - base
-            w, dw = weights(fx)
-            stress = -dt * 4 * E * p_vol * (J[p] - 1) / dx**2  # mpm88's MLS force, D^-1 = 4 / dx^2
-            affine = p_mass * C[p]
-            if ti.static(not gradient):
-                affine += ti.Matrix([[stress, 0], [0, stress]])
-            for i, j in ti.static(ti.ndrange(3, 3)):
-                offset = ti.Vector([i, j])
-                dpos = (offset - fx) * dx
-                weight = w[i].x * w[j].y
-                momentum = weight * (p_mass * v[p] + affine @ dpos)
-                if ti.static(gradient):  # f dt = -V0 tau G dt, tau = E (J - 1) I
-                    G = ti.Vector([dw[i].x * w[j].y, w[i].x * dw[j].y])
-                    momentum += -dt * p_vol * E * (J[p] - 1) * G
-                grid_v[base + offset] += momentum
-                grid_m[base + offset] += weight * p_mass
-        for i, j in grid_m:  # grid update and mpm88's one-sided walls
-            if grid_m[i, j] > 0:
-                grid_v[i, j] /= grid_m[i, j]
-            grid_v[i, j].y -= dt * GRAVITY
-            if i < BOUND and grid_v[i, j].x < 0:
-                grid_v[i, j].x = 0
-            if i > N_GRID - BOUND and grid_v[i, j].x > 0:
-                grid_v[i, j].x = 0
-            if j < BOUND and grid_v[i, j].y < 0:
-                grid_v[i, j].y = 0
-            if j > N_GRID - BOUND and grid_v[i, j].y > 0:
-                grid_v[i, j].y = 0
-        for p in x:  # G2P
-            Xp = x[p] / dx
-            base = int(Xp - 0.5)
-            fx = Xp - base
-            w, dw = weights(fx)
-            new_v = ti.Vector.zero(ti.f64, 2)
-            new_C = ti.Matrix.zero(ti.f64, 2, 2)
-            L = ti.Matrix.zero(ti.f64, 2, 2)
-            for i, j in ti.static(ti.ndrange(3, 3)):
-                offset = ti.Vector([i, j])
-                dpos = (offset - fx) * dx
-                weight = w[i].x * w[j].y
-                g_v = grid_v[base + offset]
-                new_v += weight * g_v
-                new_C += 4 * weight * g_v.outer_product(dpos) / dx**2
-                L += g_v.outer_product(ti.Vector([dw[i].x * w[j].y, w[i].x * dw[j].y]))
-            v[p] = new_v
-            x[p] += dt * v[p]
-            if ti.static(gradient):
-                J[p] *= (ti.Matrix.identity(ti.f64, 2) + dt * L).determinant()
-            else:
-                J[p] *= 1 + dt * new_C.trace()
-            C[p] = new_C
-
-    return substep, (x, v, C, J)
+N_GRID = 128
 
 
 def kinetic(v, mass: float) -> float:
@@ -164,7 +83,7 @@ def compare(ti, particles: int, checkpoints: list, perturbed: bool) -> dict:
     out = {"particles": particles, "perturbed": perturbed, "rows": []}
     for form in ("gradient", "mls"):
         ti.init(arch=ti.cpu, default_fp=ti.f64, cpu_max_num_threads=1, log_level=ti.WARN)
-        substep, (x, v, C, J) = taichi_substep(ti, particles, form, dt)
+        substep, (x, v, C, J) = substep_kernel(ti, particles, 2, N_GRID, dt, real=ti.f64, form=form)
         x.from_numpy(x0)
         v.from_numpy(v0)
         J.from_numpy(J0)

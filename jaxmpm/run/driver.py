@@ -357,8 +357,9 @@ def _run_plain(sim, state, dt, frames, save_every, save_particles, checkpoint, h
         final, later, failure = _jit_rollout_in_place(
             (sim, dt, frames, save_every, save_particles, checkpoint, history_gradients, fields, memory), state)
         history = _jit_joined(first, later)
-    if check_stability:
-        _raise_if_failed(failure, dt, start, None, sim.grid, _frames_before(history, int(start.step), save_every))
+    if check_stability and int(failure.step) >= 0:
+        kept = _frames_before(history, int(start.step), save_every, int(failure.step))
+        _raise_if_failed(failure, dt, start, None, sim.grid, kept)
     return final, history
 
 
@@ -1014,8 +1015,8 @@ def _raise_if_failed(failure: Failure, dt, state0, reached=None, grid=None, hist
     :class:`ParticlesLeftGrid` when particles left the grid (cause 3: the grid is too small, not
     a numerical instability), with the particle's position in ``reached`` when that is the state
     of the failing step (the chunked runner stops there) and the box of ``grid``.  ``history``: the
-    frames saved before the failing step (a History), or a function of the failing step returning them
-    (:func:`_frames_before`); the error carries them (:attr:`InstabilityError.history`)."""
+    frames saved before the failing step (a History, or None), which the error carries
+    (:attr:`InstabilityError.history`)."""
     step = int(failure.step)
     if step < 0:
         return
@@ -1027,7 +1028,7 @@ def _raise_if_failed(failure: Failure, dt, state0, reached=None, grid=None, hist
                                   None if grid is None else grid.lower, None if grid is None else grid.upper, t)
     else:
         error = InstabilityError(step, f"{CAUSES.get(int(failure.cause), 'unknown')} (particle {particle})", t)
-    error.history = history(step) if callable(history) else history
+    error.history = history
     raise error
 
 
@@ -1058,13 +1059,10 @@ def _check_start(sim, state, rows: int = 65536) -> None:
                          f"{sim.shape.margin} cells of room); move it or enlarge the grid")
 
 
-def _frames_before(history, start_step: int, save_every: int):
-    """``kept(step)``: the frames of ``history`` (frame 0 at ``start_step``, one every ``save_every`` steps)
-    strictly before the failing ``step``, or None if there are none (a History of T frames)."""
-    def kept(step: int):
-        count = (step - start_step - 1) // save_every + 1  # frames at start_step + i save_every < step
-        if history is None or count <= 0:
-            return None
-        return jax.tree_util.tree_map(lambda a: a[:count], history)
-
-    return kept
+def _frames_before(history, start_step: int, save_every: int, step: int):
+    """The frames of ``history`` (frame 0 at ``start_step``, one every ``save_every`` steps) strictly before
+    the failing ``step``, or None if there are none."""
+    count = (step - start_step - 1) // save_every + 1  # frames at start_step + i save_every < step
+    if history is None or count <= 0:
+        return None
+    return jax.tree_util.tree_map(lambda a: a[:count], history)

@@ -84,8 +84,10 @@ def _check_members(members, params: dict, own_states: bool = False) -> None:
     """Every member of a concrete parameter batch in its parameter's valid range, before tracing
     (inside the vmap the values are tracers and cannot be checked); ``members``: :func:`_members_model`."""
     for name, batch in params.items():
-        _where(members, name)  # an unknown name is an error here, not inside the trace
-        parameter = resolve_parameter(members, name)[1]
+        found = resolve_parameter(members, name)
+        if found is None:
+            _where(members, name)  # an unknown name: the error naming the choices, here, not inside the trace
+        parameter = found[1]
         check(own_states or not parameter.through_init,
               f"ensemble: params[{name!r}] acts through sim.init only (the particles' masses), not in the step: "
               "members sharing one initial state would run alike; give each member its state, built by sim.init "
